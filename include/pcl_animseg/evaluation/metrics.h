@@ -1,0 +1,53 @@
+#pragma once
+/** \file metrics.h Scores of a decomposition: ARI, temporal consistency, rigidity (free functions). */
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+
+#include <string>
+#include <vector>
+
+namespace pcl_animseg {
+namespace evaluation {
+
+/** \brief Adjusted Rand index (Hubert & Arabie) between two labelings of the same points.
+ * Points where either label is negative are ignored. 1 for identical partitions (up to renaming);
+ * returns 1 when both have a single cluster, and 0 for fewer than two points. */
+double adjustedRandIndex(const std::vector<int>& a, const std::vector<int>& b);
+
+/** \brief Best rigid transform (Kabsch, no scaling) with dst ≈ R * src + t; `rms` is the
+ * root-mean-square residual. Columns are points; needs at least 3 points (identity otherwise). */
+struct RigidFit {
+  Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d translation = Eigen::Vector3d::Zero();
+  double rms = 0.0;
+};
+RigidFit kabsch(const Eigen::Matrix3Xd& src, const Eigen::Matrix3Xd& dst);
+
+/** \brief Number of distinct non-negative labels. */
+int countParts(const std::vector<int>& labels);
+
+/** \brief Rigidity error of a labelling when all frames share one vertex order: for each predicted
+ * part, the Kabsch fit from frame 0 to every frame; RMS residual over all points and frames divided
+ * by frame 0's bounding-box diagonal. positions[t] is 3 x N (same N for every frame); labels is one
+ * labelling of the N vertices (e.g. frame 0's) — points with label < 0 are ignored. */
+double rigidityError(const std::vector<Eigen::Matrix3Xd>& positions, const std::vector<int>& labels);
+
+/** \brief Everything animseg_eval reports. */
+struct Report {
+  double pooled_ari = 0.0;         ///< ARI over all points of all frames (rewards coherence)
+  double mean_frame_ari = 0.0;     ///< mean over frames of the per-frame ARI
+  std::vector<double> frame_ari;   ///< per frame
+  int predicted_parts = 0;         ///< distinct labels over the whole sequence
+  int true_parts = 0;
+  double rigidity_error = -1.0;    ///< -1 when vertex order is not shared
+  std::size_t points = 0;          ///< points scored (both labels >= 0)
+  std::string toJson() const;
+};
+
+/** \brief Scores predicted against true labels, frame by frame (pred[t], truth[t] same length);
+ * `positions` (optional, 3 x N per frame, all with the same N) enables the rigidity error. */
+Report evaluate(const std::vector<std::vector<int>>& pred, const std::vector<std::vector<int>>& truth,
+                const std::vector<Eigen::Matrix3Xd>& positions = {});
+
+}  // namespace evaluation
+}  // namespace pcl_animseg

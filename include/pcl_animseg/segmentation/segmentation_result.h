@@ -1,0 +1,35 @@
+#pragma once
+/** \file segmentation_result.h What the mean shift stage hands to refinement and hierarchy. */
+#include <Eigen/Core>
+
+#include <vector>
+
+namespace pcl_animseg {
+namespace segmentation {
+
+/** \brief A saddle between two adjacent clusters a and b (Sect. 5): the highest density found on
+ * their common border. */
+struct Saddle {
+  int a = -1;
+  int b = -1;
+  double density = 0.0;
+};
+
+/** \brief Result of clustering a whole sequence jointly.
+ *
+ * Labels are 0..num_clusters-1 and mean the same part in every frame. `labels[t][j]` is the
+ * cluster of point j of frame t (kept-point order, as in PointCloudSequence), -1 if unassigned.
+ */
+struct SegmentationResult {
+  std::vector<std::vector<int>> labels;
+  int num_clusters = 0;
+  /** Mode of each cluster in the joint feature space (rows = clusters). */
+  Eigen::MatrixXf modes;
+  /** Density f(y) at each cluster's mode (Eq. 4). */
+  std::vector<double> mode_density;
+  /** Saddle densities between adjacent clusters (each unordered pair once). */
+  std::vector<Saddle> saddles;
+};
+
+}  // namespace segmentation
+}  // namespace pcl_animseg

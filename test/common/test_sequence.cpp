@@ -1,0 +1,59 @@
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/sequence.h>
+
+#include <gtest/gtest.h>
+
+using pcl_animseg::PointCloudSequence;
+
+namespace {
+PointCloudSequence::Cloud::Ptr grid(int n, float step) {
+  PointCloudSequence::Cloud::Ptr c(new PointCloudSequence::Cloud);
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j) {
+      pcl::PointNormal p;
+      p.x = i * step;
+      p.y = j * step;
+      p.z = 0;
+      p.normal_x = p.normal_y = 0;
+      p.normal_z = 1;
+      c->push_back(p);
+    }
+  return c;
+}
+}  // namespace
+
+TEST(PointCloudSequence, OffsetsFrameIdsAndFlatten) {
+  PointCloudSequence seq;
+  seq.addFrame(grid(4, 1.f), "a");
+  seq.addFrame(grid(5, 1.f), "b");
+  ASSERT_EQ(seq.size(), 2u);
+  EXPECT_EQ(seq.totalPoints(), 41u);
+  const auto off = seq.offsets();
+  ASSERT_EQ(off.size(), 3u);
+  EXPECT_EQ(off[1], 16u);
+  EXPECT_EQ(off[2], 41u);
+  const auto ids = seq.frameIds();
+  EXPECT_EQ(ids[15], 0);
+  EXPECT_EQ(ids[16], 1);
+  EXPECT_EQ(seq.flatten()->size(), 41u);
+}
+
+TEST(PointCloudSequence, InputOrderKeepsDroppedPointsAsMinusOne) {
+  PointCloudSequence seq;
+  // 4 kept points that were input points 0, 2, 3, 5 of 6.
+  seq.addFrame(grid(2, 1.f), "a", "", {0, 2, 3, 5}, 6);
+  const auto out = seq.toInputOrder(0, {7, 8, 9, 10});
+  EXPECT_EQ(out, (std::vector<int>{7, -1, 8, 9, -1, 10}));
+  EXPECT_THROW(seq.toInputOrder(0, {1, 2}), pcl_animseg::Error);
+  EXPECT_THROW(seq.addFrame(grid(2, 1.f), "b", "", {0, 1, 2, 9}, 6), pcl_animseg::Error);
+}
+
+TEST(PointCloudSequence, MeanSpacingAndDiagonal) {
+  const auto c = grid(10, 0.5f);
+  EXPECT_NEAR(pcl_animseg::meanSpacing(*c), 0.5, 1e-6);
+  EXPECT_NEAR(pcl_animseg::boundingBoxDiagonal(*c), std::sqrt(2.0) * 4.5, 1e-5);
+  PointCloudSequence::Cloud same;
+  same.resize(5);
+  for (auto& p : same) p.x = p.y = p.z = 1.f;
+  EXPECT_THROW(pcl_animseg::meanSpacing(same), pcl_animseg::Error);
+}
