@@ -15,7 +15,7 @@ function(pcl_animseg_add_module name)
     target_include_directories(${_target} SYSTEM PUBLIC ${PCL_INCLUDE_DIRS})
     target_compile_definitions(${_target} PUBLIC ${PCL_DEFINITIONS})
     target_link_libraries(${_target} PUBLIC ${_deps} ${PCL_ANIMSEG_PCL_LIBS} Eigen3::Eigen
-                          OpenMP::OpenMP_CXX PRIVATE FLANN::FLANN)
+                          OpenMP::OpenMP_CXX Boost::program_options PRIVATE FLANN::FLANN)
     set_target_properties(${_target} PROPERTIES
       LIBRARY_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/lib
       VERSION ${PROJECT_VERSION} SOVERSION ${PROJECT_VERSION_MAJOR}.${PROJECT_VERSION_MINOR}
