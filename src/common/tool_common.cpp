@@ -1,7 +1,11 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/tool_common.h>
 
+#include <boost/property_tree/json_parser.hpp>
+#include <boost/property_tree/ptree.hpp>
+
 #include <cmath>
+#include <fstream>
 #include <iostream>
 #include <sstream>
 
@@ -10,17 +14,130 @@ namespace po = boost::program_options;
 namespace pcl_animseg {
 namespace tools {
 
+std::string jsonEscape(const std::string& s) {
+  std::string out;
+  for (char c : s) {
+    switch (c) {
+      case '"': out += "\\\""; break;
+      case '\\': out += "\\\\"; break;
+      case '\n': out += "\\n"; break;
+      case '\t': out += "\\t"; break;
+      default:
+        if (static_cast<unsigned char>(c) < 0x20) {
+          char buf[8];
+          std::snprintf(buf, sizeof(buf), "\\u%04x", static_cast<unsigned>(c));
+          out += buf;
+        } else {
+          out += c;
+        }
+    }
+  }
+  return out;
+}
+
+namespace {
+
+// Turns the JSON config into "--key=value" arguments for the same parser as the command line, so
+// that a config file and the command line mean exactly the same thing.
+std::vector<std::string> configArguments(const std::string& path, const po::options_description& od) {
+  namespace pt = boost::property_tree;
+  pt::ptree tree;
+  try {
+    pt::read_json(path, tree);
+  } catch (const pt::json_parser_error& e) {
+    throw Error("config file '" + path + "': " + e.message() + " (line " + std::to_string(e.line()) +
+                ")");
+  }
+  std::vector<std::string> args;
+  for (const auto& kv : tree) {
+    const std::string& key = kv.first;
+    if (key.empty()) throw Error("config file '" + path + "' must hold a JSON object");
+    if (key == "config") throw Error("config file '" + path + "' may not name another config");
+    const po::option_description* d = od.find_nothrow(key, false);
+    if (!d) throw Error("config file '" + path + "': unknown option '" + key + "'");
+    std::string value;
+    if (!kv.second.empty()) {  // an array: join its elements with commas
+      for (const auto& el : kv.second) {
+        if (!value.empty()) value += ",";
+        value += el.second.get_value<std::string>();
+      }
+    } else {
+      value = kv.second.get_value<std::string>();
+    }
+    if (d->semantic()->max_tokens() == 0) {  // a flag
+      if (value == "true" || value == "1") args.push_back("--" + key);
+      else if (value != "false" && value != "0")
+        throw Error("config file '" + path + "': option '" + key + "' takes true or false");
+    } else {
+      args.push_back("--" + key + "=" + value);
+    }
+  }
+  return args;
+}
+
+}  // namespace
+
+std::string ToolContext::optionsJson() const {
+  std::ostringstream os;
+  os << "{";
+  bool first = true;
+  for (const auto& kv : vm) {
+    if (kv.first == "help") continue;
+    const auto& v = kv.second.value();
+    std::string text;
+    bool quote = true;
+    if (const auto* s = boost::any_cast<std::string>(&v)) text = *s;
+    else if (const auto* d = boost::any_cast<double>(&v)) {
+      std::ostringstream n;
+      n.precision(10);
+      n << *d;
+      text = n.str();
+      quote = false;
+    } else if (const auto* i = boost::any_cast<int>(&v)) {
+      text = std::to_string(*i);
+      quote = false;
+    } else if (const auto* u = boost::any_cast<unsigned>(&v)) {
+      text = std::to_string(*u);
+      quote = false;
+    } else if (const auto* b = boost::any_cast<bool>(&v)) {
+      text = *b ? "true" : "false";
+      quote = false;
+    } else if (v.empty()) {  // a bare flag (po::bool_switch-less)
+      text = "true";
+      quote = false;
+    } else {
+      text = "?";
+    }
+    os << (first ? "" : ", ") << "\"" << jsonEscape(kv.first) << "\": ";
+    if (quote) os << "\"" << jsonEscape(text) << "\"";
+    else os << text;
+    first = false;
+  }
+  os << "}";
+  return os.str();
+}
+
 int runTool(int argc, char** argv, const std::string& name, const std::string& usage,
             po::options_description options, const std::function<int(const ToolContext&)>& body) {
   try {
     options.add_options()("help,h", "show this help and exit")(
-        "quiet,q", "no progress or timing on stderr")("verbose,v", "more detail on stderr");
+        "quiet,q", "no progress or timing on stderr")("verbose,v", "more detail on stderr")(
+        "config", po::value<std::string>(), "JSON file of options (keys = long option names; "
+        "the command line wins)");
     ToolContext ctx;
     try {
       po::store(po::command_line_parser(argc, argv).options(options).run(), ctx.vm);
       if (ctx.vm.count("help")) {
         std::cout << "Usage: " << usage << "\n\n" << options << std::endl;
         return 0;
+      }
+      if (ctx.vm.count("config")) {
+        ctx.config_path = ctx.vm["config"].as<std::string>();
+        if (!std::ifstream(ctx.config_path))
+          throw Error("cannot read config file '" + ctx.config_path + "'");
+        const auto args = configArguments(ctx.config_path, options);
+        // store() keeps values already present, so the command line wins over the file.
+        po::store(po::command_line_parser(args).options(options).run(), ctx.vm);
       }
       po::notify(ctx.vm);
     } catch (const po::error& e) {
