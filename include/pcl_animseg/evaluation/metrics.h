@@ -15,7 +15,9 @@ namespace evaluation {
 double adjustedRandIndex(const std::vector<int>& a, const std::vector<int>& b);
 
 /** \brief Best rigid transform (Kabsch, no scaling) with dst ≈ R * src + t; `rms` is the
- * root-mean-square residual. Columns are points; needs at least 3 points (identity otherwise). */
+ * root-mean-square residual. Columns are points. R is always a proper rotation (det +1, the
+ * reflection case is fixed). With fewer than 3 (or collinear) points the fit is still optimal but
+ * not unique; with none it is the identity. Throws Error when src and dst differ in size. */
 struct RigidFit {
   Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
   Eigen::Vector3d translation = Eigen::Vector3d::Zero();
@@ -40,12 +42,18 @@ struct Report {
   int predicted_parts = 0;         ///< distinct labels over the whole sequence
   int true_parts = 0;
   double rigidity_error = -1.0;    ///< -1 when vertex order is not shared
+  /** Fraction of vertices whose predicted label is the same in every frame; -1 when the frames
+   * do not share a vertex order (then "the same vertex" has no meaning). */
+  double label_consistency = -1.0;
   std::size_t points = 0;          ///< points scored (both labels >= 0)
+  /** \brief The report as a JSON object (keys as the fields above). */
   std::string toJson() const;
 };
 
 /** \brief Scores predicted against true labels, frame by frame (pred[t], truth[t] same length);
- * `positions` (optional, 3 x N per frame, all with the same N) enables the rigidity error. */
+ * `positions` (optional, 3 x N per frame, all with the same N as every pred[t]) enables the
+ * rigidity error (of frame 0's predicted labelling) and the label consistency. Throws Error on a
+ * length mismatch. */
 Report evaluate(const std::vector<std::vector<int>>& pred, const std::vector<std::vector<int>>& truth,
                 const std::vector<Eigen::Matrix3Xd>& positions = {});
 
