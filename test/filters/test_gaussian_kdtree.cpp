@@ -1,0 +1,116 @@
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/filters/gaussian_kdtree.h>
+
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <random>
+
+using pcl_animseg::filters::bruteForceGaussTransform;
+using pcl_animseg::filters::GaussianKdTree;
+using pcl_animseg::filters::GaussianKdTreeParams;
+
+namespace {
+
+// Clustered data in d dimensions lying near a low-dimensional set (like the joint feature space
+// of a surface sequence): blobs along a random curve, in units of the kernel's sigma.
+Eigen::MatrixXf makeData(int n, int d, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> g(0.0f, 1.0f);
+  std::uniform_real_distribution<float> u(0.0f, 1.0f);
+  Eigen::MatrixXf dirs(3, d);
+  for (int i = 0; i < dirs.size(); ++i) dirs(i) = g(rng);
+  Eigen::MatrixXf p(n, d);
+  for (int i = 0; i < n; ++i) {
+    const float a = 6.0f * u(rng), b = 6.0f * u(rng), c = 6.0f * u(rng);
+    for (int k = 0; k < d; ++k)
+      p(i, k) = a * dirs(0, k) / 2.0f + b * dirs(1, k) / 2.0f + c * dirs(2, k) / 2.0f +
+                0.05f * g(rng);
+  }
+  return p;
+}
+
+double relativeError(const Eigen::MatrixXf& a, const Eigen::MatrixXf& b) {
+  return (a - b).norm() / b.norm();
+}
+
+}  // namespace
+
+TEST(GaussianKdTree, MatchesBruteForceGaussTransform) {
+  for (int d : {3, 8, 30}) {
+    const Eigen::MatrixXf p = makeData(4000, d, 7 + d);
+    Eigen::MatrixXf values(p.rows(), 2);
+    values.col(0).setOnes();
+    values.col(1) = p.col(0);
+    const Eigen::MatrixXf q = p.topRows(300);
+    Eigen::MatrixXf exact, approx;
+    bruteForceGaussTransform(p, values, q, exact);
+    GaussianKdTreeParams params;
+    params.leaf_extent = 0.5f;
+    GaussianKdTree tree(params);
+    tree.build(p);
+    tree.filter(values, q, approx);
+    std::printf("d=%d samples=%zu N/M=%.1f rel.error=%.4f\n", d, tree.numSamples(),
+                tree.samplingFactor(), relativeError(approx, exact));
+    EXPECT_LT(relativeError(approx, exact), 0.1) << "d = " << d << ", samples "
+                                                   << tree.numSamples();
+    // Mean shift only needs the ratio (Eq. 8 / Eq. 10): tighter.
+    const Eigen::ArrayXf ratio_a = approx.col(1).array() / approx.col(0).array();
+    const Eigen::ArrayXf ratio_e = exact.col(1).array() / exact.col(0).array();
+    EXPECT_LT((ratio_a - ratio_e).abs().maxCoeff(), 0.3f) << "d = " << d;
+    EXPECT_GT(tree.samplingFactor(), 1.0);
+  }
+}
+
+TEST(GaussianKdTree, DefaultParamsAreCoarserButClose) {
+  const Eigen::MatrixXf p = makeData(20000, 30, 3);
+  Eigen::MatrixXf values = Eigen::MatrixXf::Ones(p.rows(), 1);
+  const Eigen::MatrixXf q = p.topRows(200);
+  Eigen::MatrixXf exact, approx;
+  bruteForceGaussTransform(p, values, q, exact);
+  GaussianKdTree tree;
+  tree.build(p);
+  tree.filter(values, q, approx);
+  std::printf("default: samples=%zu rel.error=%.4f\n", tree.numSamples(),
+              relativeError(approx, exact));
+  EXPECT_LT(relativeError(approx, exact), 0.2);
+  EXPECT_LT(tree.numSamples(), p.rows() / 4);
+}
+
+TEST(GaussianKdTree, DeterministicAndIdenticalPoints) {
+  Eigen::MatrixXf p = Eigen::MatrixXf::Constant(500, 5, 2.0f);
+  GaussianKdTree tree;
+  tree.build(p);
+  EXPECT_EQ(tree.numSamples(), 1u);
+  Eigen::MatrixXf values = Eigen::MatrixXf::Ones(500, 1), out;
+  tree.filter(values, p.topRows(3), out);
+  EXPECT_NEAR(out(0, 0), 500.0f, 1e-2f);
+
+  const Eigen::MatrixXf data = makeData(3000, 10, 1);
+  GaussianKdTree a, b;
+  a.build(data);
+  b.build(data);
+  Eigen::MatrixXf oa, ob;
+  Eigen::MatrixXf vals = Eigen::MatrixXf::Ones(data.rows(), 1);
+  a.filter(vals, data, oa);
+  b.filter(vals, data, ob);
+  EXPECT_TRUE(oa == ob);
+}
+
+TEST(GaussianKdTree, BadInput) {
+  GaussianKdTree tree;
+  EXPECT_THROW(tree.build(Eigen::MatrixXf(0, 3)), pcl_animseg::Error);
+  Eigen::MatrixXf p = Eigen::MatrixXf::Zero(10, 3);
+  p(2, 1) = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_THROW(tree.build(p), pcl_animseg::Error);
+  Eigen::MatrixXf out;
+  EXPECT_THROW(tree.filter(Eigen::MatrixXf::Ones(10, 1), p, out), pcl_animseg::Error);
+  tree.build(Eigen::MatrixXf::Random(10, 3));
+  EXPECT_THROW(tree.filter(Eigen::MatrixXf::Ones(9, 1), p, out), pcl_animseg::Error);
+  EXPECT_THROW(tree.filter(Eigen::MatrixXf::Ones(10, 1), Eigen::MatrixXf::Zero(2, 4), out),
+               pcl_animseg::Error);
+  GaussianKdTreeParams bad;
+  bad.leaf_extent = 0.0f;
+  GaussianKdTree t2(bad);
+  EXPECT_THROW(t2.build(Eigen::MatrixXf::Random(10, 3)), pcl_animseg::Error);
+}
