@@ -1,0 +1,92 @@
+#pragma once
+/** \file rigid_motion.h The rigid motion of every part, frame 0 -> frame t, without correspondences.
+ *
+ * What a rigging or skinning user needs from a decomposition (the paper's rigid-bone application):
+ * for each part, the rotation and translation that best map its points in frame 0 onto the same
+ * part in frame t. Frames share no vertex order, so the fit is point-to-plane ICP (PCL's
+ * registration module), chained along the sequence: frame t starts from frame t-1's transform.
+ * The RMS residual (nearest-neighbour distance after alignment) is a quality measure that needs no
+ * ground truth: a part that is not rigid, or not one part, shows a large residual.
+ */
+#include <pcl_animseg/sequence.h>
+
+#include <Eigen/Core>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace pcl_animseg {
+namespace segmentation {
+
+/** \brief x_t ≈ rotation * x_0 + translation for the part's points. */
+struct RigidTransform {
+  Eigen::Matrix3d rotation = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d translation = Eigen::Vector3d::Zero();
+  /** RMS nearest-neighbour distance from the transformed frame-0 points to the part in frame t. */
+  double rms = 0.0;
+  /** False when the part has too few points in frame 0 or in frame t (then rotation/translation
+   * carry the last valid estimate, for chaining, and rms is -1). */
+  bool valid = false;
+
+  Eigen::Vector3d apply(const Eigen::Vector3d& p) const { return rotation * p + translation; }
+  RigidTransform inverse() const;
+};
+
+/** \brief Knobs of RigidMotionEstimation (one struct so tools and --config map onto it). */
+struct RigidMotionParams {
+  /** Parts are subsampled (evenly, deterministic) to at most this many source points. */
+  int max_points = 3000;
+  /** Parts with fewer points than this in a frame get no transform there. */
+  int min_points = 6;
+  int max_iterations = 40;
+  /** Correspondence rejection distance of the final ICP pass, in units of the target frame's mean
+   * spacing. A first pass uses `coarse_distance` x the part's bounding-box diagonal so that large
+   * motions between consecutive frames are still captured. */
+  double max_correspondence_spacings = 4.0;
+  double coarse_distance = 0.25;
+  double transformation_epsilon = 1e-10;
+};
+
+/** \brief Transforms of one part in every frame (frames[t]; frames[0] is the identity). */
+struct PartMotion {
+  int part = -1;
+  std::size_t points_frame0 = 0;
+  std::vector<RigidTransform> frames;
+};
+
+/** \brief Point-to-plane ICP of every part from frame 0 to each frame, chained along time. */
+class RigidMotionEstimation {
+ public:
+  using Ptr = std::shared_ptr<RigidMotionEstimation>;
+  using ConstPtr = std::shared_ptr<const RigidMotionEstimation>;
+
+  void setInputSequence(const PointCloudSequence* sequence) { sequence_ = sequence; }
+  void setParams(const RigidMotionParams& params) { params_ = params; }
+  const RigidMotionParams& getParams() const { return params_; }
+
+  /** \brief Motions of parts 0..num_parts-1 given labels[t][j] (kept-point order, -1 ignored).
+   * `num_parts` <= 0 means max label + 1. Parts run in parallel (OpenMP). */
+  std::vector<PartMotion> compute(const std::vector<std::vector<int>>& labels,
+                                  int num_parts = 0) const;
+
+ private:
+  const PointCloudSequence* sequence_ = nullptr;
+  RigidMotionParams params_;
+};
+
+/** \brief Motions of one hierarchy level (level 0 = finest). */
+struct LevelMotion {
+  int level = 0;
+  std::vector<PartMotion> parts;
+};
+
+/** \brief Writes transforms.json (atomically):
+ * `{"frames": [names], "levels": [{"level": L, "parts": [{"part": p, "points_frame0": n,
+ *   "transforms": [{"frame": t, "rotation": [[r00,r01,r02],[..],[..]], "translation": [x,y,z],
+ *   "rms": r}, ...]}]}]}`; a transform that could not be estimated is written as null. */
+void writeTransformsJson(const std::string& path, const PointCloudSequence& sequence,
+                         const std::vector<LevelMotion>& levels);
+
+}  // namespace segmentation
+}  // namespace pcl_animseg

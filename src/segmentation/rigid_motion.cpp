@@ -1,0 +1,215 @@
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/io/atomic_file.h>
+#include <pcl_animseg/segmentation/rigid_motion.h>
+
+#include <pcl/common/centroid.h>
+#include <pcl/common/common.h>
+#include <pcl/registration/icp.h>
+
+#include <Eigen/Geometry>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <iomanip>
+#include <sstream>
+
+namespace pcl_animseg {
+namespace segmentation {
+
+using Cloud = PointCloudSequence::Cloud;
+
+RigidTransform RigidTransform::inverse() const {
+  RigidTransform r = *this;
+  r.rotation = rotation.transpose();
+  r.translation = -(r.rotation * translation);
+  return r;
+}
+
+namespace {
+
+Eigen::Matrix4f toMatrix(const RigidTransform& t) {
+  Eigen::Matrix4f m = Eigen::Matrix4f::Identity();
+  m.topLeftCorner<3, 3>() = t.rotation.cast<float>();
+  m.topRightCorner<3, 1>() = t.translation.cast<float>();
+  return m;
+}
+
+// Re-orthonormalises the float ICP result (SVD projection onto SO(3)) so that chained
+// transforms stay exact rotations after many frames.
+RigidTransform fromMatrix(const Eigen::Matrix4f& m) {
+  RigidTransform t;
+  const Eigen::Matrix3d r = m.topLeftCorner<3, 3>().cast<double>();
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(r, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
+  d(2, 2) = (svd.matrixU() * svd.matrixV().transpose()).determinant() < 0 ? -1.0 : 1.0;
+  t.rotation = svd.matrixU() * d * svd.matrixV().transpose();
+  t.translation = m.topRightCorner<3, 1>().cast<double>();
+  return t;
+}
+
+Cloud::Ptr partCloud(const Cloud& frame, const std::vector<int>& labels, int part,
+                     std::size_t max_points) {
+  std::vector<int> idx;
+  for (std::size_t j = 0; j < labels.size(); ++j)
+    if (labels[j] == part) idx.push_back(static_cast<int>(j));
+  Cloud::Ptr out(new Cloud);
+  const std::size_t n = idx.size();
+  const std::size_t keep = max_points > 0 ? std::min(n, max_points) : n;
+  out->reserve(keep);
+  // Even subsampling over the part's points (deterministic, spread over the whole part).
+  for (std::size_t k = 0; k < keep; ++k) out->push_back(frame[idx[k * n / keep]]);
+  return out;
+}
+
+}  // namespace
+
+std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
+                                                       int num_parts) const {
+  if (!sequence_ || sequence_->empty()) throw Error("rigid motion: no input sequence");
+  const std::size_t frames = sequence_->size();
+  if (labels.size() != frames)
+    throw Error("rigid motion: " + std::to_string(labels.size()) + " label frames for a sequence of " +
+                std::to_string(frames) + " frames");
+  int max_label = -1;
+  for (std::size_t t = 0; t < frames; ++t) {
+    if (labels[t].size() != sequence_->frame(t)->size())
+      throw Error("rigid motion: frame " + std::to_string(t) + " has " +
+                  std::to_string(labels[t].size()) + " labels for " +
+                  std::to_string(sequence_->frame(t)->size()) + " points");
+    for (int l : labels[t]) max_label = std::max(max_label, l);
+  }
+  if (num_parts <= 0) num_parts = max_label + 1;
+  std::vector<double> spacing(frames);
+  for (std::size_t t = 0; t < frames; ++t) spacing[t] = meanSpacing(*sequence_->frame(t));
+
+  std::vector<PartMotion> out(num_parts);
+  const RigidMotionParams p = params_;
+#pragma omp parallel for schedule(dynamic)
+  for (int part = 0; part < num_parts; ++part) {
+    PartMotion& motion = out[part];
+    motion.part = part;
+    motion.frames.assign(frames, RigidTransform());
+    for (RigidTransform& r : motion.frames) r.rms = -1.0;
+    Cloud::Ptr source = partCloud(*sequence_->frame(0), labels[0], part, p.max_points);
+    for (int l : labels[0]) motion.points_frame0 += (l == part);
+    if (static_cast<int>(source->size()) < p.min_points) continue;
+    motion.frames[0].valid = true;
+    motion.frames[0].rms = 0.0;
+    Eigen::Vector4f c0;
+    pcl::compute3DCentroid(*source, c0);
+    pcl::PointNormal mn, mx;
+    pcl::getMinMax3D(*source, mn, mx);
+    const double part_diag = (mx.getVector3fMap() - mn.getVector3fMap()).norm();
+
+    RigidTransform prev = motion.frames[0];
+    for (std::size_t t = 1; t < frames; ++t) {
+      Cloud::Ptr target = partCloud(*sequence_->frame(t), labels[t], part, 0);
+      RigidTransform& result = motion.frames[t];
+      result = prev;
+      result.valid = false;
+      result.rms = -1.0;
+      if (static_cast<int>(target->size()) < p.min_points) continue;
+      // Start from the previous frame's motion, re-centred on this frame's part centroid: the
+      // rotation changes little between frames, the translation can change a lot.
+      Eigen::Vector4f ct;
+      pcl::compute3DCentroid(*target, ct);
+      RigidTransform guess = prev;
+      guess.translation = ct.head<3>().cast<double>() - prev.rotation * c0.head<3>().cast<double>();
+
+      pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
+      icp.setInputSource(source);
+      icp.setInputTarget(target);
+      icp.setTransformationEpsilon(p.transformation_epsilon);
+      icp.setEuclideanFitnessEpsilon(0.0);
+      Cloud aligned;
+      // Coarse pass: wide rejection distance to capture a large motion; fine pass: a few point
+      // spacings so that neighbouring parts' points (mislabelled near a boundary) do not pull.
+      icp.setMaxCorrespondenceDistance(p.coarse_distance * part_diag);
+      icp.setMaximumIterations(std::max(1, p.max_iterations / 2));
+      icp.align(aligned, toMatrix(guess));
+      Eigen::Matrix4f m = icp.getFinalTransformation();
+      icp.setMaxCorrespondenceDistance(p.max_correspondence_spacings * spacing[t]);
+      icp.setMaximumIterations(p.max_iterations);
+      icp.align(aligned, m);
+      if (icp.getFinalTransformation().allFinite()) m = icp.getFinalTransformation();
+      result = fromMatrix(m);
+      result.rms = std::sqrt(icp.getFitnessScore());
+      result.valid = std::isfinite(result.rms);
+      if (result.valid) prev = result;
+    }
+  }
+  return out;
+}
+
+void writeTransformsJson(const std::string& path, const PointCloudSequence& sequence,
+                         const std::vector<LevelMotion>& levels) {
+  std::ostringstream s;
+  s << std::setprecision(9);
+  auto escape = [](const std::string& in) {
+    std::string o;
+    for (char c : in) {
+      if (c == '"' || c == '\\') {
+        o += '\\';
+        o += c;
+      } else if (static_cast<unsigned char>(c) < 0x20) {
+        char buf[8];
+        std::snprintf(buf, sizeof(buf), "\\u%04x", c);
+        o += buf;
+      } else {
+        o += c;
+      }
+    }
+    return o;
+  };
+  auto num = [&s](double v) {
+    if (std::isfinite(v))
+      s << v;
+    else
+      s << "null";
+  };
+  s << "{\n  \"frames\": [";
+  for (std::size_t t = 0; t < sequence.size(); ++t)
+    s << (t ? ", " : "") << '"' << escape(sequence.name(t)) << '"';
+  s << "],\n  \"levels\": [";
+  for (std::size_t li = 0; li < levels.size(); ++li) {
+    s << (li ? "," : "") << "\n    {\"level\": " << levels[li].level << ", \"parts\": [";
+    const auto& parts = levels[li].parts;
+    for (std::size_t pi = 0; pi < parts.size(); ++pi) {
+      s << (pi ? "," : "") << "\n      {\"part\": " << parts[pi].part
+        << ", \"points_frame0\": " << parts[pi].points_frame0 << ", \"transforms\": [";
+      for (std::size_t t = 0; t < parts[pi].frames.size(); ++t) {
+        const RigidTransform& r = parts[pi].frames[t];
+        s << (t ? "," : "") << "\n        ";
+        if (!r.valid) {
+          s << "null";
+          continue;
+        }
+        s << "{\"frame\": " << t << ", \"rotation\": [";
+        for (int i = 0; i < 3; ++i) {
+          s << (i ? ", " : "") << '[';
+          for (int j = 0; j < 3; ++j) {
+            if (j) s << ", ";
+            num(r.rotation(i, j));
+          }
+          s << ']';
+        }
+        s << "], \"translation\": [";
+        for (int i = 0; i < 3; ++i) {
+          if (i) s << ", ";
+          num(r.translation[i]);
+        }
+        s << "], \"rms\": ";
+        num(r.rms);
+        s << '}';
+      }
+      s << "]}";
+    }
+    s << "]}";
+  }
+  s << "\n  ]\n}\n";
+  io::writeTextAtomically(path, s.str());
+}
+
+}  // namespace segmentation
+}  // namespace pcl_animseg

@@ -1,0 +1,217 @@
+#pragma once
+// Small articulated test sequences with exact ground truth, made inside the tests so that they do
+// not depend on the synth module: a chain of mitred tubes (parts meet at creases, like an elbow)
+// and a chain of boxes moved rigidly (shared vertex order in "mesh" mode).
+#include <pcl_animseg/sequence.h>
+
+#include <pcl/kdtree/kdtree_flann.h>
+
+#include <Eigen/Geometry>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+namespace animseg_test {
+
+using Cloud = pcl_animseg::PointCloudSequence::Cloud;
+
+struct TubeChain {
+  pcl_animseg::PointCloudSequence sequence;
+  std::vector<std::vector<int>> truth;
+  /** Labels with every joint's boundary shifted by `shift` (world units) along the mitre normal. */
+  std::vector<std::vector<int>> shifted;
+};
+
+/** Chain of `lengths.size()` tubes of radius r joined by mitres; joint k bends by
+ * bend0[k] + amp * sin(...) in frame t; the whole chain also moves rigidly. Point mode: each
+ * frame is sampled anew with points * (1 ± 0.2) points. */
+inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::vector<double>& bend0,
+                               int frames, int points, double shift_spacings, unsigned seed,
+                               double radius = 0.2) {
+  TubeChain out;
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u01(0.0, 1.0);
+  const int parts = static_cast<int>(lengths.size());
+  double total_len = 0.0;
+  for (double l : lengths) total_len += l;
+  const double kPi = 3.14159265358979323846;
+  for (int t = 0; t < frames; ++t) {
+    std::vector<double> bend(parts, 0.0);
+    for (int k = 0; k + 1 < parts; ++k)
+      bend[k] = bend0[k] + 0.35 * std::sin(0.7 * t + 1.3 * k);
+    // Part frames in the chain's xz plane.
+    std::vector<Eigen::Vector3d> start(parts + 1), dir(parts), side(parts);
+    double alpha = 0.0;
+    start[0] = Eigen::Vector3d::Zero();
+    for (int i = 0; i < parts; ++i) {
+      dir[i] = Eigen::Vector3d(std::sin(alpha), 0, std::cos(alpha));
+      side[i] = Eigen::Vector3d(std::cos(alpha), 0, -std::sin(alpha));
+      start[i + 1] = start[i] + lengths[i] * dir[i];
+      if (i + 1 < parts) alpha += bend[i];
+    }
+    std::vector<Eigen::Vector3d> mitre(parts);  // mitre normal at the end of part i
+    for (int i = 0; i + 1 < parts; ++i) mitre[i] = (dir[i] + dir[i + 1]).normalized();
+    const Eigen::Affine3d global = Eigen::Translation3d(0.3 * t, 0.1 * std::sin(0.5 * t), 0.05 * t) *
+                                   Eigen::AngleAxisd(0.15 * t, Eigen::Vector3d(0.3, 1, 0.2).normalized());
+    const int n = static_cast<int>(points * (0.8 + 0.4 * u01(rng)));
+    Cloud::Ptr cloud(new Cloud);
+    std::vector<int> truth, shifted;
+    // Spacing of a uniform sample of the tube surface (for the boundary shift).
+    const double area = 2.0 * kPi * radius * total_len;
+    const double spacing = 0.5 * std::sqrt(area / n) * 1.07;
+    const double shift = shift_spacings * spacing;
+    const double ext = radius * 2.0;
+    while (static_cast<int>(cloud->size()) < n) {
+      // Pick a part by length, then a uniform point on its (extended) tube.
+      double r = u01(rng) * total_len;
+      int i = 0;
+      while (i + 1 < parts && r > lengths[i]) r -= lengths[i++];
+      const double s = -ext + u01(rng) * (lengths[i] + 2 * ext);
+      const double phi = 2 * kPi * u01(rng);
+      const Eigen::Vector3d nrm = std::cos(phi) * side[i] + std::sin(phi) * Eigen::Vector3d::UnitY();
+      const Eigen::Vector3d x = start[i] + s * dir[i] + radius * nrm;
+      if (i + 1 < parts && (x - start[i + 1]).dot(mitre[i]) > 0) continue;
+      if (i > 0 && (x - start[i]).dot(mitre[i - 1]) < 0) continue;
+      int sh = i;
+      if (i + 1 < parts && (x - start[i + 1]).dot(mitre[i]) > -shift) sh = i + 1;
+      if (i > 0 && (x - start[i]).dot(mitre[i - 1]) < -shift) sh = i - 1;
+      const Eigen::Vector3d gx = global * x;
+      const Eigen::Vector3d gn = global.linear() * nrm;
+      pcl::PointNormal p;
+      p.x = gx.x();
+      p.y = gx.y();
+      p.z = gx.z();
+      p.normal_x = gn.x();
+      p.normal_y = gn.y();
+      p.normal_z = gn.z();
+      p.curvature = 0;
+      cloud->push_back(p);
+      truth.push_back(i);
+      shifted.push_back(sh);
+    }
+    out.sequence.addFrame(cloud, "f" + std::to_string(t));
+    out.truth.push_back(truth);
+    out.shifted.push_back(shifted);
+  }
+  return out;
+}
+
+/** Fraction of points within `radius_spacings` spacings of a true boundary whose label is wrong. */
+inline double boundaryError(const pcl_animseg::PointCloudSequence& seq,
+                            const std::vector<std::vector<int>>& truth,
+                            const std::vector<std::vector<int>>& labels, double radius_spacings = 3.0) {
+  std::size_t near = 0, wrong = 0;
+  for (std::size_t t = 0; t < seq.size(); ++t) {
+    const Cloud::Ptr& f = seq.frame(t);
+    const double s = pcl_animseg::meanSpacing(*f);
+    pcl::KdTreeFLANN<pcl::PointNormal> tree;
+    tree.setInputCloud(f);
+    Cloud::Ptr boundary(new Cloud);
+    std::vector<int> idx;
+    std::vector<float> d2;
+    for (std::size_t j = 0; j < f->size(); ++j) {
+      tree.nearestKSearch((*f)[j], 8, idx, d2);
+      for (std::size_t k = 1; k < idx.size(); ++k)
+        if (truth[t][idx[k]] != truth[t][j] && d2[k] < 9 * s * s) {
+          boundary->push_back((*f)[j]);
+          break;
+        }
+    }
+    if (boundary->empty()) continue;
+    pcl::KdTreeFLANN<pcl::PointNormal> btree;
+    btree.setInputCloud(boundary);
+    for (std::size_t j = 0; j < f->size(); ++j) {
+      btree.nearestKSearch((*f)[j], 1, idx, d2);
+      if (std::sqrt(d2[0]) <= radius_spacings * s) {
+        ++near;
+        wrong += labels[t][j] != truth[t][j];
+      }
+    }
+  }
+  return near ? static_cast<double>(wrong) / static_cast<double>(near) : 0.0;
+}
+
+/** All frames' labels concatenated (for pooled ARI). */
+inline std::vector<int> pooled(const std::vector<std::vector<int>>& labels) {
+  std::vector<int> out;
+  for (const auto& f : labels) out.insert(out.end(), f.begin(), f.end());
+  return out;
+}
+
+struct BoxChain {
+  pcl_animseg::PointCloudSequence sequence;
+  std::vector<std::vector<int>> truth;
+  /** motion[part][t]: world pose of the part in frame t (local -> world). */
+  std::vector<std::vector<Eigen::Affine3d>> pose;
+};
+
+/** A chain of boxes of different sizes (no symmetry that would make ICP ambiguous), each moving
+ * rigidly. mesh = true: the same local samples every frame (shared vertex order); otherwise each
+ * frame is sampled anew. */
+inline BoxChain makeBoxChain(int frames, int points, bool mesh, unsigned seed) {
+  const std::vector<Eigen::Vector3d> dims = {{0.5, 0.3, 1.2}, {0.3, 0.4, 0.9}, {0.25, 0.2, 0.6}};
+  const int parts = static_cast<int>(dims.size());
+  BoxChain out;
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u01(0.0, 1.0);
+  auto sampleBox = [&](const Eigen::Vector3d& d, int n, std::vector<Eigen::Vector3d>& pts,
+                       std::vector<Eigen::Vector3d>& nrm) {
+    const double areas[3] = {d.y() * d.z(), d.x() * d.z(), d.x() * d.y()};
+    const double total = 2 * (areas[0] + areas[1] + areas[2]);
+    for (int k = 0; k < n; ++k) {
+      double r = u01(rng) * total;
+      int face = 0;
+      while (face < 5 && r > areas[face / 2]) r -= areas[face / 2], ++face;
+      const int axis = face / 2;
+      const double sign = face % 2 ? 1.0 : -1.0;
+      Eigen::Vector3d p(d.x() * (u01(rng) - 0.5), d.y() * (u01(rng) - 0.5), d.z() * u01(rng));
+      Eigen::Vector3d nn = Eigen::Vector3d::Zero();
+      nn[axis] = sign;
+      p[axis] = axis == 2 ? (sign > 0 ? d.z() : 0.0) : sign * 0.5 * d[axis];
+      pts.push_back(p);
+      nrm.push_back(nn);
+    }
+  };
+  std::vector<std::vector<Eigen::Vector3d>> local_p(parts), local_n(parts);
+  for (int t = 0; t < frames; ++t) {
+    std::vector<Eigen::Affine3d> poses(parts);
+    Eigen::Affine3d acc = Eigen::Translation3d(0.2 * t, -0.1 * t, 0.05 * std::sin(0.4 * t)) *
+                          Eigen::AngleAxisd(0.12 * t, Eigen::Vector3d::UnitZ()) *
+                          Eigen::AngleAxisd(0.05 * t, Eigen::Vector3d::UnitX());
+    for (int i = 0; i < parts; ++i) {
+      poses[i] = acc;
+      const double bend = 0.4 + 0.3 * std::sin(0.6 * t + i);
+      acc = acc * Eigen::Translation3d(0, 0, dims[i].z()) * Eigen::AngleAxisd(bend, Eigen::Vector3d::UnitY()) *
+            Eigen::AngleAxisd(0.2 * std::sin(0.3 * t + 2 * i), Eigen::Vector3d::UnitZ());
+    }
+    if (!mesh || t == 0) {
+      const int n = mesh ? points : static_cast<int>(points * (0.8 + 0.4 * u01(rng)));
+      for (int i = 0; i < parts; ++i) {
+        local_p[i].clear();
+        local_n[i].clear();
+        sampleBox(dims[i], n / parts, local_p[i], local_n[i]);
+      }
+    }
+    Cloud::Ptr cloud(new Cloud);
+    std::vector<int> truth;
+    for (int i = 0; i < parts; ++i)
+      for (std::size_t k = 0; k < local_p[i].size(); ++k) {
+        const Eigen::Vector3d x = poses[i] * local_p[i][k];
+        const Eigen::Vector3d nn = poses[i].linear() * local_n[i][k];
+        pcl::PointNormal p;
+        p.x = x.x(), p.y = x.y(), p.z = x.z();
+        p.normal_x = nn.x(), p.normal_y = nn.y(), p.normal_z = nn.z();
+        p.curvature = 0;
+        cloud->push_back(p);
+        truth.push_back(i);
+      }
+    out.sequence.addFrame(cloud, "f" + std::to_string(t));
+    out.truth.push_back(truth);
+    out.pose.resize(parts);
+    for (int i = 0; i < parts; ++i) out.pose[i].push_back(poses[i]);
+  }
+  return out;
+}
+
+}  // namespace animseg_test
