@@ -1,0 +1,43 @@
+#pragma once
+/** \file normals.h Normals for loaded frames: area-weighted mesh normals and consistently
+ * oriented estimated normals for point frames (free functions, testable alone). */
+#include <pcl_animseg/sequence.h>
+
+#include <vector>
+
+namespace pcl_animseg {
+namespace io {
+
+/** \brief Sets the normal of every vertex that lies in a non-degenerate face to the sum of its
+ * faces' normals weighted by face area (the cross product of two edges), normalised.
+ *
+ * Faces are polygons (indices into `cloud`), fan-triangulated. When the mesh is closed (every
+ * edge shared by exactly two faces) and its signed volume is negative (the winding is inward),
+ * all these normals are flipped so that they point outward. Returns, per vertex, whether it got a
+ * normal (vertices in no face, or only in degenerate faces, get none and keep theirs). */
+std::vector<char> computeMeshNormals(PointCloudSequence::Cloud& cloud,
+                                     const std::vector<pcl::Vertices>& faces);
+
+/** \brief Estimates the normals of the points whose `known[i]` is 0 (PCA over the `k` nearest
+ * neighbours among all points, pcl::NormalEstimationOMP) and orients them with
+ * orientNormals(). Points with `known[i]` != 0 keep their normal and serve as orientation seeds.
+ * `known` may be empty (no point known). */
+void estimateNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<char>& known);
+
+/** \brief Orients normals consistently (Hoppe et al. 1992): within each connected component of
+ * the symmetric k-nearest-neighbour graph, the orientation is propagated along a minimum spanning
+ * tree with edge cost 1 - |n_i . n_j| (so it crosses flat regions first, sharp creases last).
+ *
+ * - A component that contains points with `fixed[i]` != 0 is grown from all of them at once;
+ *   fixed normals are never flipped.
+ * - Otherwise the seed is the point farthest from the component's centroid c, oriented away from
+ *   c; after propagation the whole component is flipped when the majority points inwards
+ *   (mean of (p - c) . n < 0). For a closed surface this gives outward normals. For an open
+ *   surface "outward" is not defined: the normals come out consistent within the component and
+ *   point, on average, away from its centroid (the convex side of a cap or bowl, e.g. towards the
+ *   sensor for a single-view scan of a convex object); for a flat patch the side is arbitrary
+ *   (but deterministic). */
+void orientNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<char>& fixed = {});
+
+}  // namespace io
+}  // namespace pcl_animseg

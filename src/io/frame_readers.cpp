@@ -1,0 +1,575 @@
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/io/frame_readers.h>
+
+#include <pcl/PCLPointCloud2.h>
+#include <pcl/PolygonMesh.h>
+#include <pcl/console/print.h>
+#include <pcl/io/pcd_io.h>
+#include <pcl/io/ply_io.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cerrno>
+#include <cmath>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+#include <mutex>
+#include <sstream>
+
+namespace pcl_animseg {
+namespace io {
+
+namespace {
+
+const float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+Error fileError(const std::string& path, const std::string& what) {
+  return Error("'" + path + "': " + what);
+}
+
+Error lineError(const std::string& path, std::size_t line, const std::string& what) {
+  return Error("'" + path + "' line " + std::to_string(line) + ": " + what);
+}
+
+std::string readWholeFile(const std::string& path) {
+  std::error_code ec;
+  if (!std::filesystem::exists(path, ec)) throw fileError(path, "file does not exist");
+  if (std::filesystem::is_directory(path, ec)) throw fileError(path, "is a directory, not a file");
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw fileError(path, std::string("cannot open: ") + std::strerror(errno));
+  std::ostringstream ss;
+  ss << in.rdbuf();
+  if (in.bad()) throw fileError(path, "read error");
+  return ss.str();
+}
+
+/** Splits into lines (LF or CRLF); keeps line numbers implicit (index + 1). */
+std::vector<std::string> splitLines(const std::string& text) {
+  std::vector<std::string> lines;
+  std::size_t start = 0;
+  while (start <= text.size()) {
+    std::size_t end = text.find('\n', start);
+    if (end == std::string::npos) end = text.size();
+    std::string line = text.substr(start, end - start);
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    lines.push_back(std::move(line));
+    if (end == text.size()) break;
+    start = end + 1;
+  }
+  return lines;
+}
+
+/** Parses whitespace-separated numbers from `s`; returns false at the first token that is not a
+ * number (strtod accepts nan/inf, which is what we want: those points are dropped later). */
+bool parseNumbers(const char* s, std::vector<double>& out, std::size_t max_count = 64) {
+  out.clear();
+  while (*s && out.size() < max_count) {
+    while (*s && std::isspace(static_cast<unsigned char>(*s))) ++s;
+    if (!*s) break;
+    char* end = nullptr;
+    const double v = std::strtod(s, &end);
+    if (end == s) return false;
+    if (*end && !std::isspace(static_cast<unsigned char>(*end))) return false;
+    out.push_back(v);
+    s = end;
+  }
+  return true;
+}
+
+bool checkBinaryText(const std::string& text) {
+  // Text formats must not contain NUL bytes; catches binary garbage early with a clear message.
+  return text.find('\0') == std::string::npos;
+}
+
+void fanTriangulate(const pcl::Indices& poly, std::vector<pcl::Vertices>& faces) {
+  for (std::size_t a = 1; a + 1 < poly.size(); ++a) {
+    pcl::Vertices t;
+    t.vertices = {poly[0], poly[a], poly[a + 1]};
+    faces.push_back(std::move(t));
+  }
+}
+
+/** PCL prints its own complaints to stderr; tools must print exactly one `error:` line, so its
+ * console is silenced while a reader runs (reference counted: frames load in parallel). */
+class QuietPcl {
+ public:
+  QuietPcl() {
+    std::lock_guard<std::mutex> lock(mutex());
+    if (depth()++ == 0) {
+      saved() = pcl::console::getVerbosityLevel();
+      pcl::console::setVerbosityLevel(pcl::console::L_ALWAYS);
+    }
+  }
+  ~QuietPcl() {
+    std::lock_guard<std::mutex> lock(mutex());
+    if (--depth() == 0) pcl::console::setVerbosityLevel(saved());
+  }
+  QuietPcl(const QuietPcl&) = delete;
+  QuietPcl& operator=(const QuietPcl&) = delete;
+
+ private:
+  static std::mutex& mutex() {
+    static std::mutex m;
+    return m;
+  }
+  static int& depth() {
+    static int d = 0;
+    return d;
+  }
+  static pcl::console::VERBOSITY_LEVEL& saved() {
+    static pcl::console::VERBOSITY_LEVEL v = pcl::console::L_INFO;
+    return v;
+  }
+};
+
+double fieldValue(const std::uint8_t* p, std::uint8_t type) {
+  switch (type) {
+    case pcl::PCLPointField::INT8: return *reinterpret_cast<const std::int8_t*>(p);
+    case pcl::PCLPointField::UINT8: return *p;
+    case pcl::PCLPointField::INT16: { std::int16_t v; std::memcpy(&v, p, 2); return v; }
+    case pcl::PCLPointField::UINT16: { std::uint16_t v; std::memcpy(&v, p, 2); return v; }
+    case pcl::PCLPointField::INT32: { std::int32_t v; std::memcpy(&v, p, 4); return v; }
+    case pcl::PCLPointField::UINT32: { std::uint32_t v; std::memcpy(&v, p, 4); return v; }
+    case pcl::PCLPointField::FLOAT32: { float v; std::memcpy(&v, p, 4); return v; }
+    case pcl::PCLPointField::FLOAT64: { double v; std::memcpy(&v, p, 8); return v; }
+    default: return std::numeric_limits<double>::quiet_NaN();
+  }
+}
+
+/** Copies x y z (and normals when all three fields exist) out of a PCLPointCloud2. */
+void fromCloud2(const pcl::PCLPointCloud2& c, const std::string& path, RawFrame& raw) {
+  auto field = [&](const char* name) -> const pcl::PCLPointField* {
+    for (const auto& f : c.fields)
+      if (f.name == name) return &f;
+    return nullptr;
+  };
+  const pcl::PCLPointField* xyz[3] = {field("x"), field("y"), field("z")};
+  if (!xyz[0] || !xyz[1] || !xyz[2]) throw fileError(path, "has no x y z fields");
+  const pcl::PCLPointField* nrm[3] = {field("normal_x"), field("normal_y"), field("normal_z")};
+  const bool has_normals = nrm[0] && nrm[1] && nrm[2];
+  const std::size_t n = static_cast<std::size_t>(c.width) * c.height;
+  if (c.point_step == 0 || c.data.size() < static_cast<std::size_t>(c.row_step) * c.height ||
+      static_cast<std::size_t>(c.row_step) < static_cast<std::size_t>(c.width) * c.point_step)
+    throw fileError(path, "the point data is shorter than the header says (truncated file?)");
+  for (const auto* f : xyz)
+    if (f->offset + 4 > c.point_step) throw fileError(path, "corrupt field layout");
+  raw.points.resize(n);
+  if (has_normals) raw.normals.resize(n);
+  for (std::size_t r = 0, i = 0; r < c.height; ++r)
+    for (std::size_t col = 0; col < c.width; ++col, ++i) {
+      const std::uint8_t* p = c.data.data() + r * c.row_step + col * c.point_step;
+      for (int a = 0; a < 3; ++a)
+        raw.points[i][a] = static_cast<float>(fieldValue(p + xyz[a]->offset, xyz[a]->datatype));
+      if (has_normals)
+        for (int a = 0; a < 3; ++a)
+          raw.normals[i][a] = static_cast<float>(fieldValue(p + nrm[a]->offset, nrm[a]->datatype));
+    }
+}
+
+std::string lower(std::string s) {
+  for (auto& ch : s) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
+  return s;
+}
+
+}  // namespace
+
+RawFrame readOBJ(const std::string& path) {
+  const std::string text = readWholeFile(path);
+  if (!checkBinaryText(text)) throw fileError(path, "is not a text OBJ file (binary content)");
+  RawFrame raw;
+  raw.format = "obj";
+  std::vector<Eigen::Vector3f> vn;
+  std::vector<std::pair<std::size_t, std::vector<long>>> polys;  // line, raw 0-based indices
+  std::vector<double> vals;
+  const auto lines = splitLines(text);
+  for (std::size_t l = 0; l < lines.size(); ++l) {
+    const char* s = lines[l].c_str();
+    while (*s == ' ' || *s == '\t') ++s;
+    if (s[0] == 'v' && (s[1] == ' ' || s[1] == '\t')) {
+      if (!parseNumbers(s + 2, vals, 3) || vals.size() < 3)
+        throw lineError(path, l + 1, "a vertex needs three numbers: '" + lines[l] + "'");
+      raw.points.emplace_back(vals[0], vals[1], vals[2]);
+    } else if (s[0] == 'v' && s[1] == 'n' && (s[2] == ' ' || s[2] == '\t')) {
+      if (!parseNumbers(s + 3, vals, 3) || vals.size() < 3)
+        throw lineError(path, l + 1, "a normal needs three numbers: '" + lines[l] + "'");
+      vn.emplace_back(vals[0], vals[1], vals[2]);
+    } else if (s[0] == 'f' && (s[1] == ' ' || s[1] == '\t')) {
+      std::istringstream ss(s + 2);
+      std::string tok;
+      std::vector<long> poly;
+      while (ss >> tok) {
+        char* end = nullptr;
+        const long v = std::strtol(tok.c_str(), &end, 10);
+        if (end == tok.c_str() || (*end && *end != '/') || v == 0)
+          throw lineError(path, l + 1, "bad face vertex '" + tok + "'");
+        // Negative indices count back from the last vertex defined so far (OBJ spec).
+        const long idx = v > 0 ? v - 1 : static_cast<long>(raw.points.size()) + v;
+        if (idx < 0)
+          throw lineError(path, l + 1, "face vertex " + tok + " refers before the first vertex");
+        poly.push_back(idx);
+      }
+      if (poly.size() >= 3) polys.emplace_back(l + 1, std::move(poly));
+    }
+  }
+  const long nv = static_cast<long>(raw.points.size());
+  for (const auto& [line, poly] : polys) {
+    pcl::Indices p;
+    for (long i : poly) {
+      if (i >= nv)
+        throw lineError(path, line, "face refers to vertex " + std::to_string(i + 1) +
+                                        " but the file has " + std::to_string(nv));
+      p.push_back(static_cast<int>(i));
+    }
+    fanTriangulate(p, raw.faces);
+  }
+  if (raw.faces.empty() && !vn.empty() && vn.size() == raw.points.size()) raw.normals = vn;
+  return raw;
+}
+
+RawFrame readOFF(const std::string& path) {
+  const std::string text = readWholeFile(path);
+  if (!checkBinaryText(text)) throw fileError(path, "is not a text OFF file (binary content)");
+  RawFrame raw;
+  raw.format = "off";
+  // Non-empty lines with comments stripped, with their line numbers.
+  std::vector<std::pair<std::size_t, std::string>> lines;
+  {
+    const auto all = splitLines(text);
+    for (std::size_t l = 0; l < all.size(); ++l) {
+      std::string s = all[l].substr(0, all[l].find('#'));
+      if (s.find_first_not_of(" \t\r") == std::string::npos) continue;
+      lines.emplace_back(l + 1, std::move(s));
+    }
+  }
+  if (lines.empty()) throw fileError(path, "is empty");
+  std::istringstream head(lines[0].second);
+  std::string keyword;
+  head >> keyword;
+  if (keyword.size() < 3 || keyword.compare(keyword.size() - 3, 3, "OFF") != 0)
+    throw fileError(path, "is not an OFF file (the first word is '" + keyword + "', not OFF)");
+  const std::string prefix = keyword.substr(0, keyword.size() - 3);
+  bool has_normals = false;
+  for (std::size_t i = 0; i < prefix.size(); ++i) {
+    const char c = prefix[i];
+    if (c == 'N') {
+      has_normals = true;
+    } else if (c == 'C' || c == 'S' || c == 'T') {
+      // Colours / texture coordinates follow the position (and normal); they are skipped.
+    } else if (c == '4' || c == 'n') {
+      throw fileError(path, "4D / nD OFF files are not supported");
+    } else {
+      throw fileError(path, "unknown OFF variant '" + keyword + "'");
+    }
+  }
+  std::string rest;
+  std::getline(head, rest);
+  std::size_t next = 1;
+  if (lower(rest).find("binary") != std::string::npos)
+    throw fileError(path, "binary OFF is not supported (convert it to text OFF or PLY)");
+  std::vector<double> vals;
+  if (!parseNumbers(rest.c_str(), vals) || vals.empty()) {
+    if (lines.size() < 2) throw fileError(path, "ends before the vertex/face counts");
+    if (!parseNumbers(lines[1].second.c_str(), vals))
+      throw lineError(path, lines[1].first, "expected the vertex, face and edge counts");
+    next = 2;
+  }
+  if (vals.size() < 2 || vals[0] < 0 || vals[1] < 0 || vals[0] != std::floor(vals[0]) ||
+      vals[1] != std::floor(vals[1]))
+    throw fileError(path, "bad vertex/face counts");
+  const std::size_t nv = static_cast<std::size_t>(vals[0]);
+  const std::size_t nf = static_cast<std::size_t>(vals[1]);
+  if (lines.size() - next < nv)
+    throw fileError(path, "truncated: the header announces " + std::to_string(nv) +
+                              " vertices but the file has only " +
+                              std::to_string(lines.size() - next) + " more lines");
+  const std::size_t need = has_normals ? 6 : 3;
+  raw.points.reserve(nv);
+  if (has_normals) raw.normals.reserve(nv);
+  for (std::size_t i = 0; i < nv; ++i, ++next) {
+    const auto& [ln, s] = lines[next];
+    if (!parseNumbers(s.c_str(), vals, need) || vals.size() < need)
+      throw lineError(path, ln, "vertex " + std::to_string(i) + " needs " +
+                                    std::to_string(need) + " numbers");
+    raw.points.emplace_back(vals[0], vals[1], vals[2]);
+    if (has_normals) raw.normals.emplace_back(vals[3], vals[4], vals[5]);
+  }
+  if (lines.size() - next < nf)
+    throw fileError(path, "truncated: the header announces " + std::to_string(nf) +
+                              " faces but the file has only " +
+                              std::to_string(lines.size() - next));
+  for (std::size_t f = 0; f < nf; ++f, ++next) {
+    const auto& [ln, s] = lines[next];
+    std::istringstream ss(s);
+    long count = -1;
+    ss >> count;
+    if (!ss || count < 0) throw lineError(path, ln, "bad face line");
+    pcl::Indices poly;
+    for (long a = 0; a < count; ++a) {
+      long idx = -1;
+      ss >> idx;
+      if (!ss) throw lineError(path, ln, "face has fewer indices than its count");
+      if (idx < 0 || static_cast<std::size_t>(idx) >= nv)
+        throw lineError(path, ln, "face refers to vertex " + std::to_string(idx) +
+                                      " but the file has " + std::to_string(nv));
+      poly.push_back(static_cast<int>(idx));
+    }
+    fanTriangulate(poly, raw.faces);
+  }
+  return raw;
+}
+
+namespace {
+
+int plyTypeSize(const std::string& t) {
+  if (t == "char" || t == "uchar" || t == "int8" || t == "uint8") return 1;
+  if (t == "short" || t == "ushort" || t == "int16" || t == "uint16") return 2;
+  if (t == "int" || t == "uint" || t == "float" || t == "int32" || t == "uint32" ||
+      t == "float32")
+    return 4;
+  if (t == "double" || t == "float64") return 8;
+  return 0;
+}
+
+/** Checks the PLY header before PCL sees the file, so that a corrupt header or a truncated
+ * binary body gets a message that says what is wrong (PCL's reader only says that it failed). */
+void checkPLYHeader(const std::string& path, const std::string& text) {
+  if (text.compare(0, 3, "ply") != 0 || (text.size() > 3 && text[3] != '\n' && text[3] != '\r'))
+    throw fileError(path, "is not a PLY file (it does not start with 'ply')");
+  const std::size_t end = text.find("end_header");
+  if (end == std::string::npos)
+    throw fileError(path, "has no 'end_header' (truncated or corrupt PLY header)");
+  const std::size_t body = text.find('\n', end);
+  if (body == std::string::npos) throw fileError(path, "truncated after 'end_header'");
+  std::istringstream head(text.substr(0, end));
+  std::string line, format;
+  struct Element {
+    std::string name;
+    long count = 0;
+    long min_bytes = 0;
+  };
+  std::vector<Element> elements;
+  std::size_t number = 0;
+  while (std::getline(head, line)) {
+    ++number;
+    std::istringstream ss(line);
+    std::string key;
+    if (!(ss >> key) || key == "ply" || key == "comment" || key == "obj_info") continue;
+    if (key == "format") {
+      ss >> format;
+    } else if (key == "element") {
+      Element e;
+      if (!(ss >> e.name >> e.count) || e.count < 0)
+        throw lineError(path, number, "bad PLY element line '" + line + "'");
+      elements.push_back(e);
+    } else if (key == "property") {
+      if (elements.empty()) throw lineError(path, number, "PLY property before any element");
+      std::string type;
+      ss >> type;
+      int size = 0;
+      if (type == "list") {
+        std::string count_type, item_type;
+        ss >> count_type >> item_type;
+        size = plyTypeSize(count_type);
+        if (size == 0 || plyTypeSize(item_type) == 0)
+          throw lineError(path, number, "bad PLY list property '" + line + "'");
+      } else {
+        size = plyTypeSize(type);
+        if (size == 0) throw lineError(path, number, "unknown PLY property type '" + type + "'");
+      }
+      elements.back().min_bytes += size;
+    } else {
+      throw lineError(path, number, "unexpected PLY header line '" + line + "'");
+    }
+  }
+  if (format != "ascii" && format != "binary_little_endian" && format != "binary_big_endian")
+    throw fileError(path, "unknown PLY format '" + format + "'");
+  bool has_vertex = false;
+  for (const auto& e : elements) has_vertex = has_vertex || e.name == "vertex";
+  if (!has_vertex) throw fileError(path, "PLY header has no vertex element");
+  if (format == "ascii") return;
+  // A lower bound (lists hold at least their count): enough to catch a cut-off file.
+  double need = 0;
+  std::string what;
+  for (const auto& e : elements) {
+    need += static_cast<double>(e.count) * static_cast<double>(e.min_bytes);
+    what += (what.empty() ? "" : ", ") + e.name + " x " + std::to_string(e.count);
+  }
+  const double have = static_cast<double>(text.size() - body - 1);
+  if (have < need)
+    throw fileError(path, "truncated: the PLY header announces " + what + " (at least " +
+                              std::to_string(static_cast<long long>(need)) +
+                              " bytes) but the file has only " +
+                              std::to_string(static_cast<long long>(have)) + " bytes of data");
+}
+
+}  // namespace
+
+RawFrame readPLY(const std::string& path) {
+  const std::string text = readWholeFile(path);
+  checkPLYHeader(path, text);
+  pcl::PolygonMesh mesh;
+  int rc = 0;
+  {
+    QuietPcl quiet;
+    rc = pcl::io::loadPLYFile(path, mesh);
+  }
+  if (rc < 0)
+    throw fileError(path, "cannot be read as PLY (truncated, corrupt, or an unsupported layout)");
+  RawFrame raw;
+  raw.format = "ply";
+  fromCloud2(mesh.cloud, path, raw);
+  const std::size_t nv = raw.points.size();
+  for (const auto& poly : mesh.polygons) {
+    for (auto i : poly.vertices)
+      if (i < 0 || static_cast<std::size_t>(i) >= nv)
+        throw fileError(path, "a face refers to vertex " + std::to_string(i) +
+                                  " but the file has " + std::to_string(nv));
+    fanTriangulate(poly.vertices, raw.faces);
+  }
+  return raw;
+}
+
+namespace {
+
+/** PCL's PCD reader trusts the header (and crashes on garbage), so the header is checked here
+ * first: known keys, consistent counts, and, for binary data, that the file is long enough. */
+void checkPCDHeader(const std::string& path) {
+  std::error_code ec;
+  if (!std::filesystem::exists(path, ec)) throw fileError(path, "file does not exist");
+  if (std::filesystem::is_directory(path, ec)) throw fileError(path, "is a directory, not a file");
+  const std::uintmax_t file_size = std::filesystem::file_size(path, ec);
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw fileError(path, std::string("cannot open: ") + std::strerror(errno));
+  std::vector<std::string> fields;
+  std::vector<long> sizes, counts;
+  std::string types, data;
+  long width = -1, height = -1, points = -1;
+  std::string line;
+  std::size_t header_bytes = 0;
+  const Error not_pcd = fileError(path, "is not a PCD file (bad or missing header)");
+  while (data.empty()) {
+    if (!std::getline(in, line) || header_bytes > (1u << 16)) {
+      if (fields.empty()) throw not_pcd;
+      throw fileError(path, "PCD header has no DATA line (truncated or corrupt)");
+    }
+    header_bytes += line.size() + 1;
+    if (line.find('\0') != std::string::npos) throw not_pcd;
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    std::istringstream ss(line);
+    std::string key;
+    if (!(ss >> key) || key[0] == '#') continue;
+    std::string tok;
+    if (key == "VERSION" || key == "VIEWPOINT") {
+    } else if (key == "FIELDS") {
+      while (ss >> tok) fields.push_back(tok);
+    } else if (key == "SIZE" || key == "COUNT") {
+      auto& v = key == "SIZE" ? sizes : counts;
+      long x;
+      while (ss >> x) v.push_back(x);
+    } else if (key == "TYPE") {
+      while (ss >> tok) types += tok.size() == 1 ? tok : std::string("?");
+    } else if (key == "WIDTH") {
+      ss >> width;
+    } else if (key == "HEIGHT") {
+      ss >> height;
+    } else if (key == "POINTS") {
+      ss >> points;
+    } else if (key == "DATA") {
+      ss >> data;
+    } else {
+      throw not_pcd;
+    }
+  }
+  const std::size_t nf = fields.size();
+  if (nf == 0 || sizes.size() != nf || types.size() != nf || (!counts.empty() && counts.size() != nf))
+    throw fileError(path, "PCD header: FIELDS, SIZE, TYPE and COUNT disagree");
+  long point_size = 0;
+  for (std::size_t i = 0; i < nf; ++i) {
+    const long c = counts.empty() ? 1 : counts[i];
+    if ((sizes[i] != 1 && sizes[i] != 2 && sizes[i] != 4 && sizes[i] != 8) || c < 1 ||
+        std::string("IUF").find(types[i]) == std::string::npos)
+      throw fileError(path, "PCD header: bad SIZE/TYPE/COUNT for field '" + fields[i] + "'");
+    point_size += sizes[i] * c;
+  }
+  if (width < 0 || height < 1) throw fileError(path, "PCD header: bad WIDTH/HEIGHT");
+  if (points >= 0 && points != width * height)
+    throw fileError(path, "PCD header: POINTS is not WIDTH x HEIGHT");
+  const std::uintmax_t need = static_cast<std::uintmax_t>(width) * height * point_size;
+  if (data == "binary") {
+    if (file_size < header_bytes + need)
+      throw fileError(path, "truncated: the PCD header announces " +
+                                std::to_string(width * height) + " points (" +
+                                std::to_string(need) + " bytes) but the file has only " +
+                                std::to_string(file_size - std::min<std::uintmax_t>(file_size, header_bytes)) +
+                                " bytes of data");
+  } else if (data == "binary_compressed") {
+    std::uint32_t sz[2] = {0, 0};
+    in.read(reinterpret_cast<char*>(sz), 8);
+    if (!in || file_size < header_bytes + 8 + sz[0] || sz[1] != need)
+      throw fileError(path, "truncated or corrupt compressed PCD data");
+  } else if (data != "ascii") {
+    throw fileError(path, "PCD header: unknown DATA encoding '" + data + "'");
+  }
+}
+
+}  // namespace
+
+RawFrame readPCD(const std::string& path) {
+  checkPCDHeader(path);
+  pcl::PCLPointCloud2 cloud;
+  int rc = 0;
+  {
+    QuietPcl quiet;
+    rc = pcl::io::loadPCDFile(path, cloud);
+  }
+  if (rc < 0)
+    throw fileError(path, "cannot be read as PCD (truncated, corrupt, or not a PCD file)");
+  RawFrame raw;
+  raw.format = "pcd";
+  fromCloud2(cloud, path, raw);
+  return raw;
+}
+
+RawFrame readXYZ(const std::string& path) {
+  std::string text = readWholeFile(path);
+  if (!checkBinaryText(text)) throw fileError(path, "is not a text XYZ file (binary content)");
+  std::replace(text.begin(), text.end(), ',', ' ');
+  RawFrame raw;
+  raw.format = "xyz";
+  std::vector<Eigen::Vector3f> normals;
+  bool any_normal = false;
+  std::vector<double> vals;
+  const auto lines = splitLines(text);
+  for (std::size_t l = 0; l < lines.size(); ++l) {
+    const char* s = lines[l].c_str();
+    while (*s && std::isspace(static_cast<unsigned char>(*s))) ++s;
+    if (!*s || *s == '#') continue;
+    if (!parseNumbers(s, vals, 6) || vals.size() < 3)
+      throw lineError(path, l + 1, "expected 'x y z [nx ny nz]', got '" + lines[l] + "'");
+    raw.points.emplace_back(vals[0], vals[1], vals[2]);
+    if (vals.size() >= 6) {
+      normals.emplace_back(vals[3], vals[4], vals[5]);
+      any_normal = true;
+    } else {
+      normals.emplace_back(kNaN, kNaN, kNaN);
+    }
+  }
+  if (any_normal) raw.normals = std::move(normals);
+  return raw;
+}
+
+RawFrame readRawFrame(const std::string& path) {
+  const std::string ext = lower(std::filesystem::path(path).extension().string());
+  if (ext == ".obj") return readOBJ(path);
+  if (ext == ".off") return readOFF(path);
+  if (ext == ".ply") return readPLY(path);
+  if (ext == ".pcd") return readPCD(path);
+  if (ext == ".xyz") return readXYZ(path);
+  throw fileError(path, "unknown frame format '" + ext + "' (expected .obj .ply .off .pcd .xyz)");
+}
+
+}  // namespace io
+}  // namespace pcl_animseg
