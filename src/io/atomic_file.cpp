@@ -27,6 +27,12 @@ void writeAtomically(const std::string& path,
   const fs::path tmp =
       target.parent_path() / ("." + name + ".tmp." + std::to_string(static_cast<long>(::getpid())));
   const std::string tmp_str = tmp.string();
+  {
+    std::error_code ec;
+    const fs::path dir = target.parent_path().empty() ? fs::path(".") : target.parent_path();
+    if (!fs::is_directory(dir, ec))
+      throw Error("cannot write '" + path + "': directory '" + dir.string() + "' does not exist");
+  }
   try {
     write(tmp_str);
     std::error_code ec;
