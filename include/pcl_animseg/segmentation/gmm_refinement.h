@@ -1,0 +1,102 @@
+#pragma once
+/** \file gmm_refinement.h Boundary smoothing by local normal-space GMMs (Sect. 4 of the paper). */
+#include <pcl_animseg/segmentation/segmentation_result.h>
+#include <pcl_animseg/sequence.h>
+
+#include <memory>
+#include <vector>
+
+namespace pcl_animseg {
+namespace segmentation {
+
+/** \brief Knobs of GMMBoundaryRefinement. Distances are in units of each frame's mean point
+ * spacing (pcl_animseg::meanSpacing), so they do not depend on scale or sampling density. */
+struct RefinementParams {
+  /** L_r: points within this distance of a boundary form the narrow band W (the points that may
+   * change label). Must cover the error of the initial boundary. */
+  double narrow_band = 4.0;
+  /** L_R (> L_r): F = (L_R − L_r) ∩ D_F and B = (L_R − L_r) ∩ D_B. The paper uses 5–8 points of
+   * width for F and B. */
+  double outer_band = 10.0;
+  /** Only F/B points farther than this from the boundary train the GMMs ("5 points" in the
+   * paper), so that the initial boundary's errors do not leak into the models. */
+  double training_min_distance = 5.0;
+  /** A point is on a boundary when one of its `boundary_k` nearest neighbours, closer than
+   * `boundary_max_distance`, carries another label. */
+  int boundary_k = 8;
+  double boundary_max_distance = 3.0;
+  /** Components per GMM (the paper: 4) and the variance floor added to their covariances (unit
+   * normals; 0.01 is about 6 degrees of spread, the noise of estimated normals). */
+  int components = 4;
+  double gmm_regularization = 0.01;
+  int gmm_max_iterations = 50;
+  /** Local models: the boundary of each pair of parts is cut into patches of about this size, each
+   * with its own F and B GMMs trained within `patch_radius` of the patch (the paper: "the GMM is
+   * computed on the neighbouring band of point x, not the whole band"). */
+  double patch_size = 12.0;
+  double patch_radius = 16.0;
+  /** A patch model needs this many training points, otherwise the pair-wide model is used. */
+  int min_training_points = 24;
+  /** Training points of a model are evenly subsampled to at most this many (speed). */
+  int max_training_points = 1200;
+  /** Eq. 11 with hysteresis: a W point changes side only when log p_c(x|other) − log
+   * p_c(x|own) exceeds this. Where the two sides' normals are alike (a smooth boundary) the
+   * likelihood ratio is noise, and the initial label is the better guess. 0 = the paper's rule. */
+  double min_log_ratio = 1.0;
+  /** Optional spatial term (0 = off, the paper's pure normal-space rule): adds
+   * −spatial_weight · (distance to the side's nearest training point, in spacings) to each side's
+   * log-likelihood. It keeps a W point from jumping to a side whose band is far away when
+   * normals cannot tell the sides apart. */
+  double spatial_weight = 0.0;
+  /** Iterate (bands rebuilt from the new labels) until fewer than `min_changed_fraction` of all
+   * points change, or `max_iterations`. */
+  int max_iterations = 4;
+  double min_changed_fraction = 1e-4;
+  /** Build the bands and models jointly over all frames (temporal coherence, Sect. 4): each part's
+   * points of every frame are brought into frame 0 by the part's rigid motion (point-to-plane ICP,
+   * see rigid_motion.h) and a pair's GMMs pool the band points of every frame. When false, each
+   * frame is refined on its own. */
+  bool pool_frames = true;
+  unsigned seed = 0;
+};
+
+/** \brief What happened during refine(). */
+struct RefinementStats {
+  int iterations = 0;
+  std::vector<std::size_t> changed;  ///< points relabelled per iteration
+  std::size_t band_points = 0;       ///< |W| over all frames at the first iteration
+  int models = 0;                    ///< GMMs fitted at the first iteration
+};
+
+/** \brief Refines the boundaries of a joint segmentation with local GMMs in normal space.
+ *
+ * For each pair of parts (a, b) that touch, boundary points are those with a near neighbour of
+ * the other label; W, F and B are the bands above. The F and B models of a local patch are
+ * 4-component GMMs of normals; each W point takes the side with the larger p_c (Eq. 11). Several
+ * parts meeting at one place are handled pair by pair: a point belongs to the band of the pair
+ * whose boundary is nearest to it and can only move to the other label of that pair.
+ */
+class GMMBoundaryRefinement {
+ public:
+  using Ptr = std::shared_ptr<GMMBoundaryRefinement>;
+  using ConstPtr = std::shared_ptr<const GMMBoundaryRefinement>;
+
+  void setInputSequence(const PointCloudSequence* sequence) { sequence_ = sequence; }
+  void setParams(const RefinementParams& params) { params_ = params; }
+  const RefinementParams& getParams() const { return params_; }
+
+  /** \brief Output is the input with refined labels (num_clusters, modes, densities and saddles
+   * copied unchanged). Throws pcl_animseg::Error for labels that do not match the sequence or
+   * inconsistent parameters. */
+  void refine(const SegmentationResult& input, SegmentationResult& output);
+
+  const RefinementStats& getStats() const { return stats_; }
+
+ private:
+  const PointCloudSequence* sequence_ = nullptr;
+  RefinementParams params_;
+  RefinementStats stats_;
+};
+
+}  // namespace segmentation
+}  // namespace pcl_animseg

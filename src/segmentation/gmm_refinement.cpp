@@ -1,0 +1,356 @@
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/math/gmm.h>
+#include <pcl_animseg/segmentation/gmm_refinement.h>
+#include <pcl_animseg/segmentation/rigid_motion.h>
+
+#include <pcl/kdtree/kdtree_flann.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <tuple>
+#include <unordered_map>
+
+namespace pcl_animseg {
+namespace segmentation {
+
+namespace {
+
+using Cloud = PointCloudSequence::Cloud;
+using XYZCloud = pcl::PointCloud<pcl::PointXYZ>;
+
+// A point of some pair's band in some frame.
+struct BandPoint {
+  int frame;
+  int index;
+  int pair;   // dense pair id
+  int side;   // 0: label == pair's a (F), 1: label == pair's b (B)
+  float dist; // distance to the pair's boundary, in spacings
+};
+
+struct Pair {
+  int a, b;
+};
+
+// The GMMs of one side of one pair within one pooling group: local patch models plus a
+// pair-wide fallback, and the training points (for the optional spatial term).
+struct SideModel {
+  std::vector<Eigen::Vector3d> train_pos, train_nrm;
+  std::vector<Eigen::Vector3d> boundary_pos;
+  XYZCloud::Ptr seeds{new XYZCloud};
+  std::vector<math::GaussianMixture> patch;
+  std::vector<char> patch_ok;
+  math::GaussianMixture whole;
+  bool whole_ok = false;
+  pcl::KdTreeFLANN<pcl::PointXYZ> seed_tree, train_tree;
+  XYZCloud::Ptr train_cloud{new XYZCloud};
+};
+
+pcl::PointXYZ toXYZ(const Eigen::Vector3d& p) {
+  return pcl::PointXYZ(static_cast<float>(p.x()), static_cast<float>(p.y()),
+                       static_cast<float>(p.z()));
+}
+
+// Evenly spread subset of at most `cap` of the given indices (deterministic).
+std::vector<int> subsample(const std::vector<int>& idx, int cap) {
+  if (static_cast<int>(idx.size()) <= cap) return idx;
+  std::vector<int> out(cap);
+  for (int k = 0; k < cap; ++k) out[k] = idx[static_cast<std::size_t>(k) * idx.size() / cap];
+  return out;
+}
+
+}  // namespace
+
+void GMMBoundaryRefinement::refine(const SegmentationResult& input, SegmentationResult& output) {
+  if (!sequence_ || sequence_->empty()) throw Error("GMM refinement: no input sequence");
+  const RefinementParams& p = params_;
+  if (!(p.narrow_band > 0.0) || !(p.outer_band > p.narrow_band))
+    throw Error("GMM refinement: need 0 < narrow band L_r < outer band L_R (got " +
+                std::to_string(p.narrow_band) + ", " + std::to_string(p.outer_band) + ")");
+  if (p.boundary_k < 2) throw Error("GMM refinement: boundary_k must be >= 2");
+  const std::size_t frames = sequence_->size();
+  if (input.labels.size() != frames)
+    throw Error("GMM refinement: labels for " + std::to_string(input.labels.size()) +
+                " frames, sequence has " + std::to_string(frames));
+  int num_labels = input.num_clusters;
+  for (std::size_t t = 0; t < frames; ++t) {
+    if (input.labels[t].size() != sequence_->frame(t)->size())
+      throw Error("GMM refinement: frame " + std::to_string(t) + " has " +
+                  std::to_string(input.labels[t].size()) + " labels for " +
+                  std::to_string(sequence_->frame(t)->size()) + " points");
+    for (int l : input.labels[t]) num_labels = std::max(num_labels, l + 1);
+  }
+  output = input;
+  stats_ = RefinementStats();
+  std::vector<std::vector<int>>& labels = output.labels;
+  std::size_t total_points = sequence_->totalPoints();
+
+  std::vector<double> spacing(frames);
+  std::vector<pcl::KdTreeFLANN<pcl::PointNormal>> trees(frames);
+  for (std::size_t t = 0; t < frames; ++t) {
+    spacing[t] = meanSpacing(*sequence_->frame(t));
+    trees[t].setInputCloud(sequence_->frame(t));
+  }
+  double mean_spacing = 0.0;
+  for (double s : spacing) mean_spacing += s / static_cast<double>(frames);
+
+  // Per part and frame, the map from frame t into frame 0 (identity when not pooling). Estimated
+  // once from the initial labels: the refinement changes only a thin band, which ICP's
+  // correspondence rejection ignores anyway.
+  std::vector<std::vector<RigidTransform>> to_ref(num_labels,
+                                                  std::vector<RigidTransform>(frames));
+  const bool pool = p.pool_frames && frames > 1;
+  if (pool) {
+    RigidMotionEstimation motion;
+    RigidMotionParams mp;
+    mp.max_points = 1500;
+    motion.setParams(mp);
+    motion.setInputSequence(sequence_);
+    const std::vector<PartMotion> parts = motion.compute(labels, num_labels);
+    for (int l = 0; l < num_labels; ++l)
+      for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
+  }
+
+  for (int iter = 0; iter < std::max(1, p.max_iterations); ++iter) {
+    // 1. Boundary points and bands, frame by frame (labels are joint, so pair ids agree).
+    std::map<std::pair<int, int>, int> pair_id;
+    std::vector<Pair> pairs;
+    std::vector<std::vector<BandPoint>> band(frames);
+    std::vector<std::vector<std::tuple<int, int, int>>> boundary(frames);  // (index, a, b)
+#pragma omp parallel for schedule(dynamic)
+    for (int t = 0; t < static_cast<int>(frames); ++t) {
+      const Cloud& cloud = *sequence_->frame(t);
+      const std::vector<int>& lab = labels[t];
+      const double s = spacing[t];
+      const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * s, 2));
+      std::vector<int> idx;
+      std::vector<float> d2;
+      for (std::size_t j = 0; j < cloud.size(); ++j) {
+        if (lab[j] < 0) continue;
+        trees[t].nearestKSearch(cloud[j], p.boundary_k + 1, idx, d2);
+        // The most frequent other label among the near neighbours names the pair.
+        int other = -1, best = 0;
+        for (std::size_t k = 1; k < idx.size(); ++k) {
+          const int m = lab[idx[k]];
+          if (m < 0 || m == lab[j] || d2[k] > max_d2) continue;
+          int c = 0;
+          for (std::size_t q = 1; q < idx.size(); ++q) c += lab[idx[q]] == m && d2[q] <= max_d2;
+          if (c > best) best = c, other = m;
+        }
+        if (other >= 0)
+          boundary[t].emplace_back(static_cast<int>(j), std::min(lab[j], other),
+                                   std::max(lab[j], other));
+      }
+    }
+    for (std::size_t t = 0; t < frames; ++t)
+      for (const auto& [j, a, b] : boundary[t])
+        if (pair_id.emplace(std::make_pair(a, b), static_cast<int>(pairs.size())).second)
+          pairs.push_back(Pair{a, b});
+    if (pairs.empty()) break;
+    const int num_pairs = static_cast<int>(pairs.size());
+    // Pairs of each label, to look up only the boundaries a point could move across.
+    std::vector<std::vector<int>> pairs_of(num_labels);
+    for (int q = 0; q < num_pairs; ++q) {
+      pairs_of[pairs[q].a].push_back(q);
+      pairs_of[pairs[q].b].push_back(q);
+    }
+
+#pragma omp parallel for schedule(dynamic)
+    for (int t = 0; t < static_cast<int>(frames); ++t) {
+      const Cloud& cloud = *sequence_->frame(t);
+      const std::vector<int>& lab = labels[t];
+      const double s = spacing[t];
+      std::vector<Cloud::Ptr> bcloud(num_pairs);
+      Cloud::Ptr all(new Cloud);
+      for (const auto& [j, a, b] : boundary[t]) {
+        const int q = pair_id.at({a, b});
+        if (!bcloud[q]) bcloud[q].reset(new Cloud);
+        bcloud[q]->push_back(cloud[j]);
+        all->push_back(cloud[j]);
+      }
+      if (all->empty()) continue;
+      pcl::KdTreeFLANN<pcl::PointNormal> all_tree;
+      all_tree.setInputCloud(all);
+      std::vector<pcl::KdTreeFLANN<pcl::PointNormal>> btree(num_pairs);
+      for (int q = 0; q < num_pairs; ++q)
+        if (bcloud[q]) btree[q].setInputCloud(bcloud[q]);
+      const double reach = p.outer_band * s;
+      std::vector<int> idx(1);
+      std::vector<float> d2(1);
+      for (std::size_t j = 0; j < cloud.size(); ++j) {
+        const int l = lab[j];
+        if (l < 0) continue;
+        all_tree.nearestKSearch(cloud[j], 1, idx, d2);
+        if (std::sqrt(d2[0]) > reach) continue;
+        int best_q = -1;
+        double best_d = reach;
+        for (int q : pairs_of[l]) {
+          if (!bcloud[q]) continue;
+          btree[q].nearestKSearch(cloud[j], 1, idx, d2);
+          const double d = std::sqrt(d2[0]);
+          if (d <= best_d) best_d = d, best_q = q;
+        }
+        if (best_q < 0) continue;
+        band[t].push_back(BandPoint{t, static_cast<int>(j), best_q, l == pairs[best_q].a ? 0 : 1,
+                                    static_cast<float>(best_d / s)});
+      }
+    }
+
+    // 2. Models per (group, pair, side). A group is the whole sequence when pooling, else a frame.
+    const int groups = pool ? 1 : static_cast<int>(frames);
+    std::vector<SideModel> models(static_cast<std::size_t>(groups) * num_pairs * 2);
+    auto model = [&](int g, int q, int side) -> SideModel& {
+      return models[(static_cast<std::size_t>(g) * num_pairs + q) * 2 + side];
+    };
+    auto canon = [&](int label, int t, const Eigen::Vector3d& x, const Eigen::Vector3d& n,
+                     Eigen::Vector3d& cx, Eigen::Vector3d& cn) {
+      const RigidTransform& r = to_ref[label][t];
+      cx = r.apply(x);
+      cn = r.rotation * n;
+    };
+    for (std::size_t t = 0; t < frames; ++t) {
+      const int g = pool ? 0 : static_cast<int>(t);
+      const Cloud& cloud = *sequence_->frame(t);
+      for (const auto& [j, a, b] : boundary[t]) {
+        const int q = pair_id.at({a, b});
+        Eigen::Vector3d cx, cn;
+        const Eigen::Vector3d x = cloud[j].getVector3fMap().cast<double>();
+        const Eigen::Vector3d n = cloud[j].getNormalVector3fMap().cast<double>();
+        canon(a, static_cast<int>(t), x, n, cx, cn);
+        model(g, q, 0).boundary_pos.push_back(cx);
+        canon(b, static_cast<int>(t), x, n, cx, cn);
+        model(g, q, 1).boundary_pos.push_back(cx);
+      }
+      for (const BandPoint& bp : band[t]) {
+        if (bp.dist <= p.narrow_band || bp.dist < p.training_min_distance) continue;
+        SideModel& m = model(g, bp.pair, bp.side);
+        Eigen::Vector3d cx, cn;
+        canon(labels[t][bp.index], static_cast<int>(t),
+              cloud[bp.index].getVector3fMap().cast<double>(),
+              cloud[bp.index].getNormalVector3fMap().cast<double>(), cx, cn);
+        const double len = cn.norm();
+        if (!(len > 0.0)) continue;
+        m.train_pos.push_back(cx);
+        m.train_nrm.push_back(cn / len);
+      }
+    }
+    const double patch = p.patch_size * mean_spacing;
+    const float radius = static_cast<float>(p.patch_radius * mean_spacing);
+    math::GMMOptions gopt;
+    gopt.components = p.components;
+    gopt.max_iterations = p.gmm_max_iterations;
+    gopt.regularization = p.gmm_regularization;
+    gopt.seed = p.seed;
+    auto fit = [&](const SideModel& m, const std::vector<int>& idx, math::GaussianMixture& out) {
+      const std::vector<int> use = subsample(idx, p.max_training_points);
+      Eigen::MatrixX3d x(use.size(), 3);
+      for (std::size_t k = 0; k < use.size(); ++k) x.row(k) = m.train_nrm[use[k]].transpose();
+      out = math::fitGMM(x, gopt);
+    };
+    int fitted = 0;
+#pragma omp parallel for schedule(dynamic) reduction(+ : fitted)
+    for (int mi = 0; mi < static_cast<int>(models.size()); ++mi) {
+      SideModel& m = models[mi];
+      if (static_cast<int>(m.train_nrm.size()) < p.min_training_points) continue;
+      std::vector<int> all(m.train_nrm.size());
+      for (std::size_t k = 0; k < all.size(); ++k) all[k] = static_cast<int>(k);
+      fit(m, all, m.whole);
+      m.whole_ok = true;
+      ++fitted;
+      for (const Eigen::Vector3d& x : m.train_pos) m.train_cloud->push_back(toXYZ(x));
+      m.train_tree.setInputCloud(m.train_cloud);
+      // Patch seeds: centroids of the boundary points in a voxel grid of the patch size.
+      std::map<std::tuple<long, long, long>, std::pair<Eigen::Vector3d, int>> cells;
+      for (const Eigen::Vector3d& x : m.boundary_pos) {
+        auto& c = cells[{static_cast<long>(std::floor(x.x() / patch)),
+                         static_cast<long>(std::floor(x.y() / patch)),
+                         static_cast<long>(std::floor(x.z() / patch))}];
+        if (c.second == 0) c.first.setZero();
+        c.first += x;
+        ++c.second;
+      }
+      std::vector<int> idx;
+      std::vector<float> d2;
+      for (const auto& [key, c] : cells) {
+        const Eigen::Vector3d seed = c.first / static_cast<double>(c.second);
+        m.seeds->push_back(toXYZ(seed));
+        m.patch.emplace_back();
+        m.train_tree.radiusSearch(toXYZ(seed), radius, idx, d2);
+        std::sort(idx.begin(), idx.end());
+        const bool ok = static_cast<int>(idx.size()) >= p.min_training_points;
+        if (ok) {
+          fit(m, idx, m.patch.back());
+          ++fitted;
+        }
+        m.patch_ok.push_back(ok);
+      }
+      if (!m.seeds->empty()) m.seed_tree.setInputCloud(m.seeds);
+    }
+    if (iter == 0) stats_.models = fitted;
+
+    // 3. Reassign W points by the larger p_c (Eq. 11), with hysteresis; all decisions use the
+    // labels of this iteration (Jacobi), so the result does not depend on the visiting order.
+    std::vector<std::vector<std::pair<int, int>>> changes(frames);
+    std::size_t band_w = 0;
+#pragma omp parallel for schedule(dynamic) reduction(+ : band_w)
+    for (int t = 0; t < static_cast<int>(frames); ++t) {
+      const int g = pool ? 0 : t;
+      const Cloud& cloud = *sequence_->frame(t);
+      std::vector<int> idx(1);
+      std::vector<float> d2(1);
+      for (const BandPoint& bp : band[t]) {
+        if (bp.dist > p.narrow_band) continue;
+        ++band_w;
+        const Pair& pr = pairs[bp.pair];
+        const Eigen::Vector3d x = cloud[bp.index].getVector3fMap().cast<double>();
+        const Eigen::Vector3d n = cloud[bp.index].getNormalVector3fMap().cast<double>();
+        double logp[2];
+        bool ok = true;
+        for (int side = 0; side < 2 && ok; ++side) {
+          const SideModel& m = model(g, bp.pair, side);
+          if (!m.whole_ok) {
+            ok = false;
+            break;
+          }
+          Eigen::Vector3d cx, cn;
+          canon(side == 0 ? pr.a : pr.b, t, x, n, cx, cn);
+          const double len = cn.norm();
+          if (!(len > 0.0)) {
+            ok = false;
+            break;
+          }
+          cn /= len;
+          const math::GaussianMixture* gmm = &m.whole;
+          if (!m.seeds->empty()) {
+            m.seed_tree.nearestKSearch(toXYZ(cx), 1, idx, d2);
+            if (m.patch_ok[idx[0]]) gmm = &m.patch[idx[0]];
+          }
+          logp[side] = gmm->logPdf(cn);
+          if (p.spatial_weight > 0.0) {
+            m.train_tree.nearestKSearch(toXYZ(cx), 1, idx, d2);
+            logp[side] -= p.spatial_weight * std::sqrt(d2[0]) / spacing[t];
+          }
+        }
+        if (!ok) continue;
+        const int own = bp.side;
+        if (logp[1 - own] - logp[own] > p.min_log_ratio)
+          changes[t].emplace_back(bp.index, own == 0 ? pr.b : pr.a);
+      }
+    }
+    if (iter == 0) stats_.band_points = band_w;
+    std::size_t changed = 0;
+    for (std::size_t t = 0; t < frames; ++t)
+      for (const auto& [j, l] : changes[t]) {
+        labels[t][j] = l;
+        ++changed;
+      }
+    stats_.iterations = iter + 1;
+    stats_.changed.push_back(changed);
+    if (static_cast<double>(changed) <= p.min_changed_fraction * static_cast<double>(total_points))
+      break;
+  }
+}
+
+}  // namespace segmentation
+}  // namespace pcl_animseg

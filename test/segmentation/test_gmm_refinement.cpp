@@ -1,0 +1,101 @@
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/segmentation/gmm_refinement.h>
+
+#include <gtest/gtest.h>
+
+#include <iostream>
+
+#include "synthetic_parts.h"
+
+using pcl_animseg::segmentation::GMMBoundaryRefinement;
+using pcl_animseg::segmentation::RefinementParams;
+using pcl_animseg::segmentation::SegmentationResult;
+
+namespace {
+
+struct Outcome {
+  double error_before, error_after, ari_before, ari_after;
+};
+
+Outcome run(const animseg_test::TubeChain& chain, const RefinementParams& params, int parts) {
+  SegmentationResult in;
+  in.labels = chain.shifted;
+  in.num_clusters = parts;
+  GMMBoundaryRefinement refine;
+  refine.setInputSequence(&chain.sequence);
+  refine.setParams(params);
+  SegmentationResult out;
+  refine.refine(in, out);
+  Outcome o;
+  o.error_before = animseg_test::boundaryError(chain.sequence, chain.truth, chain.shifted);
+  o.error_after = animseg_test::boundaryError(chain.sequence, chain.truth, out.labels);
+  const std::vector<int> truth = animseg_test::pooled(chain.truth);
+  o.ari_before = pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(chain.shifted), truth);
+  o.ari_after = pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(out.labels), truth);
+  std::cout << "boundary error " << o.error_before << " -> " << o.error_after << ", pooled ARI "
+            << o.ari_before << " -> " << o.ari_after << ", iterations "
+            << refine.getStats().iterations << ", |W| " << refine.getStats().band_points
+            << ", models " << refine.getStats().models << std::endl;
+  EXPECT_EQ(out.num_clusters, parts);
+  return o;
+}
+
+}  // namespace
+
+// Two tubes meeting at a mitred elbow (a crease), the initial boundary shifted by 2.5 spacings
+// in every frame, as a coarse clustering would leave it.
+TEST(GMMRefinement, ElbowBoundaryErrorDropsPooled) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0}, {1.0}, 6, 6000, 2.5, 1);
+  const Outcome o = run(chain, RefinementParams(), 2);
+  EXPECT_GT(o.error_before, 0.2);
+  EXPECT_LE(o.error_after, 0.7 * o.error_before);
+  EXPECT_GE(o.ari_after, o.ari_before);
+}
+
+TEST(GMMRefinement, ElbowBoundaryErrorDropsPerFrame) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0}, {1.1}, 4, 6000, -2.5, 2);
+  RefinementParams params;
+  params.pool_frames = false;
+  const Outcome o = run(chain, params, 2);
+  EXPECT_LE(o.error_after, 0.7 * o.error_before);
+  EXPECT_GE(o.ari_after, o.ari_before);
+}
+
+// Three and four parts: joints bent different ways, boundaries shifted toward different sides.
+TEST(GMMRefinement, ChainOfFourParts) {
+  const auto chain = animseg_test::makeTubeChain({0.8, 0.7, 0.9, 0.6}, {0.9, -1.0, 1.2}, 5, 9000, 2.0, 3);
+  const Outcome o = run(chain, RefinementParams(), 4);
+  EXPECT_LE(o.error_after, 0.7 * o.error_before);
+  EXPECT_GE(o.ari_after, o.ari_before);
+}
+
+TEST(GMMRefinement, CorrectLabelsStayCorrect) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0}, {1.0}, 4, 5000, 0.0, 4);
+  const Outcome o = run(chain, RefinementParams(), 2);
+  EXPECT_LE(o.error_after, o.error_before + 0.03);
+  EXPECT_GE(o.ari_after, o.ari_before - 0.005);
+}
+
+TEST(GMMRefinement, RejectsInconsistentInput) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0}, {1.0}, 2, 2000, 0.0, 5);
+  GMMBoundaryRefinement refine;
+  SegmentationResult in, out;
+  in.labels = chain.truth;
+  in.num_clusters = 2;
+  EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);  // no sequence
+  refine.setInputSequence(&chain.sequence);
+  in.labels[1].pop_back();
+  EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
+  in.labels = chain.truth;
+  RefinementParams bad;
+  bad.outer_band = bad.narrow_band;
+  refine.setParams(bad);
+  EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
+  // A single part has no boundary: nothing changes.
+  for (auto& f : in.labels) std::fill(f.begin(), f.end(), 0);
+  in.num_clusters = 1;
+  refine.setParams(RefinementParams());
+  refine.refine(in, out);
+  EXPECT_EQ(out.labels, in.labels);
+}
