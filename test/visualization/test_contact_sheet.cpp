@@ -13,6 +13,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <random>
 #include <set>
 #include <unistd.h>
@@ -93,6 +94,15 @@ class ContactSheetTest : public ::testing::Test {
         for (auto& c : rows) c.insert(c.begin() + 1000, -1);
       }
       io::saveLabels(dir_ + "/out/" + name + ".labels", rows);
+      // The input sequence it came from, with the dropped point as NaN.
+      PointCloudSequence::Cloud input = *f.cloud;
+      if (t == 1) {
+        pcl::PointNormal nan;
+        nan.x = nan.y = nan.z = std::numeric_limits<float>::quiet_NaN();
+        input.insert(input.begin() + 1000, nan);
+      }
+      io::ensureDirectory(dir_ + "/in");
+      io::savePLY(dir_ + "/in/" + name + ".ply", input);
       io::saveLabelledPCD(dir_ + "/out/" + name + ".pcd", *f.cloud, columns[0]);
       frames_.push_back(std::move(f));
     }
@@ -164,6 +174,18 @@ TEST_F(ContactSheetTest, LoadsOutDirectoryAlignedWithLabelRows) {
   ASSERT_EQ(counts.size(), static_cast<std::size_t>(kParts));
   EXPECT_EQ(counts[0].second, static_cast<std::size_t>(900 * kFrames));
   EXPECT_EQ(counts[3].second, static_cast<std::size_t>(500 * kFrames));
+}
+
+TEST_F(ContactSheetTest, TakesGeometryFromTheInputSequence) {
+  const LabelledSequence seq = loadLabelledSequence(dir_ + "/out", dir_ + "/in");
+  ASSERT_EQ(seq.size(), static_cast<std::size_t>(kFrames));
+  for (int t = 0; t < kFrames; ++t) {
+    ASSERT_EQ(seq.frames[t].cloud->size(), frames_[t].cloud->size()) << "frame " << t;
+    EXPECT_EQ(seq.frames[t].levels[0], frames_[t].part) << "frame " << t;
+    EXPECT_NEAR((*seq.frames[t].cloud)[1500].x, (*frames_[t].cloud)[1500].x, 1e-5f);
+  }
+  // Another OUT directory works as a geometry source too.
+  EXPECT_EQ(loadLabelledSequence(dir_ + "/out", dir_ + "/out").frames[1].levels[0], frames_[1].part);
 }
 
 TEST_F(ContactSheetTest, RendersHeadlessPNGWithEveryPartColour) {
