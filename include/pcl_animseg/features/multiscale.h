@@ -1,0 +1,69 @@
+#pragma once
+/** \file multiscale.h Section 3.1 in one call: scale space, keypoints and signatures of every
+ * frame of a sequence (what the mean shift consumes). */
+#include <pcl_animseg/features/signature.h>
+#include <pcl_animseg/sequence.h>
+
+#include <Eigen/Core>
+
+#include <vector>
+
+namespace pcl_animseg {
+class Progress;
+
+/** \brief Knobs of the multi-scale features. Lengths are in units of the sequence's reference
+ * spacing (sequenceSpacing): a multiple of it is the same world length in every frame, scales
+ * with the object and does not depend on how densely a frame is sampled. */
+struct MultiscaleParams {
+  /** Smallest scale h of L(x, h) (Eq. 1), spacings. */
+  double h = 2.0;
+  /** Factor k between adjacent scales (Eq. 1). */
+  double k = 1.41421356;
+  /** Number of levels L(x, h) .. L(x, k^(levels-1) h); keypoints need >= 4. */
+  int levels = 5;
+  /** Minimum |D| of a keypoint (dimensionless, see DoGKeypoint). */
+  double min_response = 0.002;
+  /** SIFT edge ratio r. */
+  double edge_ratio = 10.0;
+  /** Keypoints are detected only when true (levels >= 4). */
+  bool detect_keypoints = true;
+  /** Scale h of the signature, spacings (the disc of Eq. 2 has radius 2h). */
+  double signature_h = 3.0;
+  /** Signature layout R, S, R', S' (defaults 32, 8, 6, 4: 24-D). */
+  SignatureLayout layout;
+  /** Keep level 0 of each frame in SequenceFeatures::smoothed. */
+  bool keep_smoothed = false;
+};
+
+/** \brief The length unit of the features of a sequence: the mean spacing (featureSpacing) the
+ * frames would have with the median point count, median over frames of s_t sqrt(N_t / N_med).
+ * A frame's own mean spacing would shrink the scales of a densely sampled frame and make its
+ * signatures incomparable with those of a sparse frame of the same object (the frames of a
+ * point-cloud sequence have different point counts); s sqrt(N) ~ sqrt(surface area) does not
+ * depend on the density, and is unchanged by near-rigid motion. Throws Error for frames whose
+ * points all coincide. */
+double sequenceSpacing(const PointCloudSequence& seq);
+
+/** \brief The cloud the signature is computed on: the frame's own points and normals (the most
+ * accurate normals there are: the level-0 MLS normals are noisier on sparse random samples), with
+ * level 0's normals where the frame has none (missing-normal fall-back). */
+PointCloudSequence::Cloud::Ptr signatureInput(const PointCloudSequence::Cloud& frame,
+                                              const PointCloudSequence::Cloud& level0);
+
+/** \brief Per-frame outputs of computeSequenceFeatures. */
+struct SequenceFeatures {
+  std::vector<Eigen::MatrixXf> signatures;  ///< per frame, N_t x D (D = R' * S')
+  std::vector<std::vector<int>> keypoints;  ///< per frame, indices of keypoints
+  std::vector<std::vector<float>> keypoint_scale, keypoint_response;
+  std::vector<PointCloudSequence::Cloud::Ptr> smoothed;  ///< level 0 per frame (may be empty)
+};
+
+/** \brief Runs MLSScaleSpace, DoGKeypoint and SignatureEstimation on every frame (frames one
+ * after the other, OpenMP over points inside). Progress stages: "scale_space", "keypoints",
+ * "signature" (their times are summed over frames). Throws Error naming the frame on bad input.
+ * A keypoint index appears once per frame even when detected at several levels (the strongest
+ * |response| is kept). */
+SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const MultiscaleParams& p,
+                                         Progress* progress = nullptr);
+
+}  // namespace pcl_animseg
