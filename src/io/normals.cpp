@@ -1,7 +1,8 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/normals.h>
 
-#include <pcl/features/normal_3d_omp.h>
+#include <pcl/common/centroid.h>
+#include <pcl/features/normal_3d.h>
 #include <pcl/kdtree/kdtree_flann.h>
 
 #include <Eigen/Core>
@@ -12,6 +13,7 @@
 #include <queue>
 #include <tuple>
 #include <unordered_map>
+#include <vector>
 
 namespace pcl_animseg {
 namespace io {
@@ -91,62 +93,88 @@ std::vector<char> computeMeshNormals(PointCloudSequence::Cloud& cloud,
   return has;
 }
 
-void orientNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<char>& fixed) {
-  const std::size_t n = cloud.size();
-  if (n == 0) return;
-  if (!fixed.empty() && fixed.size() != n)
-    throw Error("orientNormals: the fixed mask does not match the cloud");
-  auto isFixed = [&](std::size_t i) { return !fixed.empty() && fixed[i]; };
+namespace {
 
-  // Symmetric kNN graph (Hoppe's Riemannian graph without the EMST edges: with k ~ 16 the kNN
-  // graph of a reasonably sampled surface is connected; separate components are handled below).
-  std::vector<std::vector<int>> adj(n);
-  if (n > 1) {
-    PointCloudSequence::Cloud::Ptr copy(new PointCloudSequence::Cloud(cloud));
-    pcl::KdTreeFLANN<pcl::PointNormal> tree;
-    tree.setInputCloud(copy);
-    const int kk = std::min<int>(std::max(k, 3) + 1, static_cast<int>(n));
+/** The k nearest neighbours of every point (itself included, -1 padded), row i at [i*k, i*k+k).
+ * One search serves both the PCA normals and the orientation graph. */
+std::vector<int> nearestNeighbours(const PointCloudSequence::Cloud& cloud, int k) {
+  const std::size_t n = cloud.size();
+  std::vector<int> knn(n * static_cast<std::size_t>(k), -1);
+  PointCloudSequence::Cloud::Ptr copy(new PointCloudSequence::Cloud(cloud));
+  pcl::KdTreeFLANN<pcl::PointNormal> tree;
+  tree.setInputCloud(copy);
+  const int nn = static_cast<int>(n);
+#pragma omp parallel
+  {
     std::vector<int> idx;
     std::vector<float> d2;
-    for (std::size_t i = 0; i < n; ++i) {
-      if (tree.nearestKSearch(cloud[i], kk, idx, d2) <= 0) continue;
-      for (int j : idx) {
-        if (j == static_cast<int>(i)) continue;
-        adj[i].push_back(j);
-        adj[j].push_back(static_cast<int>(i));
-      }
-    }
-    for (auto& a : adj) {
-      std::sort(a.begin(), a.end());
-      a.erase(std::unique(a.begin(), a.end()), a.end());
+#pragma omp for schedule(static)
+    for (int i = 0; i < nn; ++i) {
+      const int found = tree.nearestKSearch(cloud[i], k, idx, d2);
+      for (int a = 0; a < found && a < k; ++a) knn[static_cast<std::size_t>(i) * k + a] = idx[a];
     }
   }
+  return knn;
+}
 
-  std::vector<int> component(n, -1);
-  std::vector<char> visited(n, 0);
-  // (cost, index): ties broken by index so that the result does not depend on heap internals.
-  using Entry = std::tuple<double, int, int>;  // cost, to, from
-  for (std::size_t start = 0; start < n; ++start) {
-    if (component[start] >= 0) continue;
-    std::vector<int> members{static_cast<int>(start)};
-    component[start] = static_cast<int>(start);
+/** Hoppe's propagation over the symmetric kNN graph (see orientNormals in normals.h). */
+void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& knn, int k,
+                     const std::vector<char>& fixed) {
+  const std::size_t n = cloud.size();
+  auto isFixed = [&](std::size_t i) { return !fixed.empty() && fixed[i]; };
+  // Symmetric adjacency in CSR form (an edge may appear twice; harmless for Prim).
+  std::vector<std::size_t> start(n + 1, 0);
+  for (std::size_t i = 0; i < n; ++i)
+    for (int a = 0; a < k; ++a) {
+      const int j = knn[i * k + a];
+      if (j < 0 || static_cast<std::size_t>(j) == i) continue;
+      ++start[i + 1];
+      ++start[j + 1];
+    }
+  for (std::size_t i = 0; i < n; ++i) start[i + 1] += start[i];
+  std::vector<int> adj(start[n]);
+  {
+    std::vector<std::size_t> fill(start.begin(), start.end() - 1);
+    for (std::size_t i = 0; i < n; ++i)
+      for (int a = 0; a < k; ++a) {
+        const int j = knn[i * k + a];
+        if (j < 0 || static_cast<std::size_t>(j) == i) continue;
+        adj[fill[i]++] = j;
+        adj[fill[j]++] = static_cast<int>(i);
+      }
+  }
+
+  struct Entry {
+    float cost;
+    int to, from;
+    // Ties broken by index so that the result does not depend on heap internals.
+    bool operator>(const Entry& o) const {
+      return std::tie(cost, to, from) > std::tie(o.cost, o.to, o.from);
+    }
+  };
+  std::vector<char> in_component(n, 0), visited(n, 0);
+  std::vector<int> members;
+  std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> heap;
+  auto visit = [&](int i) {
+    visited[i] = 1;
+    for (std::size_t e = start[i]; e < start[i + 1]; ++e) {
+      const int j = adj[e];
+      if (!visited[j])
+        heap.push({static_cast<float>(1.0 - std::abs(dotN(cloud[i], cloud[j]))), j, i});
+    }
+  };
+  for (std::size_t first = 0; first < n; ++first) {
+    if (in_component[first]) continue;
+    members.assign(1, static_cast<int>(first));
+    in_component[first] = 1;
     for (std::size_t q = 0; q < members.size(); ++q)
-      for (int j : adj[members[q]])
-        if (component[j] < 0) {
-          component[j] = static_cast<int>(start);
-          members.push_back(j);
+      for (std::size_t e = start[members[q]]; e < start[members[q] + 1]; ++e)
+        if (!in_component[adj[e]]) {
+          in_component[adj[e]] = 1;
+          members.push_back(adj[e]);
         }
-
-    std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> heap;
-    auto visit = [&](int i) {
-      visited[i] = 1;
-      for (int j : adj[i])
-        if (!visited[j]) heap.emplace(1.0 - std::abs(dotN(cloud[i], cloud[j])), j, i);
-    };
     bool has_fixed = false;
-    for (int i : members)
-      if (isFixed(i)) has_fixed = true;
-
+    for (int i : members) has_fixed = has_fixed || isFixed(i);
     Eigen::Vector3d c = Eigen::Vector3d::Zero();
     for (int i : members) c += cloud[i].getVector3fMap().cast<double>();
     c /= static_cast<double>(members.size());
@@ -165,20 +193,19 @@ void orientNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<ch
         }
       }
       const Eigen::Vector3d out = cloud[seed].getVector3fMap().cast<double>() - c;
-      const Eigen::Vector3d ns = cloud[seed].getNormalVector3fMap().cast<double>();
-      if (ns.dot(out) < 0.0) flip(cloud[seed]);
+      if (cloud[seed].getNormalVector3fMap().cast<double>().dot(out) < 0.0) flip(cloud[seed]);
       visit(seed);
     }
     while (!heap.empty()) {
-      const auto [cost, to, from] = heap.top();
-      (void)cost;
+      const Entry e = heap.top();
       heap.pop();
-      if (visited[to]) continue;
-      if (dotN(cloud[from], cloud[to]) < 0.0) flip(cloud[to]);
-      visit(to);
+      if (visited[e.to]) continue;
+      if (dotN(cloud[e.from], cloud[e.to]) < 0.0) flip(cloud[e.to]);
+      visit(e.to);
     }
-
     if (!has_fixed) {
+      // The seed alone decides little when it sits on noise; the majority decides (closed
+      // surfaces: outward).
       double mean = 0.0;
       for (int i : members)
         mean += (cloud[i].getVector3fMap().cast<double>() - c)
@@ -189,43 +216,73 @@ void orientNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<ch
   }
 }
 
+int graphK(int k, std::size_t n) {
+  return std::min<int>(std::max(k, 3) + 1, static_cast<int>(n));
+}
+
+}  // namespace
+
+void orientNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<char>& fixed) {
+  const std::size_t n = cloud.size();
+  if (n == 0) return;
+  if (!fixed.empty() && fixed.size() != n)
+    throw Error("orientNormals: the fixed mask does not match the cloud");
+  const int kk = graphK(k, n);
+  orientWithGraph(cloud, nearestNeighbours(cloud, kk), kk, fixed);
+}
+
 void estimateNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<char>& known) {
   const std::size_t n = cloud.size();
   if (n == 0) return;
   if (!known.empty() && known.size() != n)
     throw Error("estimateNormals: the known mask does not match the cloud");
-  pcl::IndicesPtr todo(new pcl::Indices);
+  std::vector<int> todo;
   for (std::size_t i = 0; i < n; ++i)
-    if (known.empty() || !known[i]) todo->push_back(static_cast<int>(i));
-  if (todo->empty()) return;
+    if (known.empty() || !known[i]) todo.push_back(static_cast<int>(i));
+  if (todo.empty()) return;
   if (n < 3) throw Error("cannot estimate normals from fewer than 3 points");
 
-  PointCloudSequence::Cloud::Ptr copy(new PointCloudSequence::Cloud(cloud));
-  pcl::NormalEstimationOMP<pcl::PointNormal, pcl::Normal> ne;
-  ne.setInputCloud(copy);
-  ne.setIndices(todo);
-  ne.setKSearch(std::min<int>(std::max(k, 3), static_cast<int>(n)));
-  pcl::PointCloud<pcl::Normal> normals;
-  ne.compute(normals);
+  // The k nearest neighbours (the point itself included, as pcl::NormalEstimation does) give the
+  // PCA normal; the same search, one wider, gives the orientation graph.
+  const int kn = std::min<int>(std::max(k, 3), static_cast<int>(n));
+  const int kk = graphK(k, n);
+  const std::vector<int> knn = nearestNeighbours(cloud, kk);
   Eigen::Vector3d c = Eigen::Vector3d::Zero();
   for (const auto& p : cloud) c += p.getVector3fMap().cast<double>();
   c /= static_cast<double>(n);
-  for (std::size_t a = 0; a < todo->size(); ++a) {
-    auto& p = cloud[(*todo)[a]];
-    const auto& nn = normals[a];
-    p.normal_x = nn.normal_x;
-    p.normal_y = nn.normal_y;
-    p.normal_z = nn.normal_z;
-    p.curvature = std::isfinite(nn.curvature) ? nn.curvature : 0.0f;
-    if (!finiteNormal(p) || p.getNormalVector3fMap().squaredNorm() < 1e-12f) {
-      // A degenerate neighbourhood (duplicates, a line): any direction is as good as another;
-      // the radial one at least orients sensibly.
-      Eigen::Vector3d r = p.getVector3fMap().cast<double>() - c;
-      if (r.norm() < 1e-12) r = Eigen::Vector3d::UnitZ();
-      setNormal(p, r.normalized());
+  const int nt = static_cast<int>(todo.size());
+#pragma omp parallel
+  {
+    pcl::Indices nb;
+    Eigen::Matrix3f cov;
+    Eigen::Vector4f centroid;
+#pragma omp for schedule(static)
+    for (int a = 0; a < nt; ++a) {
+      const int i = todo[a];
+      nb.clear();
+      for (int b = 0; b < kn; ++b) {
+        const int j = knn[static_cast<std::size_t>(i) * kk + b];
+        if (j >= 0) nb.push_back(j);
+      }
+      auto& p = cloud[i];
+      float nx = NAN, ny = NAN, nz = NAN, curv = 0.0f;
+      // The same PCA as pcl::NormalEstimation::computePointNormal (smallest eigenvector).
+      if (nb.size() >= 3 && pcl::computeMeanAndCovarianceMatrix(cloud, nb, cov, centroid) > 0)
+        pcl::solvePlaneParameters(cov, nx, ny, nz, curv);
+      p.normal_x = nx;
+      p.normal_y = ny;
+      p.normal_z = nz;
+      p.curvature = std::isfinite(curv) ? curv : 0.0f;
+      if (!finiteNormal(p) || p.getNormalVector3fMap().squaredNorm() < 1e-12f) {
+        // A degenerate neighbourhood (duplicates, a line): any direction is as good as another;
+        // the radial one at least orients sensibly.
+        Eigen::Vector3d r = p.getVector3fMap().cast<double>() - c;
+        if (r.norm() < 1e-12) r = Eigen::Vector3d::UnitZ();
+        setNormal(p, r.normalized());
+      }
     }
   }
-  orientNormals(cloud, k, known);
+  orientWithGraph(cloud, knn, kk, known);
 }
 
 }  // namespace io

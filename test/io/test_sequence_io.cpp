@@ -275,6 +275,46 @@ TEST(Normals, EstimatedNormalsOutwardOnSphereAndTorus) {
   EXPECT_GE(outwardFraction(*seq.frame(0), torus), 0.95);
 }
 
+TEST(Normals, EstimatedNormalsOnABoxWithSharpEdges) {
+  // Points on the six faces of a box: the propagation must cross the 90-degree creases.
+  Shape box;
+  const Eigen::Vector3f half(1.0f, 0.5f, 0.3f);
+  const int g = 24;
+  for (int axis = 0; axis < 3; ++axis)
+    for (float side : {-1.0f, 1.0f})
+      for (int i = 0; i < g; ++i)
+        for (int j = 0; j < g; ++j) {
+          Eigen::Vector3f p;
+          const int u = (axis + 1) % 3, v = (axis + 2) % 3;
+          p[axis] = side * half[axis];
+          p[u] = half[u] * (2.0f * (i + 0.5f) / g - 1.0f);
+          p[v] = half[v] * (2.0f * (j + 0.5f) / g - 1.0f);
+          Eigen::Vector3f n = Eigen::Vector3f::Zero();
+          n[axis] = side;
+          box.points.push_back(p);
+          box.normals.push_back(n);
+        }
+  TempDir dir;
+  fixtures::writeXYZ(dir / "box.xyz", box, false);
+  const auto seq = loadOne(dir / "box.xyz");
+  EXPECT_GE(outwardFraction(*seq.frame(0), box), 0.95);
+}
+
+TEST(Normals, OpenCapPointsToItsConvexSide) {
+  // An open surface has no inside; the documented choice is "away from the centroid on average".
+  const Shape sphere = fixtures::sampleSphere(3000, 1.0f, Eigen::Vector3f::Zero());
+  Shape cap;
+  for (std::size_t i = 0; i < sphere.points.size(); ++i)
+    if (sphere.points[i].z() > 0.3f) {
+      cap.points.push_back(sphere.points[i]);
+      cap.normals.push_back(sphere.normals[i]);
+    }
+  TempDir dir;
+  fixtures::writeXYZ(dir / "cap.xyz", cap, false);
+  const auto seq = loadOne(dir / "cap.xyz");
+  EXPECT_GE(outwardFraction(*seq.frame(0), cap), 0.99);
+}
+
 TEST(Normals, OrientationFlipsAnInwardSeed) {
   const Shape s = fixtures::sampleSphere(500);
   PointCloudSequence::Cloud c;

@@ -40,7 +40,7 @@ std::vector<std::string> listSequence(const std::string& path);
  * (computeMeshNormals in normals.h; a closed mesh wound inwards is turned outwards) and keep their
  * triangles; normals a mesh file carries are ignored for vertices in faces. Point frames give
  * their points with the file's normals (normalised) where it has them; the other points get
- * normals from pcl::NormalEstimationOMP (k = options.normal_k), oriented consistently by
+ * normals from a PCA over the options.normal_k nearest neighbours, oriented consistently by
  * estimateNormals / orientNormals (normals.h: Hoppe's MST propagation, outward for closed
  * surfaces; for open surfaces see there). Mesh vertices in no face are estimated the same way,
  * oriented from the mesh normals around them.
