@@ -1,6 +1,5 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
-
 #include <unistd.h>
 
 #include <cerrno>
@@ -52,8 +51,8 @@ void writeTextAtomically(const std::string& path, const std::string& content) {
   writeAtomically(path, [&](const std::string& tmp) {
     std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
     if (!out)
-      throw Error("cannot write '" + path + "': cannot create '" + tmp + "': " +
-                  std::strerror(errno));
+      throw Error("cannot write '" + path + "': cannot create '" + tmp +
+                  "': " + std::strerror(errno));
     out.write(content.data(), static_cast<std::streamsize>(content.size()));
     out.close();
     if (!out) throw Error("cannot write '" + path + "': write failed (disk full?)");
@@ -65,14 +64,13 @@ void ensureDirectory(const std::string& path) {
   std::error_code ec;
   const fs::path p(path);
   if (fs::exists(p, ec)) {
-    if (!fs::is_directory(p, ec))
-      throw Error("'" + path + "' exists and is not a directory");
+    if (!fs::is_directory(p, ec)) throw Error("'" + path + "' exists and is not a directory");
     return;
   }
   fs::create_directories(p, ec);
   if (ec || !fs::is_directory(p))
-    throw Error("cannot create directory '" + path + "': " +
-                (ec ? ec.message() : std::string("unknown error")));
+    throw Error("cannot create directory '" + path +
+                "': " + (ec ? ec.message() : std::string("unknown error")));
 }
 
 }  // namespace io

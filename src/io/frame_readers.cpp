@@ -1,11 +1,10 @@
-#include <pcl_animseg/error.h>
-#include <pcl_animseg/io/frame_readers.h>
-
 #include <pcl/PCLPointCloud2.h>
 #include <pcl/PolygonMesh.h>
 #include <pcl/console/print.h>
 #include <pcl/io/pcd_io.h>
 #include <pcl/io/ply_io.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/io/frame_readers.h>
 
 #include <algorithm>
 #include <cctype>
@@ -127,15 +126,42 @@ class QuietPcl {
 
 double fieldValue(const std::uint8_t* p, std::uint8_t type) {
   switch (type) {
-    case pcl::PCLPointField::INT8: return *reinterpret_cast<const std::int8_t*>(p);
-    case pcl::PCLPointField::UINT8: return *p;
-    case pcl::PCLPointField::INT16: { std::int16_t v; std::memcpy(&v, p, 2); return v; }
-    case pcl::PCLPointField::UINT16: { std::uint16_t v; std::memcpy(&v, p, 2); return v; }
-    case pcl::PCLPointField::INT32: { std::int32_t v; std::memcpy(&v, p, 4); return v; }
-    case pcl::PCLPointField::UINT32: { std::uint32_t v; std::memcpy(&v, p, 4); return v; }
-    case pcl::PCLPointField::FLOAT32: { float v; std::memcpy(&v, p, 4); return v; }
-    case pcl::PCLPointField::FLOAT64: { double v; std::memcpy(&v, p, 8); return v; }
-    default: return std::numeric_limits<double>::quiet_NaN();
+    case pcl::PCLPointField::INT8:
+      return *reinterpret_cast<const std::int8_t*>(p);
+    case pcl::PCLPointField::UINT8:
+      return *p;
+    case pcl::PCLPointField::INT16: {
+      std::int16_t v;
+      std::memcpy(&v, p, 2);
+      return v;
+    }
+    case pcl::PCLPointField::UINT16: {
+      std::uint16_t v;
+      std::memcpy(&v, p, 2);
+      return v;
+    }
+    case pcl::PCLPointField::INT32: {
+      std::int32_t v;
+      std::memcpy(&v, p, 4);
+      return v;
+    }
+    case pcl::PCLPointField::UINT32: {
+      std::uint32_t v;
+      std::memcpy(&v, p, 4);
+      return v;
+    }
+    case pcl::PCLPointField::FLOAT32: {
+      float v;
+      std::memcpy(&v, p, 4);
+      return v;
+    }
+    case pcl::PCLPointField::FLOAT64: {
+      double v;
+      std::memcpy(&v, p, 8);
+      return v;
+    }
+    default:
+      return std::numeric_limits<double>::quiet_NaN();
   }
 }
 
@@ -219,8 +245,9 @@ RawFrame readOBJ(const std::string& path) {
     pcl::Indices p;
     for (long i : poly) {
       if (i >= nv)
-        throw lineError(path, line, "face refers to vertex " + std::to_string(i + 1) +
-                                        " but the file has " + std::to_string(nv));
+        throw lineError(path, line,
+                        "face refers to vertex " + std::to_string(i + 1) + " but the file has " +
+                            std::to_string(nv));
       p.push_back(static_cast<int>(i));
     }
     fanTriangulate(p, raw.faces);
@@ -291,8 +318,8 @@ RawFrame readOFF(const std::string& path) {
   for (std::size_t i = 0; i < nv; ++i, ++next) {
     const auto& [ln, s] = lines[next];
     if (!parseNumbers(s.c_str(), vals, need) || vals.size() < need)
-      throw lineError(path, ln, "vertex " + std::to_string(i) + " needs " +
-                                    std::to_string(need) + " numbers");
+      throw lineError(
+          path, ln, "vertex " + std::to_string(i) + " needs " + std::to_string(need) + " numbers");
     raw.points.emplace_back(vals[0], vals[1], vals[2]);
     if (has_normals) raw.normals.emplace_back(vals[3], vals[4], vals[5]);
   }
@@ -312,8 +339,9 @@ RawFrame readOFF(const std::string& path) {
       ss >> idx;
       if (!ss) throw lineError(path, ln, "face has fewer indices than its count");
       if (idx < 0 || static_cast<std::size_t>(idx) >= nv)
-        throw lineError(path, ln, "face refers to vertex " + std::to_string(idx) +
-                                      " but the file has " + std::to_string(nv));
+        throw lineError(path, ln,
+                        "face refers to vertex " + std::to_string(idx) + " but the file has " +
+                            std::to_string(nv));
       poly.push_back(static_cast<int>(idx));
     }
     fanTriangulate(poly, raw.faces);
@@ -326,8 +354,7 @@ namespace {
 int plyTypeSize(const std::string& t) {
   if (t == "char" || t == "uchar" || t == "int8" || t == "uint8") return 1;
   if (t == "short" || t == "ushort" || t == "int16" || t == "uint16") return 2;
-  if (t == "int" || t == "uint" || t == "float" || t == "int32" || t == "uint32" ||
-      t == "float32")
+  if (t == "int" || t == "uint" || t == "float" || t == "int32" || t == "uint32" || t == "float32")
     return 4;
   if (t == "double" || t == "float64") return 8;
   return 0;
@@ -484,7 +511,8 @@ void checkPCDHeader(const std::string& path) {
     }
   }
   const std::size_t nf = fields.size();
-  if (nf == 0 || sizes.size() != nf || types.size() != nf || (!counts.empty() && counts.size() != nf))
+  if (nf == 0 || sizes.size() != nf || types.size() != nf ||
+      (!counts.empty() && counts.size() != nf))
     throw fileError(path, "PCD header: FIELDS, SIZE, TYPE and COUNT disagree");
   long point_size = 0;
   for (std::size_t i = 0; i < nf; ++i) {
@@ -500,11 +528,11 @@ void checkPCDHeader(const std::string& path) {
   const std::uintmax_t need = static_cast<std::uintmax_t>(width) * height * point_size;
   if (data == "binary") {
     if (file_size < header_bytes + need)
-      throw fileError(path, "truncated: the PCD header announces " +
-                                std::to_string(width * height) + " points (" +
-                                std::to_string(need) + " bytes) but the file has only " +
-                                std::to_string(file_size - std::min<std::uintmax_t>(file_size, header_bytes)) +
-                                " bytes of data");
+      throw fileError(
+          path, "truncated: the PCD header announces " + std::to_string(width * height) +
+                    " points (" + std::to_string(need) + " bytes) but the file has only " +
+                    std::to_string(file_size - std::min<std::uintmax_t>(file_size, header_bytes)) +
+                    " bytes of data");
   } else if (data == "binary_compressed") {
     std::uint32_t sz[2] = {0, 0};
     in.read(reinterpret_cast<char*>(sz), 8);

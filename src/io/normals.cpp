@@ -1,9 +1,8 @@
-#include <pcl_animseg/error.h>
-#include <pcl_animseg/io/normals.h>
-
 #include <pcl/common/centroid.h>
 #include <pcl/features/normal_3d.h>
 #include <pcl/kdtree/kdtree_flann.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/io/normals.h>
 
 #include <Eigen/Core>
 #include <algorithm>
@@ -37,7 +36,8 @@ void flip(pcl::PointNormal& p) {
 }
 
 double dotN(const pcl::PointNormal& a, const pcl::PointNormal& b) {
-  return static_cast<double>(a.normal_x) * b.normal_x + static_cast<double>(a.normal_y) * b.normal_y +
+  return static_cast<double>(a.normal_x) * b.normal_x +
+         static_cast<double>(a.normal_y) * b.normal_y +
          static_cast<double>(a.normal_z) * b.normal_z;
 }
 
@@ -216,9 +216,7 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
   }
 }
 
-int graphK(int k, std::size_t n) {
-  return std::min<int>(std::max(k, 3) + 1, static_cast<int>(n));
-}
+int graphK(int k, std::size_t n) { return std::min<int>(std::max(k, 3) + 1, static_cast<int>(n)); }
 
 }  // namespace
 

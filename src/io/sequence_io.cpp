@@ -1,10 +1,9 @@
+#include <omp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/frame_readers.h>
 #include <pcl_animseg/io/normals.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/progress.h>
-
-#include <omp.h>
 
 #include <algorithm>
 #include <atomic>
@@ -119,11 +118,11 @@ std::vector<std::string> listSequence(const std::string& path) {
     if (p.is_relative()) p = base / p;
     const std::string ps = p.lexically_normal().string();
     if (!fs::exists(p, ec))
-      throw Error("list file '" + path + "' line " + std::to_string(number) + " names '" +
-                  entry + "', which does not exist (looked for '" + ps + "')");
+      throw Error("list file '" + path + "' line " + std::to_string(number) + " names '" + entry +
+                  "', which does not exist (looked for '" + ps + "')");
     if (!isFrameFile(ps))
-      throw Error("list file '" + path + "' line " + std::to_string(number) + " names '" +
-                  entry + "', which is not a frame file (" + kFrameExtensions + ")");
+      throw Error("list file '" + path + "' line " + std::to_string(number) + " names '" + entry +
+                  "', which is not a frame file (" + kFrameExtensions + ")");
     frames.push_back(ps);
   }
   if (frames.empty()) throw Error("list file '" + path + "' names no frames");
@@ -151,7 +150,8 @@ void loadFrame(const std::string& path, PointCloudSequence& sequence, const Load
     throw Error("'" + path + "': no valid points (" + std::to_string(n_in) +
                 (n_in ? " points, all with NaN/Inf coordinates)" : " points)"));
   if (n < options.min_points)
-    throw Error("'" + path + "': only " + std::to_string(n) + (n == 1 ? " valid point" : " valid points") + ", at least " +
+    throw Error("'" + path + "': only " + std::to_string(n) +
+                (n == 1 ? " valid point" : " valid points") + ", at least " +
                 std::to_string(options.min_points) + " are needed");
 
   PointCloudSequence::Cloud::Ptr cloud(new PointCloudSequence::Cloud);
@@ -165,6 +165,9 @@ void loadFrame(const std::string& path, PointCloudSequence& sequence, const Load
   cloud->width = static_cast<std::uint32_t>(n);
   cloud->height = 1;
   cloud->is_dense = true;
+  if (boundingBoxDiagonal(*cloud) <= 0.0)
+    throw Error("'" + path + "': all " + std::to_string(n) +
+                " points coincide (a frame needs an extent)");
 
   std::vector<pcl::Vertices> faces;
   faces.reserve(raw.faces.size());
@@ -211,8 +214,8 @@ PointCloudSequence loadSequence(const std::string& path, const LoadOptions& opti
   std::vector<std::string> errors(files.size());
   std::atomic<std::size_t> done{0};
   if (progress) progress->begin("load", files.size());
-  // With fewer frames than threads, frames load one after another so that the normal estimation
-  // inside each (OpenMP itself) gets the threads instead of running nested and serial.
+    // With fewer frames than threads, frames load one after another so that the normal estimation
+    // inside each (OpenMP itself) gets the threads instead of running nested and serial.
 #pragma omp parallel for schedule(dynamic, 1) if (nf >= omp_get_max_threads())
   for (int t = 0; t < nf; ++t) {
     try {

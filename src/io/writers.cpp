@@ -1,16 +1,15 @@
+#include <pcl/PCLPointCloud2.h>
+#include <pcl/io/pcd_io.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
 #include <pcl_animseg/io/sequence_io.h>
 
-#include <pcl/PCLPointCloud2.h>
-#include <pcl/io/pcd_io.h>
-
 #include <cerrno>
+#include <climits>
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
-#include <climits>
 #include <fstream>
 #include <sstream>
 
@@ -38,8 +37,8 @@ void putLE(std::string& buf, T value) {
 void writeBytes(const std::string& final_path, const std::string& tmp, const std::string& data) {
   std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
   if (!out)
-    throw Error("cannot write '" + final_path + "': cannot create '" + tmp + "': " +
-                std::strerror(errno));
+    throw Error("cannot write '" + final_path + "': cannot create '" + tmp +
+                "': " + std::strerror(errno));
   out.write(data.data(), static_cast<std::streamsize>(data.size()));
   out.close();
   if (!out) throw Error("cannot write '" + final_path + "': write failed (disk full?)");
@@ -48,8 +47,8 @@ void writeBytes(const std::string& final_path, const std::string& tmp, const std
 void checkLabels(const std::string& path, const PointCloudSequence::Cloud& cloud,
                  const std::vector<int>& labels) {
   if (labels.size() != cloud.size())
-    throw Error("cannot write '" + path + "': " + std::to_string(labels.size()) +
-                " labels for " + std::to_string(cloud.size()) + " points");
+    throw Error("cannot write '" + path + "': " + std::to_string(labels.size()) + " labels for " +
+                std::to_string(cloud.size()) + " points");
 }
 
 std::string fmt(float v) {
@@ -117,12 +116,36 @@ void labelColor(int label, unsigned char& r, unsigned char& g, unsigned char& b)
   const double p = v * (1 - s), q = v * (1 - s * f), t = v * (1 - s * (1 - f));
   double rr, gg, bb;
   switch (sector) {
-    case 0: rr = v; gg = t; bb = p; break;
-    case 1: rr = q; gg = v; bb = p; break;
-    case 2: rr = p; gg = v; bb = t; break;
-    case 3: rr = p; gg = q; bb = v; break;
-    case 4: rr = t; gg = p; bb = v; break;
-    default: rr = v; gg = p; bb = q; break;
+    case 0:
+      rr = v;
+      gg = t;
+      bb = p;
+      break;
+    case 1:
+      rr = q;
+      gg = v;
+      bb = p;
+      break;
+    case 2:
+      rr = p;
+      gg = v;
+      bb = t;
+      break;
+    case 3:
+      rr = p;
+      gg = q;
+      bb = v;
+      break;
+    case 4:
+      rr = t;
+      gg = p;
+      bb = v;
+      break;
+    default:
+      rr = v;
+      gg = p;
+      bb = q;
+      break;
   }
   r = static_cast<unsigned char>(std::lround(rr * 255.0));
   g = static_cast<unsigned char>(std::lround(gg * 255.0));

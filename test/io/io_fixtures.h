@@ -1,10 +1,9 @@
 #pragma once
 // Small shapes and independent, hand-written frame writers for the io tests (the library's own
 // writers are tested against these, not against themselves).
-#include <pcl_animseg/sequence.h>
-
 #include <pcl/io/pcd_io.h>
 #include <pcl/point_types.h>
+#include <pcl_animseg/sequence.h>
 
 #include <Eigen/Core>
 #include <cmath>
@@ -60,8 +59,8 @@ inline Shape sampleSphere(int n, float radius = 1.0f,
     const double z = 1.0 - 2.0 * (i + 0.5) / n;
     const double r = std::sqrt(1.0 - z * z);
     const double a = golden * i;
-    const Eigen::Vector3f d(static_cast<float>(r * std::cos(a)), static_cast<float>(r * std::sin(a)),
-                            static_cast<float>(z));
+    const Eigen::Vector3f d(static_cast<float>(r * std::cos(a)),
+                            static_cast<float>(r * std::sin(a)), static_cast<float>(z));
     s.points.push_back(center + radius * d);
     s.normals.push_back(d);
   }
@@ -75,9 +74,11 @@ inline Shape sampleTorus(int nu, int nv, float R = 1.0f, float r = 0.35f) {
     for (int j = 0; j < nv; ++j) {
       // Offsets by half a step on alternate rings avoid a perfectly regular grid.
       const double u = 2 * M_PI * (i + 0.5 * (j % 2)) / nu, v = 2 * M_PI * j / nv;
-      const Eigen::Vector3f ring(static_cast<float>(R * std::cos(u)), static_cast<float>(R * std::sin(u)), 0);
+      const Eigen::Vector3f ring(static_cast<float>(R * std::cos(u)),
+                                 static_cast<float>(R * std::sin(u)), 0);
       const Eigen::Vector3f d(static_cast<float>(std::cos(v) * std::cos(u)),
-                              static_cast<float>(std::cos(v) * std::sin(u)), static_cast<float>(std::sin(v)));
+                              static_cast<float>(std::cos(v) * std::sin(u)),
+                              static_cast<float>(std::sin(v)));
       s.points.push_back(ring + r * d);
       s.normals.push_back(d);
     }
@@ -99,7 +100,8 @@ inline Shape uvSphere(int rings, int segments, float radius = 1.0f,
     for (int j = 0; j < segments; ++j) {
       const double ph = 2 * M_PI * j / segments;
       add(Eigen::Vector3f(static_cast<float>(std::sin(th) * std::cos(ph)),
-                          static_cast<float>(std::sin(th) * std::sin(ph)), static_cast<float>(std::cos(th))));
+                          static_cast<float>(std::sin(th) * std::sin(ph)),
+                          static_cast<float>(std::cos(th))));
     }
   }
   add(Eigen::Vector3f(0, 0, -1));
@@ -131,7 +133,9 @@ inline void writeXYZ(const std::string& path, const Shape& s, bool normals) {
   for (std::size_t i = 0; i < s.points.size(); ++i) {
     const auto& p = s.points[i];
     o << num(p.x()) << ' ' << num(p.y()) << ' ' << num(p.z());
-    if (normals) o << ' ' << num(s.normals[i].x()) << ' ' << num(s.normals[i].y()) << ' ' << num(s.normals[i].z());
+    if (normals)
+      o << ' ' << num(s.normals[i].x()) << ' ' << num(s.normals[i].y()) << ' '
+        << num(s.normals[i].z());
     o << '\n';
   }
   writeText(path, o.str());
@@ -141,7 +145,8 @@ inline void writeXYZ(const std::string& path, const Shape& s, bool normals) {
 inline void writeOBJ(const std::string& path, const Shape& s, bool relative = false) {
   std::ostringstream o;
   o << "# test mesh\no shape\n";
-  for (const auto& p : s.points) o << "v " << num(p.x()) << ' ' << num(p.y()) << ' ' << num(p.z()) << '\n';
+  for (const auto& p : s.points)
+    o << "v " << num(p.x()) << ' ' << num(p.y()) << ' ' << num(p.z()) << '\n';
   o << "vt 0 0\nvn 0 0 1\n";
   const int n = static_cast<int>(s.points.size());
   for (const auto& f : s.polys) {
@@ -160,7 +165,8 @@ inline void writeOFF(const std::string& path, const Shape& s, const std::string&
     const auto& p = s.points[i];
     o << num(p.x()) << ' ' << num(p.y()) << ' ' << num(p.z());
     if (keyword.find('N') != std::string::npos)
-      o << ' ' << num(s.normals[i].x()) << ' ' << num(s.normals[i].y()) << ' ' << num(s.normals[i].z());
+      o << ' ' << num(s.normals[i].x()) << ' ' << num(s.normals[i].y()) << ' '
+        << num(s.normals[i].z());
     if (keyword.find('C') != std::string::npos) o << " 255 0 0 255";
     o << '\n';
   }
@@ -199,7 +205,9 @@ inline std::string plyBytes(const Shape& s, const std::string& format, bool norm
     std::ostringstream o;
     for (std::size_t i = 0; i < s.points.size(); ++i) {
       o << num(s.points[i].x()) << ' ' << num(s.points[i].y()) << ' ' << num(s.points[i].z());
-      if (normals) o << ' ' << num(s.normals[i].x()) << ' ' << num(s.normals[i].y()) << ' ' << num(s.normals[i].z());
+      if (normals)
+        o << ' ' << num(s.normals[i].x()) << ' ' << num(s.normals[i].y()) << ' '
+          << num(s.normals[i].z());
       o << '\n';
     }
     if (faces)
@@ -228,8 +236,8 @@ inline std::string plyBytes(const Shape& s, const std::string& format, bool norm
   return out;
 }
 
-inline void writePLY(const std::string& path, const Shape& s, const std::string& format, bool normals,
-                     bool faces, bool doubles = false) {
+inline void writePLY(const std::string& path, const Shape& s, const std::string& format,
+                     bool normals, bool faces, bool doubles = false) {
   writeText(path, plyBytes(s, format, normals, faces, doubles));
 }
 

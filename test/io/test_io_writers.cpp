@@ -1,11 +1,10 @@
 // Writers: atomic files, labels, labelled PCD / PLY, savePLY round trips.
 #include <gtest/gtest.h>
+#include <pcl/io/pcd_io.h>
+#include <pcl/io/ply_io.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
 #include <pcl_animseg/io/sequence_io.h>
-
-#include <pcl/io/pcd_io.h>
-#include <pcl/io/ply_io.h>
 
 #include <cstdlib>
 #include <iostream>
@@ -27,12 +26,14 @@ void expectError(const std::function<void()>& f, const std::vector<std::string>&
   } catch (const Error& e) {
     const std::string what = e.what();
     if (std::getenv("IO_TEST_SHOW_ERRORS")) std::cerr << "  message: " << what << "\n";
-    for (const auto& p : parts) EXPECT_NE(what.find(p), std::string::npos) << "'" << p << "' not in: " << what;
+    for (const auto& p : parts)
+      EXPECT_NE(what.find(p), std::string::npos) << "'" << p << "' not in: " << what;
   }
 }
 
 std::size_t entries(const std::string& dir) {
-  return static_cast<std::size_t>(std::distance(fs::directory_iterator(dir), fs::directory_iterator()));
+  return static_cast<std::size_t>(
+      std::distance(fs::directory_iterator(dir), fs::directory_iterator()));
 }
 
 std::string readAll(const std::string& path) {
@@ -96,7 +97,8 @@ TEST(AtomicFile, ThrowingWriterLeavesNothing) {
 TEST(AtomicFile, ErrorsAreErrors) {
   TempDir dir;
   expectError([&] { io::writeTextAtomically(dir / "missing/sub/x.txt", "x"); }, {"x.txt"});
-  expectError([&] { io::writeAtomically(dir / "y.txt", [](const std::string&) {}); }, {"y.txt", "no file"});
+  expectError([&] { io::writeAtomically(dir / "y.txt", [](const std::string&) {}); },
+              {"y.txt", "no file"});
   io::ensureDirectory(dir / "a/b/c");
   EXPECT_TRUE(fs::is_directory(dir / "a/b/c"));
   io::ensureDirectory(dir / "a/b/c");  // existing: fine
@@ -164,7 +166,8 @@ TEST(LabelledPCD, FieldsAndLabels) {
   ASSERT_EQ(pcl::io::loadPCDFile(dir / "f.pcd", c2), 0);
   std::vector<std::string> names;
   for (const auto& f : c2.fields) names.push_back(f.name);
-  EXPECT_EQ(names, (std::vector<std::string>{"x", "y", "z", "normal_x", "normal_y", "normal_z", "label"}));
+  EXPECT_EQ(names,
+            (std::vector<std::string>{"x", "y", "z", "normal_x", "normal_y", "normal_z", "label"}));
   EXPECT_EQ(c2.fields.back().datatype, pcl::PCLPointField::UINT32);
   EXPECT_NE(readAll(dir / "f.pcd").find("DATA binary\n"), std::string::npos);
   pcl::PointCloud<pcl::PointXYZLNormal> back;
@@ -175,7 +178,11 @@ TEST(LabelledPCD, FieldsAndLabels) {
     EXPECT_FLOAT_EQ(back[i].x, c[i].x);
     EXPECT_FLOAT_EQ(back[i].normal_z, c[i].normal_z);
   }
-  expectError([&] { io::saveLabelledPCD(dir / "g.pcd", c, {1, 2}); }, {"g.pcd", "2 labels for 100 points"});
+  expectError(
+      [&] {
+        io::saveLabelledPCD(dir / "g.pcd", c, {1, 2});
+      },
+      {"g.pcd", "2 labels for 100 points"});
   EXPECT_FALSE(fs::exists(dir / "g.pcd"));
 }
 

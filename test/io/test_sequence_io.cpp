@@ -8,8 +8,8 @@
 
 #include <algorithm>
 #include <cstdlib>
-#include <iostream>
 #include <functional>
+#include <iostream>
 
 #include "io/io_fixtures.h"
 
@@ -28,7 +28,8 @@ void expectError(const std::function<void()>& f, const std::vector<std::string>&
   } catch (const Error& e) {
     const std::string what = e.what();
     if (std::getenv("IO_TEST_SHOW_ERRORS")) std::cerr << "  message: " << what << "\n";
-    for (const auto& p : parts) EXPECT_NE(what.find(p), std::string::npos) << "'" << p << "' not in: " << what;
+    for (const auto& p : parts)
+      EXPECT_NE(what.find(p), std::string::npos) << "'" << p << "' not in: " << what;
   }
 }
 
@@ -87,7 +88,8 @@ TEST(SequenceIO, NaturalOrder) {
 TEST(SequenceIO, DirectoryListingIsNaturalAndFiltered) {
   TempDir dir;
   const Shape s = fixtures::sampleSphere(60);
-  for (const char* n : {"f10.xyz", "f2.xyz", "f1.xyz", ".f3.xyz"}) fixtures::writeXYZ(dir / n, s, true);
+  for (const char* n : {"f10.xyz", "f2.xyz", "f1.xyz", ".f3.xyz"})
+    fixtures::writeXYZ(dir / n, s, true);
   fixtures::writeText(dir / "README.txt", "not a frame\n");
   fs::create_directory(dir / "sub.ply");  // a directory with a frame extension is not a frame
   const auto files = io::listSequence(dir.path());
@@ -104,8 +106,9 @@ TEST(SequenceIO, ListFileRelativePathsAndComments) {
   fixtures::writeXYZ(dir / "frames/b.xyz", s, true);
   fixtures::writeXYZ(dir / "frames/a.xyz", s, true);
   fixtures::writeXYZ(dir / "abs.xyz", s, true);
-  fixtures::writeText(dir / "seq.txt", "# my sequence\n\nframes/b.xyz\n  frames/a.xyz  \r\n# done\n" +
-                                           (dir / "abs.xyz") + "\n");
+  fixtures::writeText(
+      dir / "seq.txt",
+      "# my sequence\n\nframes/b.xyz\n  frames/a.xyz  \r\n# done\n" + (dir / "abs.xyz") + "\n");
   const auto files = io::listSequence(dir / "seq.txt");
   ASSERT_EQ(files.size(), 3u);  // list order, not sorted
   EXPECT_EQ(io::stem(files[0]), "b");
@@ -117,7 +120,8 @@ TEST(SequenceIO, ListFileRelativePathsAndComments) {
   EXPECT_EQ(seq.name(0), "b");
 
   fixtures::writeText(dir / "bad.txt", "frames/a.xyz\n# c\nframes/missing.xyz\n");
-  expectError([&] { io::listSequence(dir / "bad.txt"); }, {"bad.txt", "line 3", "frames/missing.xyz", "does not exist"});
+  expectError([&] { io::listSequence(dir / "bad.txt"); },
+              {"bad.txt", "line 3", "frames/missing.xyz", "does not exist"});
   fixtures::writeText(dir / "empty.txt", "# nothing\n\n");
   expectError([&] { io::listSequence(dir / "empty.txt"); }, {"empty.txt", "no frames"});
 }
@@ -136,7 +140,8 @@ TEST(FrameFormats, XYZ) {
   EXPECT_TRUE(seq.faces(0).empty());
   // Comma separated, no normals.
   std::string csv;
-  for (const auto& p : s.points) csv += fixtures::num(p.x()) + "," + fixtures::num(p.y()) + "," + fixtures::num(p.z()) + "\n";
+  for (const auto& p : s.points)
+    csv += fixtures::num(p.x()) + "," + fixtures::num(p.y()) + "," + fixtures::num(p.z()) + "\n";
   fixtures::writeText(dir / "c.xyz", csv);
   seq = loadOne(dir / "c.xyz");
   expectMatches(*seq.frame(0), s, false);
@@ -200,8 +205,9 @@ TEST(FrameFormats, MeshesInEveryFormat) {
 
 TEST(FrameFormats, OffHeaderVariants) {
   TempDir dir;
-  fixtures::writeText(dir / "q.off",
-                      "OFF 5 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0 # trailing comment\n0.5 0.5 0.5\n4 0 1 2 3\n");
+  fixtures::writeText(
+      dir / "q.off",
+      "OFF 5 1 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0 # trailing comment\n0.5 0.5 0.5\n4 0 1 2 3\n");
   io::LoadOptions o;
   o.min_points = 5;
   const auto seq = loadOne(dir / "q.off", o);
@@ -337,7 +343,8 @@ TEST(SequenceIO, NaNPointsDroppedWithInputIndex) {
   Shape s = fixtures::sampleSphere(200);
   const float nan = std::numeric_limits<float>::quiet_NaN();
   const std::vector<int> bad{0, 17, 18, 199};
-  for (int i : bad) s.points[i] = Eigen::Vector3f(i == 18 ? std::numeric_limits<float>::infinity() : nan, 1, 2);
+  for (int i : bad)
+    s.points[i] = Eigen::Vector3f(i == 18 ? std::numeric_limits<float>::infinity() : nan, 1, 2);
   fixtures::writeXYZ(dir / "nan.xyz", s, true);
   fixtures::writePCD(dir / "nan.pcd", s, false, true);
   for (const char* n : {"nan.xyz", "nan.pcd"}) {
@@ -350,7 +357,8 @@ TEST(SequenceIO, NaNPointsDroppedWithInputIndex) {
     EXPECT_EQ(idx[0], 1);
     EXPECT_EQ(idx[16], 19);
     EXPECT_EQ(idx.back(), 198);
-    for (std::size_t j = 0; j < idx.size(); ++j) ASSERT_FLOAT_EQ((*seq.frame(0))[j].x, s.points[idx[j]].x());
+    for (std::size_t j = 0; j < idx.size(); ++j)
+      ASSERT_FLOAT_EQ((*seq.frame(0))[j].x, s.points[idx[j]].x());
     std::vector<int> labels(196);
     for (std::size_t j = 0; j < labels.size(); ++j) labels[j] = static_cast<int>(j % 5);
     const auto in = seq.toInputOrder(0, labels);
@@ -396,7 +404,9 @@ TEST(SequenceIO, MixedFormatsLoadInNaturalOrderWithProgress) {
 
 TEST(SequenceIO, ManyFramesLoadInOrder) {
   TempDir dir;
-  for (int t = 0; t < 12; ++t) fixtures::writeXYZ(dir / ("frame" + std::to_string(t) + ".xyz"), fixtures::sampleSphere(50 + t), true);
+  for (int t = 0; t < 12; ++t)
+    fixtures::writeXYZ(dir / ("frame" + std::to_string(t) + ".xyz"), fixtures::sampleSphere(50 + t),
+                       true);
   const auto seq = io::loadSequence(dir.path());
   ASSERT_EQ(seq.size(), 12u);
   for (int t = 0; t < 12; ++t) {
@@ -495,6 +505,10 @@ TEST(BadInput, TooFewAndNaNOnlyPoints) {
   expectError([&] { loadOne(dir / "three.xyz"); }, {"three.xyz", "only 3 valid points", "10"});
   fixtures::writeText(dir / "nan.xyz", "nan nan nan\nnan 1 2\ninf 0 0\n");
   expectError([&] { loadOne(dir / "nan.xyz"); }, {"nan.xyz", "no valid points", "NaN"});
+  std::string same;
+  for (int i = 0; i < 20; ++i) same += "1 2 3\n";
+  fixtures::writeText(dir / "same.xyz", same);
+  expectError([&] { loadOne(dir / "same.xyz"); }, {"same.xyz", "coincide"});
   fixtures::writeText(dir / "empty.xyz", "# nothing\n");
   expectError([&] { loadOne(dir / "empty.xyz"); }, {"empty.xyz", "no valid points"});
 }
@@ -509,5 +523,6 @@ TEST(BadInput, MixedUnitsAndFailingFrame) {
   EXPECT_EQ(io::loadSequence(dir.path(), o).size(), 2u);
 
   fixtures::writeText(dir / "f3.xyz", "1 2 3\n");
-  expectError([&] { io::loadSequence(dir.path(), o); }, {"frame 2", "f3.xyz", "only 1 valid point"});
+  expectError([&] { io::loadSequence(dir.path(), o); },
+              {"frame 2", "f3.xyz", "only 1 valid point"});
 }

@@ -22,8 +22,9 @@ std::vector<char> computeMeshNormals(PointCloudSequence::Cloud& cloud,
  * neighbours among all points, the point itself included: pcl::NormalEstimation's
  * computeMeanAndCovarianceMatrix + solvePlaneParameters, in OpenMP) and orients them as
  * orientNormals() does. One kNN search serves both steps (this halves the cost of a frame
- * compared with pcl::NormalEstimationOMP followed by a separate orientation search). Points with `known[i]` != 0 keep their normal and serve as orientation seeds.
- * `known` may be empty (no point known). */
+ * compared with pcl::NormalEstimationOMP followed by a separate orientation search). Points with
+ * `known[i]` != 0 keep their normal and serve as orientation seeds. `known` may be empty (no point
+ * known). */
 void estimateNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<char>& known);
 
 /** \brief Orients normals consistently (Hoppe et al. 1992): within each connected component of
