@@ -1,0 +1,119 @@
+// The command-line contract of `animseg` (DESIGN.md): outputs, bad input, --config.
+#include "tools/cli_util.h"
+
+#include <gtest/gtest.h>
+
+namespace fs = std::filesystem;
+using namespace cli_test;
+
+namespace {
+
+// Three frames of two spheres, with different point counts per frame.
+void makeSequence(const fs::path& dir, int nan_every = 0) {
+  fs::create_directories(dir);
+  for (int t = 0; t < 3; ++t)
+    writeSphereXYZ((dir / ("f" + std::to_string(t * 5) + ".xyz")).string(), 300 + 40 * t, 0.1 * t,
+                   7 + t, nan_every);
+}
+
+}  // namespace
+
+TEST(AnimsegCli, WritesEveryOutputInInputOrder) {
+  TempDir tmp;
+  makeSequence(tmp.path / "in", 50);
+  const RunResult r = run(tool("animseg") + " --input " + tmp.str() + "/in --output " + tmp.str() + "/out",
+                    tmp.path);
+  ASSERT_EQ(r.code, 0) << r.err;
+  for (const char* name : {"f0", "f5", "f10"}) {
+    const fs::path base = tmp.path / "out" / name;
+    ASSERT_TRUE(fs::exists(base.string() + ".pcd")) << name;
+    ASSERT_TRUE(fs::exists(base.string() + ".ply")) << name;
+    const std::string labels = slurp(base.string() + ".labels");
+    const int expected = name == std::string("f0") ? 300 : name == std::string("f5") ? 340 : 380;
+    EXPECT_EQ(countLines(labels), expected) << name;
+    // Every 50th input point was NaN: its line must say -1 in every column.
+    std::istringstream ls(labels);
+    std::string line;
+    for (int i = 0; std::getline(ls, line); ++i)
+      if (i % 50 == 49) EXPECT_EQ(line.substr(0, 2), "-1") << name << " line " << i;
+  }
+  const std::string summary = slurp((tmp.path / "out" / "summary.json").string());
+  for (const char* key : {"\"timings_s\"", "\"load\"", "\"total\"", "\"points_per_frame\": [300, 340, 380]",
+                          "\"parts_per_level\"", "\"device\"", "\"parameters\""})
+    EXPECT_NE(summary.find(key), std::string::npos) << key << " in " << summary;
+  EXPECT_TRUE(fs::exists(tmp.path / "out" / "transforms.json"));
+  // No temporary files are left behind.
+  for (const auto& e : fs::directory_iterator(tmp.path / "out"))
+    EXPECT_EQ(e.path().filename().string().find(".tmp"), std::string::npos) << e.path();
+}
+
+TEST(AnimsegCli, QuietPrintsNothing) {
+  TempDir tmp;
+  makeSequence(tmp.path / "in");
+  const RunResult r = run(tool("animseg") + " --quiet --input " + tmp.str() + "/in --output " + tmp.str() +
+                        "/out",
+                    tmp.path);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(r.err.empty()) << r.err;
+}
+
+TEST(AnimsegCli, ConfigFileValuesAreUsedAndCommandLineWins) {
+  TempDir tmp;
+  makeSequence(tmp.path / "in");
+  std::ofstream(tmp.path / "cfg.json") << "{\"bandwidth\": 0.25, \"weights\": [0.5, 0.8, 2, 1], \"seed\": 9}";
+  const RunResult r = run(tool("animseg") + " --quiet --config " + tmp.str() + "/cfg.json --seed 3 --input " +
+                        tmp.str() + "/in --output " + tmp.str() + "/out",
+                    tmp.path);
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string summary = slurp((tmp.path / "out" / "summary.json").string());
+  EXPECT_NE(summary.find("\"bandwidth\": 0.25"), std::string::npos) << summary;
+  EXPECT_NE(summary.find("\"weights\": \"0.5,0.8,2,1\""), std::string::npos) << summary;
+  EXPECT_NE(summary.find("\"seed\": 3"), std::string::npos) << summary;
+}
+
+struct BadCase {
+  std::string name;
+  std::string args;  // {in} and {out} are replaced
+};
+
+class AnimsegBadInput : public ::testing::TestWithParam<BadCase> {};
+
+TEST_P(AnimsegBadInput, OneErrorLineNonZeroExitNoOutput) {
+  TempDir tmp;
+  makeSequence(tmp.path / "in");
+  fs::create_directories(tmp.path / "empty");
+  fs::create_directories(tmp.path / "tiny");
+  {
+    std::ofstream f(tmp.path / "tiny" / "a.xyz");
+    f << "0 0 0\n1 0 0\n0 1 0\n";
+  }
+  std::ofstream(tmp.path / "badcfg.json") << "{\"no_such_option\": 1}";
+  std::ofstream(tmp.path / "brokencfg.json") << "{\"bandwidth\": ";
+  std::string args = GetParam().args;
+  auto replace = [&](const std::string& key, const std::string& value) {
+    for (std::size_t p; (p = args.find(key)) != std::string::npos;) args.replace(p, key.size(), value);
+  };
+  replace("{tmp}", tmp.str());
+  replace("{in}", tmp.str() + "/in");
+  replace("{out}", tmp.str() + "/out");
+  const RunResult r = run(tool("animseg") + " " + args, tmp.path);
+  EXPECT_EQ(r.code, 1) << GetParam().name;
+  EXPECT_TRUE(isOneErrorLine(r.err)) << GetParam().name << ": '" << r.err << "'";
+  EXPECT_FALSE(fs::exists(tmp.path / "out" / "summary.json")) << GetParam().name;
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Cases, AnimsegBadInput,
+    ::testing::Values(BadCase{"unknown_option", "--input {in} --output {out} --frobnicate"},
+                      BadCase{"missing_input", "--input {tmp}/nope --output {out}"},
+                      BadCase{"no_output_option", "--input {in}"},
+                      BadCase{"empty_dir", "--input {tmp}/empty --output {out}"},
+                      BadCase{"three_points", "--input {tmp}/tiny --output {out}"},
+                      BadCase{"bandwidth_zero", "--input {in} --output {out} --bandwidth 0"},
+                      BadCase{"negative_weight", "--input {in} --output {out} --weights 0.5,-1,2,1"},
+                      BadCase{"short_weights", "--input {in} --output {out} --weights 0.5,1"},
+                      BadCase{"bad_device", "--input {in} --output {out} --device tpu"},
+                      BadCase{"unknown_config_key", "--config {tmp}/badcfg.json --input {in} --output {out}"},
+                      BadCase{"broken_config", "--config {tmp}/brokencfg.json --input {in} --output {out}"},
+                      BadCase{"missing_config", "--config {tmp}/none.json --input {in} --output {out}"}),
+    [](const ::testing::TestParamInfo<BadCase>& i) { return i.param.name; });
