@@ -81,6 +81,7 @@ int main(int argc, char** argv) {
         p.seed = ctx.vm["seed"].as<unsigned>();
         const bool force = ctx.vm["force"].as<bool>();
         const fs::path out(ctx.vm["output"].as<std::string>());
+        synth::validate(p);  // before any output, so a bad value gives just its error line
 
         std::error_code ec;
         const bool exists = fs::exists(out, ec);

@@ -519,25 +519,6 @@ double restSize(const Body& body) {
   return (hi - lo).norm();
 }
 
-void validate(const SynthParams& p) {
-  if (p.frames < 1)
-    throw Error("synth: frames must be at least 1 (got " + std::to_string(p.frames) + ")");
-  if (p.points < 10)
-    throw Error("synth: points must be at least 10 (got " + std::to_string(p.points) + ")");
-  if (!(p.point_variation >= 0.0 && p.point_variation < 1.0))
-    throw Error("synth: point variation must be in [0, 1) (got " +
-                std::to_string(p.point_variation) + ")");
-  if (!(p.noise >= 0.0) || !std::isfinite(p.noise))
-    throw Error("synth: noise must be a finite value >= 0 (got " + std::to_string(p.noise) + ")");
-  if (!(p.motion >= 0.0) || !std::isfinite(p.motion))
-    throw Error("synth: motion must be a finite value >= 0 (got " + std::to_string(p.motion) + ")");
-  if (!(p.scale > 0.0) || !std::isfinite(p.scale))
-    throw Error("synth: scale must be > 0 (got " + std::to_string(p.scale) + ")");
-  if (p.mesh_resolution < 4 || p.mesh_resolution > 256)
-    throw Error("synth: mesh resolution must be in [4, 256] (got " +
-                std::to_string(p.mesh_resolution) + ")");
-}
-
 pcl::PointNormal makePoint(const V& p, const V& n) {
   pcl::PointNormal q;
   q.x = static_cast<float>(p.x());
@@ -610,6 +591,25 @@ std::string frameName(std::size_t t, std::size_t frames) {
   char buf[32];
   std::snprintf(buf, sizeof(buf), "f%0*zu", digits, t);
   return buf;
+}
+
+void validate(const SynthParams& p) {
+  if (p.frames < 1)
+    throw Error("synth: frames must be at least 1 (got " + std::to_string(p.frames) + ")");
+  if (p.points < 10)
+    throw Error("synth: points must be at least 10 (got " + std::to_string(p.points) + ")");
+  if (!(p.point_variation >= 0.0 && p.point_variation < 1.0))
+    throw Error("synth: point variation must be in [0, 1) (got " +
+                std::to_string(p.point_variation) + ")");
+  if (!(p.noise >= 0.0) || !std::isfinite(p.noise))
+    throw Error("synth: noise must be a finite value >= 0 (got " + std::to_string(p.noise) + ")");
+  if (!(p.motion >= 0.0) || !std::isfinite(p.motion))
+    throw Error("synth: motion must be a finite value >= 0 (got " + std::to_string(p.motion) + ")");
+  if (!(p.scale > 0.0) || !std::isfinite(p.scale))
+    throw Error("synth: scale must be > 0 (got " + std::to_string(p.scale) + ")");
+  if (p.mesh_resolution < 4 || p.mesh_resolution > 256)
+    throw Error("synth: mesh resolution must be in [4, 256] (got " +
+                std::to_string(p.mesh_resolution) + ")");
 }
 
 std::vector<SynthFrame> generate(const SynthParams& params) {

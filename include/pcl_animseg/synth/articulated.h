@@ -52,9 +52,12 @@ int partCount(BodyPlan plan);
 /** \brief Names of the parts of a plan (index = label), e.g. "torso", "leg_fl_upper". */
 std::vector<std::string> partNames(BodyPlan plan);
 
-/** \brief Generates the sequence; deterministic for a seed on every platform (std::mt19937 with
- * our own distributions). Throws Error for bad parameters (frames < 1, points < 10, variation
- * outside [0, 1), negative noise or motion, scale <= 0, mesh_resolution outside [4, 256]). */
+/** \brief Throws Error for bad parameters (frames < 1, points < 10, variation outside [0, 1),
+ * negative noise or motion, scale <= 0, mesh_resolution outside [4, 256]). */
+void validate(const SynthParams& params);
+
+/** \brief Generates the sequence (after validate()); deterministic for a seed on every platform
+ * (std::mt19937 with our own distributions). */
 std::vector<SynthFrame> generate(const SynthParams& params);
 
 /** \brief The generated frames as a PointCloudSequence (names f000, f001, ...). */

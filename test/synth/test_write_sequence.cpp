@@ -1,0 +1,76 @@
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/io/frame_readers.h>
+#include <pcl_animseg/io/sequence_io.h>
+#include <pcl_animseg/synth/articulated.h>
+
+#include <gtest/gtest.h>
+
+#include <cstdlib>
+#include <filesystem>
+
+namespace sy = pcl_animseg::synth;
+namespace fs = std::filesystem;
+
+namespace {
+struct TempDir {
+  fs::path path;
+  TempDir() {
+    std::string tmpl = (fs::temp_directory_path() / "animseg_synth_XXXXXX").string();
+    path = mkdtemp(tmpl.data());
+  }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(path, ec);
+  }
+};
+}  // namespace
+
+TEST(WriteSequence, PointFramesRoundTrip) {
+  sy::SynthParams p;
+  p.plan = sy::BodyPlan::Spider;
+  p.frames = 3;
+  p.points = 800;
+  const auto frames = sy::generate(p);
+  TempDir tmp;
+  const std::string dir = (tmp.path / "seq").string();
+  sy::writeSequence(dir, frames);
+
+  const auto paths = pcl_animseg::io::listSequence(dir);
+  ASSERT_EQ(paths.size(), 3u);
+  const auto seq = pcl_animseg::io::loadSequence(dir);
+  ASSERT_EQ(seq.size(), 3u);
+  for (std::size_t t = 0; t < 3; ++t) {
+    EXPECT_EQ(seq.name(t), sy::frameName(t, 3));
+    ASSERT_EQ(seq.frame(t)->size(), frames[t].cloud->size());
+    EXPECT_TRUE(seq.faces(t).empty());
+    for (std::size_t i = 0; i < frames[t].cloud->size(); i += 37) {
+      const auto& a = (*seq.frame(t))[i];
+      const auto& b = (*frames[t].cloud)[i];
+      EXPECT_FLOAT_EQ(a.x, b.x);
+      EXPECT_FLOAT_EQ(a.z, b.z);
+      EXPECT_NEAR(a.normal_x, b.normal_x, 1e-6);  // the file's true normals are kept
+    }
+    EXPECT_EQ(pcl_animseg::io::loadLabels(dir + "/" + seq.name(t) + ".gt"), frames[t].labels);
+  }
+}
+
+TEST(WriteSequence, MeshFramesKeepVertexOrderAndFaces) {
+  sy::SynthParams p;
+  p.plan = sy::BodyPlan::Hand;
+  p.frames = 2;
+  p.mesh = true;
+  p.mesh_resolution = 8;
+  const auto frames = sy::generate(p);
+  TempDir tmp;
+  sy::writeSequence(tmp.path.string(), frames);
+  for (std::size_t t = 0; t < frames.size(); ++t) {
+    const auto raw =
+        pcl_animseg::io::readRawFrame((tmp.path / (sy::frameName(t, 2) + ".ply")).string());
+    ASSERT_EQ(raw.points.size(), frames[t].cloud->size());
+    ASSERT_EQ(raw.faces.size(), frames[t].faces.size());
+    for (std::size_t i = 0; i < raw.points.size(); i += 11)
+      EXPECT_EQ(raw.points[i], (*frames[t].cloud)[i].getVector3fMap());
+    for (std::size_t k = 0; k < raw.faces.size(); k += 13)
+      EXPECT_EQ(raw.faces[k].vertices, frames[t].faces[k].vertices);
+  }
+}
