@@ -5,6 +5,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstdlib>
 #include <filesystem>
 
@@ -52,6 +53,46 @@ TEST(WriteSequence, PointFramesRoundTrip) {
     }
     EXPECT_EQ(pcl_animseg::io::loadLabels(dir + "/" + seq.name(t) + ".gt"), frames[t].labels);
   }
+}
+
+namespace {
+/** The shipped fixture `dir` must still be what the generator makes with `p` (see
+ * datasets/README.md): same point counts, labels and faces; positions equal up to float
+ * rounding (libm may differ in the last bit between platforms). */
+void expectFixtureMatches(const std::string& dir, const sy::SynthParams& p) {
+  const auto frames = sy::generate(p);
+  const auto paths = pcl_animseg::io::listSequence(dir);
+  ASSERT_EQ(paths.size(), frames.size()) << dir;
+  for (std::size_t t = 0; t < frames.size(); ++t) {
+    const std::string base = dir + "/" + sy::frameName(t, frames.size());
+    const auto raw = pcl_animseg::io::readRawFrame(base + ".ply");
+    ASSERT_EQ(raw.points.size(), frames[t].cloud->size()) << base;
+    EXPECT_EQ(raw.faces.size(), frames[t].faces.size()) << base;
+    EXPECT_EQ(pcl_animseg::io::loadLabels(base + ".gt"), frames[t].labels) << base;
+    float worst = 0.0f;
+    for (std::size_t i = 0; i < raw.points.size(); ++i)
+      worst = std::max(worst, (raw.points[i] - (*frames[t].cloud)[i].getVector3fMap()).norm());
+    EXPECT_LT(worst, 1e-4f) << base;
+  }
+}
+}  // namespace
+
+TEST(ShippedDatasets, MatchTheGenerator) {
+  const std::string root = std::string(PCL_ANIMSEG_SOURCE_DIR) + "/datasets";
+  sy::SynthParams q;
+  q.plan = sy::BodyPlan::Quadruped;
+  q.frames = 12;
+  q.points = 1500;
+  q.point_variation = 0.2;
+  q.seed = 1;
+  expectFixtureMatches(root + "/quadruped_points", q);
+  sy::SynthParams h;
+  h.plan = sy::BodyPlan::Hand;
+  h.frames = 8;
+  h.mesh = true;
+  h.mesh_resolution = 10;
+  h.seed = 1;
+  expectFixtureMatches(root + "/hand_mesh", h);
 }
 
 TEST(WriteSequence, MeshFramesKeepVertexOrderAndFaces) {
