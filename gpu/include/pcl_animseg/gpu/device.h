@@ -1,0 +1,44 @@
+#pragma once
+/** \file device.h Which GPU we run on, whether there is one, and how much memory we used. */
+#include <cstddef>
+#include <string>
+
+namespace pcl_animseg {
+namespace gpu {
+
+/** \brief True when a CUDA device is present and runs this library's kernels (the check
+ * launches an empty kernel once, so a driver too old or a GPU of another architecture than the
+ * one compiled for is reported too). On false, `why` (if given) says what is missing, in words a
+ * user can act on; `--device auto` logs it and falls back to the CPU. Never throws. */
+bool gpuAvailable(std::string* why = nullptr);
+
+/** \brief The current device. */
+struct DeviceInfo {
+  int id = -1;
+  std::string name;
+  int compute_major = 0;
+  int compute_minor = 0;
+  int multiprocessors = 0;
+  std::size_t total_bytes = 0;
+  std::size_t free_bytes = 0;
+};
+
+/** \brief Describes the current device; throws Error when there is none. */
+DeviceInfo deviceInfo();
+
+/** \brief Makes `id` the current device; throws Error when it does not exist. */
+void setDevice(int id);
+
+/** \brief Waits for all queued GPU work; throws Error when a kernel failed. */
+void synchronize();
+
+/** \brief Device bytes held now by DeviceMemory buffers of this library. */
+std::size_t allocatedDeviceBytes();
+/** \brief The most device bytes held at once by this library since the last reset (CUDA's own
+ * context and library overhead, a few hundred MiB, are not included). */
+std::size_t peakDeviceBytes();
+/** \brief Restarts peak tracking from what is held now. */
+void resetPeakDeviceBytes();
+
+}  // namespace gpu
+}  // namespace pcl_animseg

@@ -1,0 +1,167 @@
+// Device buffers, device queries and allocation accounting.
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/device_array.h>
+
+#include "cuda_check.h"
+#include "gkdtree_device.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cstdio>
+#include <mutex>
+
+namespace pcl_animseg {
+namespace gpu {
+
+namespace {
+std::atomic<std::size_t> g_allocated{0};
+std::atomic<std::size_t> g_peak{0};
+
+void noteAlloc(std::size_t bytes) {
+  const std::size_t now = g_allocated.fetch_add(bytes) + bytes;
+  std::size_t peak = g_peak.load();
+  while (now > peak && !g_peak.compare_exchange_weak(peak, now)) {
+  }
+}
+
+std::string mib(std::size_t bytes) {
+  char buf[64];
+  std::snprintf(buf, sizeof(buf), "%.1f MiB", bytes / (1024.0 * 1024.0));
+  return buf;
+}
+
+__global__ void probeKernel(int* flag) { *flag = 42; }
+}  // namespace
+
+DeviceMemory::DeviceMemory(DeviceMemory&& other) noexcept : ptr_(other.ptr_), bytes_(other.bytes_) {
+  other.ptr_ = nullptr;
+  other.bytes_ = 0;
+}
+
+DeviceMemory& DeviceMemory::operator=(DeviceMemory&& other) noexcept {
+  if (this != &other) {
+    release();
+    ptr_ = other.ptr_;
+    bytes_ = other.bytes_;
+    other.ptr_ = nullptr;
+    other.bytes_ = 0;
+  }
+  return *this;
+}
+
+void DeviceMemory::create(std::size_t bytes) {
+  if (bytes == bytes_ && ptr_) return;
+  release();
+  if (bytes == 0) return;
+  void* p = nullptr;
+  const cudaError_t err = cudaMalloc(&p, bytes);
+  if (err != cudaSuccess) {
+    cudaGetLastError();
+    if (err == cudaErrorMemoryAllocation) {
+      std::size_t free_b = 0, total_b = 0;
+      cudaMemGetInfo(&free_b, &total_b);
+      cudaGetLastError();
+      throw Error("GPU out of memory: cannot allocate " + mib(bytes) + " (" + mib(free_b) +
+                  " free of " + mib(total_b) + "); use fewer points or --device cpu");
+    }
+    detail::throwCuda(err, "cudaMalloc", __FILE__, __LINE__);
+  }
+  ptr_ = p;
+  bytes_ = bytes;
+  noteAlloc(bytes);
+}
+
+void DeviceMemory::release() noexcept {
+  if (ptr_) {
+    cudaFree(ptr_);  // errors here are sticky kernel faults already reported elsewhere
+    g_allocated.fetch_sub(bytes_);
+  }
+  ptr_ = nullptr;
+  bytes_ = 0;
+}
+
+void DeviceMemory::uploadBytes(const void* host, std::size_t bytes) {
+  if (bytes > bytes_) throw Error("GPU: upload of more bytes than the buffer holds");
+  if (bytes) cudaSafeCall(cudaMemcpy(ptr_, host, bytes, cudaMemcpyHostToDevice));
+}
+
+void DeviceMemory::downloadBytes(void* host, std::size_t bytes) const {
+  if (bytes > bytes_) throw Error("GPU: download of more bytes than the buffer holds");
+  if (bytes) cudaSafeCall(cudaMemcpy(host, ptr_, bytes, cudaMemcpyDeviceToHost));
+}
+
+void DeviceMemory::setZero() {
+  if (bytes_) cudaSafeCall(cudaMemset(ptr_, 0, bytes_));
+}
+
+void DeviceMemory::copyTo(DeviceMemory& other) const {
+  other.create(bytes_);
+  if (bytes_) cudaSafeCall(cudaMemcpy(other.ptr_, ptr_, bytes_, cudaMemcpyDeviceToDevice));
+}
+
+bool gpuAvailable(std::string* why) {
+  // Probed once: the answer does not change during a run, and the probe costs a context start.
+  static std::once_flag once;
+  static bool ok = false;
+  static std::string reason;
+  std::call_once(once, [] {
+    int count = 0;
+    cudaError_t err = cudaGetDeviceCount(&count);
+    if (err != cudaSuccess || count == 0) {
+      cudaGetLastError();
+      reason = err != cudaSuccess ? std::string("no usable CUDA device (") + cudaGetErrorString(err) + ")"
+                                  : std::string("no CUDA device found");
+      return;
+    }
+    int* flag = nullptr;
+    err = cudaMalloc(&flag, sizeof(int));
+    if (err == cudaSuccess) {
+      probeKernel<<<1, 1>>>(flag);
+      err = cudaGetLastError();
+      int host = 0;
+      if (err == cudaSuccess) err = cudaMemcpy(&host, flag, sizeof(int), cudaMemcpyDeviceToHost);
+      if (err == cudaSuccess && host != 42) err = cudaErrorUnknown;
+      cudaFree(flag);
+    }
+    if (err != cudaSuccess) {
+      cudaGetLastError();
+      reason = std::string("the CUDA device cannot run this build's kernels (") +
+               cudaGetErrorString(err) +
+               "); rebuild with CMAKE_CUDA_ARCHITECTURES set for this GPU, or use --device cpu";
+      return;
+    }
+    ok = true;
+  });
+  if (why) *why = reason;
+  return ok;
+}
+
+DeviceInfo deviceInfo() {
+  DeviceInfo info;
+  cudaSafeCall(cudaGetDevice(&info.id));
+  cudaDeviceProp prop;
+  cudaSafeCall(cudaGetDeviceProperties(&prop, info.id));
+  info.name = prop.name;
+  info.compute_major = prop.major;
+  info.compute_minor = prop.minor;
+  info.multiprocessors = prop.multiProcessorCount;
+  cudaSafeCall(cudaMemGetInfo(&info.free_bytes, &info.total_bytes));
+  return info;
+}
+
+void setDevice(int id) { cudaSafeCall(cudaSetDevice(id)); }
+
+void synchronize() { cudaSafeCall(cudaDeviceSynchronize()); }
+
+namespace detail {
+void copyDeviceBytes(void* dst, const void* src, std::size_t bytes) {
+  if (bytes) cudaSafeCall(cudaMemcpy(dst, src, bytes, cudaMemcpyDeviceToDevice));
+}
+}  // namespace detail
+
+std::size_t allocatedDeviceBytes() { return g_allocated.load(); }
+std::size_t peakDeviceBytes() { return g_peak.load(); }
+void resetPeakDeviceBytes() { g_peak.store(g_allocated.load()); }
+
+}  // namespace gpu
+}  // namespace pcl_animseg

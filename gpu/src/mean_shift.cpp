@@ -1,0 +1,218 @@
+// GPU mean shift: the CPU's runPaper loop with every step on the device.
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/device_array.h>
+#include <pcl_animseg/gpu/mean_shift.h>
+
+#include "gkdtree_device.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <memory>
+#include <numeric>
+#include <string>
+#include <unordered_map>
+
+namespace pcl_animseg {
+namespace gpu {
+
+namespace {
+using RowMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+using Clock = std::chrono::steady_clock;
+double since(Clock::time_point t0) {
+  return std::chrono::duration<double>(Clock::now() - t0).count();
+}
+
+struct Group {
+  detail::TreeDevice tree;
+  DeviceArray<float> sample_values;
+  DeviceArray<float> metric;  // the metric its data and queries are scaled by
+  int applies_to = 0;         // 0: every query, 1: plain queries, 2: keypoint queries
+};
+}  // namespace
+
+void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+                    const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
+                    Eigen::MatrixXf& y, Eigen::VectorXf& density) {
+  stats_ = MeanShiftStats();
+  const int n = static_cast<int>(z.rows());
+  const int d = static_cast<int>(z.cols());
+  if (n == 0 || d == 0) throw Error("GPU mean shift: no points");
+  if (d > detail::kMaxDim)
+    throw Error("GPU mean shift: " + std::to_string(d) + " feature dimensions, at most " +
+                std::to_string(detail::kMaxDim) + " are supported");
+  if (metric_plain.size() != d || (!keypoint.empty() && metric_key.size() != d))
+    throw Error("GPU mean shift: metric size differs from the feature dimension");
+  if (!keypoint.empty() && static_cast<int>(keypoint.size()) != n)
+    throw Error("GPU mean shift: keypoint flags must have one entry per point");
+  if (!z.allFinite()) throw Error("GPU mean shift: non-finite features");
+  if (params_.max_iterations < 1) throw Error("GPU mean shift: max iterations must be >= 1");
+  const filters::GaussianKdTreeParams& gp = params_.gkdtree;
+  if (!(gp.leaf_extent > 0.0f) || gp.slice_samples < 1 ||
+      gp.slice_samples > detail::kMaxSliceSamples || !(gp.slice_sigma > 0.0f) ||
+      !(gp.blur_radius > 0.0f))
+    throw Error("GPU mean shift: bad Gaussian kd-tree parameters (positive, slice_samples <= 64)");
+  resetPeakDeviceBytes();
+
+  auto t0 = Clock::now();
+  const RowMatrix zr = z;
+  DeviceArray<float> d_z(zr.data(), zr.size());  // raw features: the values [z, 1] (Eq. 10)
+  DeviceArray<float> d_y;
+  d_z.copyTo(d_y);
+  // Active list: plain queries first, then keypoint queries (the groups slice sub-ranges).
+  std::vector<int> plain, key;
+  plain.reserve(n);
+  for (int i = 0; i < n; ++i) (!keypoint.empty() && keypoint[i] ? key : plain).push_back(i);
+  const bool has_key = !key.empty();
+  std::vector<int> order(plain);
+  order.insert(order.end(), key.begin(), key.end());
+  DeviceArray<int> active(order.data(), order.size()), next_plain(n), next_key(n), counters(2);
+  DeviceArray<unsigned char> d_key;
+  if (has_key) {
+    std::vector<unsigned char> k(keypoint.begin(), keypoint.end());
+    d_key.upload(k);
+  }
+  DeviceArray<float> d_metric_plain(metric_plain.data(), d);
+  const int v = d + 1;
+  DeviceArray<float> out(static_cast<std::size_t>(n) * v);
+  stats_.upload_s = since(t0);
+
+  // The groups of the CPU's JointKernelSum.
+  std::vector<std::unique_ptr<Group>> groups;
+  auto make = [&](const std::vector<int>& idx, bool key_metric, int applies) {
+    if (idx.empty()) return;
+    auto tb = Clock::now();
+    const Eigen::RowVectorXf& m = key_metric ? metric_key : metric_plain;
+    const int ni = static_cast<int>(idx.size());
+    RowMatrix x(ni, d), raw(ni, d);
+    for (int i = 0; i < ni; ++i) {
+      raw.row(i) = zr.row(idx[i]);
+      x.row(i) = raw.row(i).cwiseProduct(m);
+    }
+    auto g = std::make_unique<Group>();
+    g->applies_to = applies;
+    g->metric.upload(m.data(), d);
+    {
+      DeviceArray<float> dx(x.data(), x.size());
+      detail::buildTree(dx.ptr(), ni, d, gp, g->tree);
+    }
+    stats_.build_s += since(tb);
+    tb = Clock::now();
+    DeviceArray<float> draw(raw.data(), raw.size());
+    detail::splatBlur(g->tree, nullptr, draw.ptr(), v, gp.blur_radius, g->sample_values);
+    stats_.splat_blur_s += since(tb);
+    stats_.num_samples += g->tree.m;
+    groups.push_back(std::move(g));
+  };
+  make(plain, false, 0);
+  make(key, false, 1);  // Eq. 6 between a keypoint and a non-keypoint query
+  make(key, true, 2);   // Eq. 5 between two keypoints
+
+  auto evaluate = [&](const int* rows, int np, int nk) {
+    out.setZero();
+    for (const auto& g : groups) {
+      const int* r = rows;
+      int nr = np + nk;
+      if (g->applies_to == 1) nr = np;
+      if (g->applies_to == 2) r = rows + np, nr = nk;
+      detail::slice(g->tree, gp, g->sample_values.ptr(), v, d_y.ptr(), g->metric.ptr(), r, nr,
+                    true, out.ptr());
+    }
+  };
+
+  t0 = Clock::now();
+  int np = static_cast<int>(plain.size()), nk = static_cast<int>(key.size());
+  const float tol = static_cast<float>(params_.convergence);
+  for (int it = 0; it < params_.max_iterations && np + nk > 0; ++it) {
+    const auto ts = Clock::now();
+    evaluate(active.ptr(), np, nk);
+    int np2 = 0, nk2 = 0;
+    detail::meanShiftUpdate(d_y.ptr(), out.ptr(), d, active.ptr(), np + nk, d_metric_plain.ptr(),
+                            has_key ? d_key.ptr() : nullptr, tol, next_plain.ptr(),
+                            next_key.ptr(), counters.ptr(), np2, nk2);
+    // Next active list: moved plain rows, then moved keypoint rows. Their order (atomic appends)
+    // varies between runs but no result depends on it: each row is filtered on its own.
+    std::swap(active, next_plain);
+    if (nk2)
+      detail::copyDeviceBytes(active.ptr() + np2, next_key.ptr(), sizeof(int) * nk2);
+    np = np2;
+    nk = nk2;
+    stats_.iterations = it + 1;
+    stats_.active.push_back(np + nk);
+    stats_.step_s.push_back(since(ts));
+  }
+  stats_.not_converged = np + nk;
+  stats_.iterate_s = since(t0);
+
+  // Density at the end points (the CPU's last evaluate over all rows).
+  t0 = Clock::now();
+  active.upload(order);
+  evaluate(active.ptr(), static_cast<int>(plain.size()), static_cast<int>(key.size()));
+  synchronize();
+  stats_.density_s = since(t0);
+
+  t0 = Clock::now();
+  RowMatrix yr(n, d), o(n, v);
+  d_y.download(yr.data());
+  out.download(o.data());
+  y = yr;
+  density = o.col(d);
+  stats_.download_s = since(t0);
+  stats_.peak_device_bytes = peakDeviceBytes();
+}
+
+void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain,
+                const Eigen::VectorXf& density, double merge_radius, std::vector<int>& labels,
+                std::vector<int>& mode_rep) {
+  const Eigen::Index n = y.rows();
+  const int dim = static_cast<int>(y.cols());
+  if (density.size() != n || metric_plain.size() != dim)
+    throw Error("groupModes: sizes of end points, density and metric differ");
+  if (!(merge_radius > 0.0)) throw Error("groupModes: merge radius must be positive");
+  const Eigen::MatrixXf ys = y.array().rowwise() * metric_plain.array();
+  const float cell = static_cast<float>(merge_radius / 5.0);
+  std::unordered_map<std::string, int> cell_group;
+  std::vector<int> group_of(n);
+  std::vector<int> group_rep;
+  std::string k(sizeof(int) * dim, '\0');
+  for (Eigen::Index i = 0; i < n; ++i) {
+    for (int c = 0; c < dim; ++c) {
+      const int q = static_cast<int>(std::floor(ys(i, c) / cell));
+      std::memcpy(&k[sizeof(int) * c], &q, sizeof(int));
+    }
+    auto it = cell_group.find(k);
+    if (it == cell_group.end()) {
+      it = cell_group.emplace(k, static_cast<int>(group_rep.size())).first;
+      group_rep.push_back(static_cast<int>(i));
+    } else if (density[i] > density[group_rep[it->second]]) {
+      group_rep[it->second] = static_cast<int>(i);
+    }
+    group_of[i] = it->second;
+  }
+  std::vector<int> order(group_rep.size());
+  std::iota(order.begin(), order.end(), 0);
+  std::stable_sort(order.begin(), order.end(), [&](int a, int b) {
+    return density[group_rep[a]] > density[group_rep[b]];
+  });
+  const float r2 = static_cast<float>(merge_radius * merge_radius);
+  mode_rep.clear();
+  std::vector<int> group_mode(group_rep.size(), -1);
+  for (int g : order) {
+    const auto yg = ys.row(group_rep[g]);
+    int found = -1;
+    for (std::size_t m = 0; m < mode_rep.size() && found < 0; ++m)
+      if ((ys.row(mode_rep[m]) - yg).squaredNorm() < r2) found = static_cast<int>(m);
+    if (found < 0) {
+      found = static_cast<int>(mode_rep.size());
+      mode_rep.push_back(group_rep[g]);
+    }
+    group_mode[g] = found;
+  }
+  labels.resize(n);
+  for (Eigen::Index i = 0; i < n; ++i) labels[i] = group_mode[group_of[i]];
+}
+
+}  // namespace gpu
+}  // namespace pcl_animseg

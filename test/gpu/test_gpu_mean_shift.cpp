@@ -1,0 +1,111 @@
+// GPU mean shift against the CPU MeanShiftSegmentation (paper method, Gaussian kd-tree backend).
+// Skips when no usable GPU is present.
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/mean_shift.h>
+#include <pcl_animseg/segmentation/mean_shift.h>
+#include <pcl_animseg/synth/articulated.h>
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+
+namespace gpu = pcl_animseg::gpu;
+namespace seg = pcl_animseg::segmentation;
+
+namespace {
+
+// The joint space of Eq. 5-6 without signatures, built as the CPU stage builds it.
+void jointSpace(const pcl_animseg::PointCloudSequence& sequence, const seg::MeanShiftParams& p,
+                Eigen::MatrixXf& z, Eigen::RowVectorXf& metric) {
+  const double s = seg::sequenceScale(sequence);
+  z.resize(static_cast<Eigen::Index>(sequence.totalPoints()), 6);
+  Eigen::Index i = 0;
+  for (std::size_t t = 0; t < sequence.size(); ++t)
+    for (const auto& pt : *sequence.frame(t)) {
+      z(i, 0) = static_cast<float>(pt.x / s);
+      z(i, 1) = static_cast<float>(pt.y / s);
+      z(i, 2) = static_cast<float>(pt.z / s);
+      Eigen::Vector3f nrm(pt.normal_x, pt.normal_y, pt.normal_z);
+      if (!nrm.allFinite() || nrm.norm() < 1e-6f)
+        nrm.setZero();
+      else
+        nrm.normalize();
+      z.block<1, 3>(i, 3) = nrm.transpose();
+      ++i;
+    }
+  metric.resize(6);
+  metric.head(3).setConstant(static_cast<float>(std::sqrt(p.w2) / p.bandwidth));
+  metric.tail(3).setConstant(static_cast<float>(std::sqrt(p.w1) / p.bandwidth));
+}
+
+}  // namespace
+
+TEST(GpuMeanShift, AgreesWithCpuPaperMethod) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  for (auto plan : {pcl_animseg::synth::BodyPlan::Quadruped,
+                    pcl_animseg::synth::BodyPlan::Humanoid}) {
+    pcl_animseg::synth::SynthParams sp;
+    sp.plan = plan;
+    sp.frames = 6;
+    sp.points = 3000;
+    sp.seed = 5;
+    auto sequence = std::make_shared<pcl_animseg::PointCloudSequence>(
+        pcl_animseg::synth::toSequence(pcl_animseg::synth::generate(sp)));
+
+    seg::MeanShiftParams mp;
+    mp.method = seg::MeanShiftMethod::Paper;
+    mp.backend = seg::MeanShiftBackend::GaussianKdTree;
+    mp.min_cluster_size = 1;  // no absorption: compare the mode grouping itself
+    seg::MeanShiftSegmentation cpu;
+    cpu.setInputSequence(sequence);
+    cpu.setParams(mp);
+    seg::SegmentationResult result;
+    cpu.segment(result);
+    std::vector<int> cpu_labels;
+    for (const auto& frame : result.labels)
+      cpu_labels.insert(cpu_labels.end(), frame.begin(), frame.end());
+
+    Eigen::MatrixXf z, y;
+    Eigen::RowVectorXf metric;
+    jointSpace(*sequence, mp, z, metric);
+    gpu::MeanShiftParams gp;
+    gp.gkdtree = mp.gkdtree;
+    gp.max_iterations = mp.max_iterations;
+    gp.convergence = mp.convergence;
+    gpu::MeanShift ms;
+    ms.setParams(gp);
+    Eigen::VectorXf density;
+    ms.run(z, metric, metric, {}, y, density);
+    std::vector<int> gpu_labels, reps;
+    gpu::groupModes(y, metric, density, mp.merge_radius, gpu_labels, reps);
+
+    const double ari = pcl_animseg::evaluation::adjustedRandIndex(cpu_labels, gpu_labels);
+    std::printf("%s: %zu points, CPU %d clusters, GPU %zu modes, %d iterations "
+                "(%d not converged), %zu samples, ARI %.4f\n",
+                pcl_animseg::synth::toString(plan).c_str(), cpu_labels.size(),
+                result.num_clusters, reps.size(), ms.stats().iterations,
+                ms.stats().not_converged, ms.stats().num_samples, ari);
+    EXPECT_GE(ari, 0.99);
+    EXPECT_EQ(static_cast<int>(reps.size()), result.num_clusters);
+    EXPECT_TRUE(y.allFinite());
+    EXPECT_GT(density.minCoeff(), 0.0f);
+  }
+}
+
+TEST(GpuMeanShift, BadInputIsAnError) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  gpu::MeanShift ms;
+  Eigen::MatrixXf y;
+  Eigen::VectorXf f;
+  const Eigen::RowVectorXf m = Eigen::RowVectorXf::Ones(3);
+  EXPECT_THROW(ms.run(Eigen::MatrixXf(0, 3), m, m, {}, y, f), pcl_animseg::Error);
+  EXPECT_THROW(ms.run(Eigen::MatrixXf::Random(10, 4), m, m, {}, y, f), pcl_animseg::Error);
+  EXPECT_THROW(ms.run(Eigen::MatrixXf::Random(10, 70), Eigen::RowVectorXf::Ones(70),
+                      Eigen::RowVectorXf::Ones(70), {}, y, f),
+               pcl_animseg::Error);
+}
