@@ -118,8 +118,10 @@ void MLSScaleSpace::compute(ScaleSpace& output) const {
   }
 
   const float step_radius = static_cast<float>(2.0 * h0);
+  // 3 h0 at least: the keypoint tests (angular gap, quadratic fit of D) need ~30 neighbours even
+  // on sparse random samples; a smaller row gives false open borders.
   const float radius =
-      std::max(step_radius, static_cast<float>(neighbourhood_radius_ * spacing));
+      std::max(static_cast<float>(3.0 * h0), static_cast<float>(neighbourhood_radius_ * spacing));
   auto nb = std::make_shared<Neighbourhoods>(radiusNeighbourhoods(in, radius));
 
   // Support and Gaussian weights of one projection step, from the input distances (points move

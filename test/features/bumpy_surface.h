@@ -29,8 +29,10 @@ inline std::vector<Bump> defaultBumps() {
     const double r = std::sqrt(1.0 - y * y);
     const double th = golden * i;
     Eigen::Vector3d c(r * std::cos(th), y, r * std::sin(th));
-    const double amp = (i % 3 == 2) ? -0.12 : 0.15 + 0.02 * (i % 4);
-    const double w = 0.16 + 0.03 * (i % 3);
+    // Widths inside the scale range of the default scale space (2..8 spacings at ~10k points),
+    // so that D has real extrema in scale; one in three is a dent.
+    const double w = 0.06 + 0.015 * (i % 3);
+    const double amp = ((i % 3 == 2) ? -0.7 : 0.8) * w;
     b.push_back({c.normalized(), amp, w});
   }
   return b;

@@ -59,7 +59,7 @@ class MLSScaleSpace {
   /** \brief Number of levels L(x, h) .. L(x, k^(levels-1) h). */
   void setNumberOfLevels(int levels) { levels_ = levels; }
   int getNumberOfLevels() const { return levels_; }
-  /** \brief Radius of the shared neighbourhoods in spacing units; at least 2h is always used.
+  /** \brief Radius of the shared neighbourhoods in spacing units; at least 3h is always used.
    * Later stages that need wider neighbourhoods (the signature disc) ask for them here so the
    * frame is searched once. */
   void setNeighbourhoodRadius(double r) { neighbourhood_radius_ = r; }
