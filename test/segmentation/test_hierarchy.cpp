@@ -1,9 +1,12 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/io/segmentation_io.h>
 #include <pcl_animseg/segmentation/hierarchy.h>
 
 #include <gtest/gtest.h>
 
+#include <cstdio>
+#include <fstream>
 #include <random>
 
 #include "synthetic_parts.h"
@@ -150,4 +153,35 @@ TEST(Hierarchy, RegionsWithoutSaddleNeverMergeAndBadInputThrows) {
   bad = r;
   bad.labels[0][0] = 9;
   EXPECT_THROW(h.compute(bad, out), pcl_animseg::Error);
+}
+
+TEST(Hierarchy, SegmentationInfoRoundTrip) {
+  SegmentationResult r;
+  r.num_clusters = 3;
+  r.mode_density = {1.5, 0.25, 0.125};
+  r.modes = Eigen::MatrixXf::Random(3, 4);
+  r.saddles = {{0, 1, 0.2}, {1, 2, 0.1}};
+  const std::string path = ::testing::TempDir() + "/segmentation_roundtrip.txt";
+  pcl_animseg::io::saveSegmentationInfo(path, r);
+  SegmentationResult back;
+  pcl_animseg::io::loadSegmentationInfo(path, back);
+  EXPECT_EQ(back.num_clusters, 3);
+  EXPECT_EQ(back.mode_density, r.mode_density);
+  ASSERT_EQ(back.saddles.size(), 2u);
+  EXPECT_EQ(back.saddles[1].a, 1);
+  EXPECT_EQ(back.saddles[1].b, 2);
+  EXPECT_DOUBLE_EQ(back.saddles[1].density, 0.1);
+  ASSERT_EQ(back.modes.rows(), 3);
+  EXPECT_TRUE(back.modes.isApprox(r.modes, 1e-6f));
+  {
+    std::ofstream bad(path);
+    bad << "clusters 2\nmode 0 1.0\nsaddle 0 5 0.3\n";
+  }
+  EXPECT_THROW(pcl_animseg::io::loadSegmentationInfo(path, back), pcl_animseg::Error);
+  {
+    std::ofstream bad(path);
+    bad << "clusters 2\nmode 0 1.0\n";  // cluster 1 has no mode line
+  }
+  EXPECT_THROW(pcl_animseg::io::loadSegmentationInfo(path, back), pcl_animseg::Error);
+  std::remove(path.c_str());
 }
