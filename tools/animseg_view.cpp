@@ -10,6 +10,22 @@
 namespace po = boost::program_options;
 using namespace pcl_animseg;
 
+namespace {
+
+Eigen::Vector3f parseUp(const std::string& text) {
+  if (text == "auto") return Eigen::Vector3f::Zero();
+  const bool minus = !text.empty() && text[0] == '-';
+  const std::string axis = minus ? text.substr(1) : text;
+  Eigen::Vector3f up;
+  if (axis == "x") up = Eigen::Vector3f::UnitX();
+  else if (axis == "y") up = Eigen::Vector3f::UnitY();
+  else if (axis == "z") up = Eigen::Vector3f::UnitZ();
+  else throw Error("--up must be auto, x, y, z, -x, -y or -z (got '" + text + "')");
+  return minus ? Eigen::Vector3f(-up) : up;
+}
+
+}  // namespace
+
 int main(int argc, char** argv) {
   po::options_description od("Options");
   od.add_options()
@@ -25,6 +41,8 @@ int main(int argc, char** argv) {
     ("count", po::value<int>()->default_value(0),
      "contact sheet frames, evenly spread over the sequence (0 = all up to 8)")
     ("width", po::value<int>()->default_value(1600), "contact sheet width in pixels")
+    ("up", po::value<std::string>()->default_value("auto"),
+     "up direction of the contact sheet: auto (from the principal axes) | x | y | z | -x | -y | -z")
     ("fps", po::value<double>()->default_value(4.0), "viewer autoplay speed (frames per second)")
     ("point-size", po::value<double>()->default_value(3.0), "viewer point size in pixels");
   return tools::runTool(
@@ -51,6 +69,7 @@ int main(int argc, char** argv) {
           opt.columns = ctx.vm["columns"].as<int>();
           opt.frames = ctx.vm["count"].as<int>();
           opt.width = ctx.vm["width"].as<int>();
+          opt.up = parseUp(ctx.vm["up"].as<std::string>());
           progress.begin("render");
           visualization::writePNG(png, visualization::renderContactSheet(seq, opt));
           progress.end("-> " + png);

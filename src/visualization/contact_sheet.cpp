@@ -88,13 +88,19 @@ void defaultView(const PointCloudSequence::Cloud& cloud, Eigen::Vector3f& view_d
     e[i].cwiseAbs().maxCoeff(&k);
     if (e[i](k) < 0) e[i] = -e[i];  // a stable sign, so the view does not flip between runs
   }
-  // Up: of the two broad axes, the one closer to world Y (the OBJ/PLY convention) when it is
-  // within 45 degrees of it, so that a standing figure stands; otherwise e2 (landscape cells).
+  // Up: a principal axis cannot tell up from along, so ask the world axes first: of the two broad
+  // axes, the one within 30 degrees of world Z (our synthetic data and most scans are Z-up), else
+  // of world Y (the OBJ/PLY habit), signed to match; otherwise e2, which suits long low shapes.
   int u = 1;
-  const double y0 = std::abs(e[0].y()), y1 = std::abs(e[1].y());
-  if (std::max(y0, y1) > std::sqrt(0.5)) u = y0 > y1 ? 0 : 1;
-  Eigen::Vector3d upv = e[u];
-  if (upv.y() < 0 && std::abs(upv.y()) > std::sqrt(0.5)) upv = -upv;
+  Eigen::Vector3d upv = e[1];
+  for (int axis : {2, 1}) {
+    const double c0 = std::abs(e[0](axis)), c1 = std::abs(e[1](axis));
+    if (std::max(c0, c1) > std::cos(M_PI / 6)) {
+      u = c0 > c1 ? 0 : 1;
+      upv = e[u](axis) < 0 ? -e[u] : e[u];
+      break;
+    }
+  }
   const Eigen::Vector3d side = e[1 - u];
   // Camera placed off the thin axis, turned ~35 degrees and raised ~20: a 3/4 view.
   const Eigen::Vector3d eye = (e[2] + 0.7 * side + 0.45 * upv).normalized();
@@ -126,7 +132,15 @@ RGBImage renderContactSheet(const LabelledSequence& seq, const ContactSheetOptio
   if (d.norm() < 1e-12f) {
     Eigen::Vector3f auto_up;
     defaultView(*seq.frames[layout.frames[0]].cloud, d, auto_up);
-    if (up.norm() < 1e-12f) up = auto_up;
+    if (up.norm() < 1e-12f) {
+      up = auto_up;
+    } else {
+      // A given up: keep the automatic view's heading, raised ~25 degrees above that up's horizon.
+      const Eigen::Vector3f un = up.normalized();
+      Eigen::Vector3f h = d - d.dot(un) * un;
+      if (h.norm() < 1e-3f) h = un.unitOrthogonal();
+      d = h.normalized() - 0.45f * un;
+    }
   }
   const Camera cam = makeCamera(d, up);
 
@@ -196,9 +210,9 @@ RGBImage renderContactSheet(const LabelledSequence& seq, const ContactSheetOptio
   if (radius <= 0.f) {
     const auto& c0 = *seq.frames[layout.frames[0]].cloud;
     const double spacing = c0.size() >= 2 ? meanSpacing(c0) : 0.0;
-    // The nearest-neighbour spacing underestimates the gaps of a random sampling: 1.1x closes
-    // the surface without blurring parts into each other.
-    radius = std::clamp(static_cast<float>(1.1 * spacing) * scale, 1.0f, 8.0f);
+    // The nearest-neighbour spacing underestimates the gaps of a random sampling: 1.5x closes
+    // most holes without blurring parts into each other.
+    radius = std::clamp(static_cast<float>(1.5 * spacing) * scale, 1.0f, 8.0f);
   }
 
   layout.cells.resize(static_cast<std::size_t>(count));

@@ -27,7 +27,7 @@ struct ContactSheetOptions {
   /** Direction the camera looks along (world units, need not be unit length); zero = a 3/4 view
    * from frame 0's principal axes (see defaultViewDirection). */
   Eigen::Vector3f view_direction = Eigen::Vector3f::Zero();
-  /** Up direction on the picture; zero = frame 0's second principal axis. */
+  /** Up direction on the picture; zero = as chosen by defaultView. */
   Eigen::Vector3f up = Eigen::Vector3f::Zero();
   std::string title;        ///< header line; empty = "<frames> frames, level L: K parts"
   bool legend = true;       ///< part ids, colours and point counts below the grid
@@ -47,9 +47,11 @@ struct ContactSheetLayout {
 /** \brief `n` frame indices evenly spread over [0, T) (first and last included when n >= 2). */
 std::vector<std::size_t> spreadFrames(std::size_t T, std::size_t n);
 
-/** \brief A 3/4 view of `cloud`: with e1 >= e2 >= e3 its principal axes (each signed so that its
- * largest component is positive, for a stable choice), the camera looks along
- * -(e3 + 0.6 e1 + 0.5 e2), i.e. from the side the object is thinnest in, raised and turned. */
+/** \brief A 3/4 view of `cloud` from its principal axes e1 >= e2 >= e3 (each signed so that its
+ * largest component is positive, for a stable choice). Up is whichever of e1, e2 lies within 30
+ * degrees of world +Z, else of world +Y, else e2; with s the other broad axis, the camera looks
+ * along -(e3 + 0.7 s + 0.45 up): from the side the object is thinnest in, turned and raised.
+ * Override with ContactSheetOptions::up / view_direction when the data's up is elsewhere. */
 void defaultView(const PointCloudSequence::Cloud& cloud, Eigen::Vector3f& view_direction,
                  Eigen::Vector3f& up);
 
