@@ -1,8 +1,6 @@
 #include <pcl/PCLPointCloud2.h>
-#include <pcl/PolygonMesh.h>
 #include <pcl/console/print.h>
 #include <pcl/io/pcd_io.h>
-#include <pcl/io/ply_io.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/frame_readers.h>
 
@@ -351,33 +349,150 @@ RawFrame readOFF(const std::string& path) {
 
 namespace {
 
-int plyTypeSize(const std::string& t) {
-  if (t == "char" || t == "uchar" || t == "int8" || t == "uint8") return 1;
-  if (t == "short" || t == "ushort" || t == "int16" || t == "uint16") return 2;
-  if (t == "int" || t == "uint" || t == "float" || t == "int32" || t == "uint32" || t == "float32")
-    return 4;
-  if (t == "double" || t == "float64") return 8;
-  return 0;
+// PLY is read by hand: PCL's PLY reader aborts the process (an assert) on some corrupt files, and
+// a tool must be able to print one `error:` line instead.
+
+enum class PlyType { kNone, kI8, kU8, kI16, kU16, kI32, kU32, kF32, kF64 };
+
+PlyType plyType(const std::string& t) {
+  if (t == "char" || t == "int8") return PlyType::kI8;
+  if (t == "uchar" || t == "uint8") return PlyType::kU8;
+  if (t == "short" || t == "int16") return PlyType::kI16;
+  if (t == "ushort" || t == "uint16") return PlyType::kU16;
+  if (t == "int" || t == "int32") return PlyType::kI32;
+  if (t == "uint" || t == "uint32") return PlyType::kU32;
+  if (t == "float" || t == "float32") return PlyType::kF32;
+  if (t == "double" || t == "float64") return PlyType::kF64;
+  return PlyType::kNone;
 }
 
-/** Checks the PLY header before PCL sees the file, so that a corrupt header or a truncated
- * binary body gets a message that says what is wrong (PCL's reader only says that it failed). */
-void checkPLYHeader(const std::string& path, const std::string& text) {
+int plySize(PlyType t) {
+  switch (t) {
+    case PlyType::kI8:
+    case PlyType::kU8:
+      return 1;
+    case PlyType::kI16:
+    case PlyType::kU16:
+      return 2;
+    case PlyType::kI32:
+    case PlyType::kU32:
+    case PlyType::kF32:
+      return 4;
+    case PlyType::kF64:
+      return 8;
+    default:
+      return 0;
+  }
+}
+
+struct PlyProperty {
+  std::string name;
+  PlyType type = PlyType::kNone;        // item type for lists
+  PlyType count_type = PlyType::kNone;  // kNone: not a list
+};
+
+struct PlyElement {
+  std::string name;
+  long count = 0;
+  std::vector<PlyProperty> properties;
+  long min_bytes = 0;  // lower bound per instance in binary (a list holds at least its count)
+};
+
+/** Reads PLY values from the body, ascii or binary of either endianness, with bounds checks. */
+class PlyBody {
+ public:
+  PlyBody(const std::string& path, const std::string& text, std::size_t begin,
+          const std::string& format)
+      : path_(path),
+        text_(text),
+        pos_(begin),
+        ascii_(format == "ascii"),
+        swap_(format == "binary_big_endian") {}
+
+  /** Throws a truncation error naming `where` when the data ends early. */
+  double read(PlyType t, const std::string& where) {
+    if (ascii_) {
+      while (pos_ < text_.size() && std::isspace(static_cast<unsigned char>(text_[pos_]))) ++pos_;
+      if (pos_ >= text_.size()) throw fileError(path_, "truncated: the data ends in " + where);
+      const char* s = text_.c_str() + pos_;
+      char* end = nullptr;
+      const double v = std::strtod(s, &end);
+      if (end == s || (*end && !std::isspace(static_cast<unsigned char>(*end))))
+        throw fileError(path_, "bad number '" +
+                                   std::string(s, std::min<std::size_t>(16, std::strlen(s))) +
+                                   "' in " + where);
+      pos_ += static_cast<std::size_t>(end - s);
+      return v;
+    }
+    const int n = plySize(t);
+    if (pos_ + n > text_.size()) throw fileError(path_, "truncated: the data ends in " + where);
+    unsigned char b[8];
+    std::memcpy(b, text_.data() + pos_, n);
+    pos_ += n;
+    if (swap_) std::reverse(b, b + n);
+    switch (t) {
+      case PlyType::kI8:
+        return static_cast<std::int8_t>(b[0]);
+      case PlyType::kU8:
+        return b[0];
+      case PlyType::kI16: {
+        std::int16_t v;
+        std::memcpy(&v, b, 2);
+        return v;
+      }
+      case PlyType::kU16: {
+        std::uint16_t v;
+        std::memcpy(&v, b, 2);
+        return v;
+      }
+      case PlyType::kI32: {
+        std::int32_t v;
+        std::memcpy(&v, b, 4);
+        return v;
+      }
+      case PlyType::kU32: {
+        std::uint32_t v;
+        std::memcpy(&v, b, 4);
+        return v;
+      }
+      case PlyType::kF32: {
+        float v;
+        std::memcpy(&v, b, 4);
+        return v;
+      }
+      case PlyType::kF64: {
+        double v;
+        std::memcpy(&v, b, 8);
+        return v;
+      }
+      default:
+        return 0.0;
+    }
+  }
+
+ private:
+  const std::string& path_;
+  const std::string& text_;
+  std::size_t pos_;
+  bool ascii_, swap_;
+};
+
+}  // namespace
+
+RawFrame readPLY(const std::string& path) {
+  const std::string text = readWholeFile(path);
   if (text.compare(0, 3, "ply") != 0 || (text.size() > 3 && text[3] != '\n' && text[3] != '\r'))
     throw fileError(path, "is not a PLY file (it does not start with 'ply')");
   const std::size_t end = text.find("end_header");
   if (end == std::string::npos)
     throw fileError(path, "has no 'end_header' (truncated or corrupt PLY header)");
-  const std::size_t body = text.find('\n', end);
-  if (body == std::string::npos) throw fileError(path, "truncated after 'end_header'");
+  const std::size_t newline = text.find('\n', end);
+  if (newline == std::string::npos) throw fileError(path, "truncated after 'end_header'");
+  const std::size_t body = newline + 1;
+
   std::istringstream head(text.substr(0, end));
   std::string line, format;
-  struct Element {
-    std::string name;
-    long count = 0;
-    long min_bytes = 0;
-  };
-  std::vector<Element> elements;
+  std::vector<PlyElement> elements;
   std::size_t number = 0;
   while (std::getline(head, line)) {
     ++number;
@@ -387,74 +502,127 @@ void checkPLYHeader(const std::string& path, const std::string& text) {
     if (key == "format") {
       ss >> format;
     } else if (key == "element") {
-      Element e;
+      PlyElement e;
       if (!(ss >> e.name >> e.count) || e.count < 0)
         throw lineError(path, number, "bad PLY element line '" + line + "'");
       elements.push_back(e);
     } else if (key == "property") {
       if (elements.empty()) throw lineError(path, number, "PLY property before any element");
+      PlyProperty p;
       std::string type;
       ss >> type;
-      int size = 0;
       if (type == "list") {
         std::string count_type, item_type;
-        ss >> count_type >> item_type;
-        size = plyTypeSize(count_type);
-        if (size == 0 || plyTypeSize(item_type) == 0)
+        ss >> count_type >> item_type >> p.name;
+        p.count_type = plyType(count_type);
+        p.type = plyType(item_type);
+        if (p.count_type == PlyType::kNone || p.type == PlyType::kNone ||
+            p.count_type == PlyType::kF32 || p.count_type == PlyType::kF64)
           throw lineError(path, number, "bad PLY list property '" + line + "'");
+        elements.back().min_bytes += plySize(p.count_type);
       } else {
-        size = plyTypeSize(type);
-        if (size == 0) throw lineError(path, number, "unknown PLY property type '" + type + "'");
+        p.type = plyType(type);
+        ss >> p.name;
+        if (p.type == PlyType::kNone)
+          throw lineError(path, number, "unknown PLY property type '" + type + "'");
+        elements.back().min_bytes += plySize(p.type);
       }
-      elements.back().min_bytes += size;
+      elements.back().properties.push_back(p);
     } else {
       throw lineError(path, number, "unexpected PLY header line '" + line + "'");
     }
   }
   if (format != "ascii" && format != "binary_little_endian" && format != "binary_big_endian")
     throw fileError(path, "unknown PLY format '" + format + "'");
-  bool has_vertex = false;
-  for (const auto& e : elements) has_vertex = has_vertex || e.name == "vertex";
-  if (!has_vertex) throw fileError(path, "PLY header has no vertex element");
-  if (format == "ascii") return;
-  // A lower bound (lists hold at least their count): enough to catch a cut-off file.
-  double need = 0;
-  std::string what;
-  for (const auto& e : elements) {
-    need += static_cast<double>(e.count) * static_cast<double>(e.min_bytes);
-    what += (what.empty() ? "" : ", ") + e.name + " x " + std::to_string(e.count);
-  }
-  const double have = static_cast<double>(text.size() - body - 1);
-  if (have < need)
-    throw fileError(path, "truncated: the PLY header announces " + what + " (at least " +
-                              std::to_string(static_cast<long long>(need)) +
-                              " bytes) but the file has only " +
-                              std::to_string(static_cast<long long>(have)) + " bytes of data");
-}
 
-}  // namespace
+  const PlyElement* vertex = nullptr;
+  for (const auto& e : elements)
+    if (e.name == "vertex") vertex = &e;
+  if (!vertex) throw fileError(path, "PLY header has no vertex element");
+  auto propIndex = [](const PlyElement& e, std::initializer_list<const char*> names) {
+    for (const char* n : names)
+      for (std::size_t i = 0; i < e.properties.size(); ++i)
+        if (e.properties[i].name == n && e.properties[i].count_type == PlyType::kNone)
+          return static_cast<int>(i);
+    return -1;
+  };
+  const int ix = propIndex(*vertex, {"x"}), iy = propIndex(*vertex, {"y"}),
+            iz = propIndex(*vertex, {"z"});
+  if (ix < 0 || iy < 0 || iz < 0) throw fileError(path, "PLY vertices have no x y z properties");
+  const int inx = propIndex(*vertex, {"nx", "normal_x"}),
+            iny = propIndex(*vertex, {"ny", "normal_y"}),
+            inz = propIndex(*vertex, {"nz", "normal_z"});
+  const bool has_normals = inx >= 0 && iny >= 0 && inz >= 0;
 
-RawFrame readPLY(const std::string& path) {
-  const std::string text = readWholeFile(path);
-  checkPLYHeader(path, text);
-  pcl::PolygonMesh mesh;
-  int rc = 0;
-  {
-    QuietPcl quiet;
-    rc = pcl::io::loadPLYFile(path, mesh);
+  if (format != "ascii") {
+    // A lower bound, checked first so that a cut-off file says how much is missing.
+    double need = 0;
+    std::string what;
+    for (const auto& e : elements) {
+      need += static_cast<double>(e.count) * static_cast<double>(e.min_bytes);
+      what += (what.empty() ? "" : ", ") + e.name + " x " + std::to_string(e.count);
+    }
+    const double have = static_cast<double>(text.size() - body);
+    if (have < need)
+      throw fileError(path, "truncated: the PLY header announces " + what + " (at least " +
+                                std::to_string(static_cast<long long>(need)) +
+                                " bytes) but the file has only " +
+                                std::to_string(static_cast<long long>(have)) + " bytes of data");
   }
-  if (rc < 0)
-    throw fileError(path, "cannot be read as PLY (truncated, corrupt, or an unsupported layout)");
+
   RawFrame raw;
   raw.format = "ply";
-  fromCloud2(mesh.cloud, path, raw);
-  const std::size_t nv = raw.points.size();
-  for (const auto& poly : mesh.polygons) {
-    for (auto i : poly.vertices)
-      if (i < 0 || static_cast<std::size_t>(i) >= nv)
-        throw fileError(path, "a face refers to vertex " + std::to_string(i) +
-                                  " but the file has " + std::to_string(nv));
-    fanTriangulate(poly.vertices, raw.faces);
+  raw.points.resize(static_cast<std::size_t>(vertex->count));
+  if (has_normals) raw.normals.resize(raw.points.size());
+  PlyBody reader(path, text, body, format);
+  std::vector<double> values;
+  pcl::Indices poly;
+  for (const auto& e : elements) {
+    const bool is_vertex = &e == vertex;
+    const bool is_face = e.name == "face";
+    int face_list = -1;
+    if (is_face) {
+      for (std::size_t i = 0; i < e.properties.size() && face_list < 0; ++i)
+        if (e.properties[i].count_type != PlyType::kNone &&
+            (e.properties[i].name == "vertex_indices" || e.properties[i].name == "vertex_index"))
+          face_list = static_cast<int>(i);
+    }
+    values.resize(e.properties.size());
+    for (long k = 0; k < e.count; ++k) {
+      const std::string where = "element '" + e.name + "' " + std::to_string(k);
+      for (std::size_t pi = 0; pi < e.properties.size(); ++pi) {
+        const auto& p = e.properties[pi];
+        if (p.count_type == PlyType::kNone) {
+          values[pi] = reader.read(p.type, where);
+          continue;
+        }
+        const double c = reader.read(p.count_type, where);
+        if (c < 0 || c != std::floor(c) || c > 1e6)
+          throw fileError(path, "bad list length " + std::to_string(c) + " in " + where);
+        const long count = static_cast<long>(c);
+        const bool keep = static_cast<int>(pi) == face_list;
+        if (keep) poly.clear();
+        for (long a = 0; a < count; ++a) {
+          const double v = reader.read(p.type, where);
+          if (!keep) continue;
+          if (v < 0 || v >= static_cast<double>(vertex->count) || v != std::floor(v))
+            throw fileError(path, "face " + std::to_string(k) + " refers to vertex " +
+                                      std::to_string(static_cast<long long>(v)) +
+                                      " but the file has " + std::to_string(vertex->count));
+          poly.push_back(static_cast<int>(v));
+        }
+        if (keep) fanTriangulate(poly, raw.faces);
+      }
+      if (is_vertex) {
+        raw.points[k] =
+            Eigen::Vector3f(static_cast<float>(values[ix]), static_cast<float>(values[iy]),
+                            static_cast<float>(values[iz]));
+        if (has_normals)
+          raw.normals[k] =
+              Eigen::Vector3f(static_cast<float>(values[inx]), static_cast<float>(values[iny]),
+                              static_cast<float>(values[inz]));
+      }
+    }
   }
   return raw;
 }

@@ -34,8 +34,10 @@ RawFrame readOBJ(const std::string& path);
  * rejected. */
 RawFrame readOFF(const std::string& path);
 
-/** \brief PLY (ascii, binary little or big endian) through pcl::io::loadPLYFile: vertex
- * x y z [nx ny nz], faces when present (`vertex_indices`). */
+/** \brief PLY (ascii, binary little or big endian), read by hand (PCL's PLY reader aborts on
+ * some corrupt files): vertex x y z [nx ny nz | normal_x normal_y normal_z] of any scalar type,
+ * faces from the face element's `vertex_indices` (or `vertex_index`) list; other properties and
+ * elements are skipped. */
 RawFrame readPLY(const std::string& path);
 
 /** \brief PCD (any encoding PCL reads) through pcl::io::loadPCDFile: x y z, and normal_x
