@@ -2,7 +2,6 @@
 #include <pcl_animseg/evaluation/metrics.h>
 
 #include <Eigen/SVD>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -147,7 +146,8 @@ double rigidityError(const std::vector<Eigen::Matrix3Xd>& positions,
   std::vector<Eigen::Matrix3Xd> rest(parts.size());
   for (std::size_t k = 0; k < parts.size(); ++k) {
     rest[k].resize(3, static_cast<Eigen::Index>(parts[k].size()));
-    for (std::size_t j = 0; j < parts[k].size(); ++j) rest[k].col(j) = positions[0].col(parts[k][j]);
+    for (std::size_t j = 0; j < parts[k].size(); ++j)
+      rest[k].col(j) = positions[0].col(parts[k][j]);
   }
 
   const int frames = static_cast<int>(positions.size());
@@ -188,8 +188,8 @@ std::string Report::toJson() const {
   o << "  \"true_parts\": " << true_parts << ",\n";
   // null rather than -1, so that a consumer cannot average a missing value by mistake.
   o << "  \"rigidity_error\": " << (rigidity_error < 0 ? "null" : number(rigidity_error)) << ",\n";
-  o << "  \"label_consistency\": "
-    << (label_consistency < 0 ? "null" : number(label_consistency)) << ",\n";
+  o << "  \"label_consistency\": " << (label_consistency < 0 ? "null" : number(label_consistency))
+    << ",\n";
   o << "  \"points\": " << points << "\n";
   o << "}\n";
   return o.str();

@@ -5,7 +5,6 @@
 #include <pcl_animseg/synth/articulated.h>
 
 #include <Eigen/Geometry>
-
 #include <algorithm>
 #include <array>
 #include <cctype>
@@ -91,7 +90,9 @@ struct Shape {
   double radius = 0.0;
   Eigen::Vector3d centre = Eigen::Vector3d::Zero(), semi = Eigen::Vector3d::Ones();  ///< ellipsoid
 
-  Eigen::Vector3d centroid() const { return kind == kCapsule ? Eigen::Vector3d(0.5 * (a + b)) : centre; }
+  Eigen::Vector3d centroid() const {
+    return kind == kCapsule ? Eigen::Vector3d(0.5 * (a + b)) : centre;
+  }
 
   double area() const {
     if (kind == kCapsule) return kTwoPi * radius * (b - a).norm() + 4.0 * kPi * radius * radius;
@@ -185,14 +186,14 @@ struct Shape {
                          std::sin(beta)});
       }
       // Cylinder rings about as far apart as the vertices around, so triangles stay well shaped.
-      const int bands = std::clamp(
-          static_cast<int>(std::lround(len / (kTwoPi * radius / res))), 1, res);
+      const int bands =
+          std::clamp(static_cast<int>(std::lround(len / (kTwoPi * radius / res))), 1, res);
       for (int j = 1; j < bands; ++j)
         rings.push_back({len * (1.0 - static_cast<double>(j) / bands), radius, 1.0, 0.0});
       for (int k = 0; k < hemi; ++k) {  // bottom cap, equator to pole
         const double beta = 0.5 * kPi * static_cast<double>(k) / hemi;
-        rings.push_back({-radius * std::sin(beta), radius * std::cos(beta), std::cos(beta),
-                         -std::sin(beta)});
+        rings.push_back(
+            {-radius * std::sin(beta), radius * std::cos(beta), std::cos(beta), -std::sin(beta)});
       }
       h_top = len + radius;
       h_bottom = -radius;
@@ -326,11 +327,11 @@ Body quadruped() {
 
 Body humanoid() {
   Body b;
-  const int pelvis = addPart(b, "pelvis", -1, V::Zero(),
-                             ellipsoid(V::Zero(), V(0.11, 0.17, 0.1)), {dof(kZ, 8, 0.0)});
-  const int torso = addPart(b, "torso", pelvis, V(0, 0, 0.05),
-                            ellipsoid(V(0, 0, 0.27), V(0.11, 0.17, 0.25)),
-                            {dof(kY, 8, 0.0, false, 5), dof(kZ, 12, 0.5)});
+  const int pelvis = addPart(b, "pelvis", -1, V::Zero(), ellipsoid(V::Zero(), V(0.11, 0.17, 0.1)),
+                             {dof(kZ, 8, 0.0)});
+  const int torso =
+      addPart(b, "torso", pelvis, V(0, 0, 0.05), ellipsoid(V(0, 0, 0.27), V(0.11, 0.17, 0.25)),
+              {dof(kY, 8, 0.0, false, 5), dof(kZ, 12, 0.5)});
   addPart(b, "head", torso, V(0, 0, 0.5), ellipsoid(V(0, 0, 0.11), V(0.09, 0.08, 0.12)),
           {dof(kY, 10, 0.2), dof(kZ, 20, 0.0)});
   // Arms swing against the legs of the same side; elbows bend forward (negative about y).
@@ -341,9 +342,9 @@ Body humanoid() {
     const int upper = addPart(b, "arm_" + tag + "_upper", torso, V(0, 0.14 * s, 0.44),
                               capsule(V::Zero(), V(0, 0.1 * s, -0.27), 0.045),
                               {dof(kY, 45, ph), dof(kX, 10 * s, ph + 0.25, true)});
-    const int fore = addPart(b, "arm_" + tag + "_fore", upper, V(0, 0.1 * s, -0.27),
-                             capsule(V::Zero(), V(0, 0.02 * s, -0.25), 0.038),
-                             {dof(kY, -60, ph + 0.25, true)});
+    const int fore =
+        addPart(b, "arm_" + tag + "_fore", upper, V(0, 0.1 * s, -0.27),
+                capsule(V::Zero(), V(0, 0.02 * s, -0.25), 0.038), {dof(kY, -60, ph + 0.25, true)});
     addPart(b, "arm_" + tag + "_hand", fore, V(0, 0.02 * s, -0.25),
             ellipsoid(V(0, 0, -0.08), V(0.035, 0.05, 0.09)), {dof(kY, 20, ph)});
   }
@@ -353,9 +354,9 @@ Body humanoid() {
     const double ph = side == 0 ? 0.0 : 0.5;
     const int thigh = addPart(b, "leg_" + tag + "_thigh", pelvis, V(0, 0.09 * s, -0.05),
                               capsule(V::Zero(), V(0, 0.01 * s, -0.42), 0.07), {dof(kY, 40, ph)});
-    const int shin = addPart(b, "leg_" + tag + "_shin", thigh, V(0, 0.01 * s, -0.42),
-                             capsule(V::Zero(), V(0, 0, -0.4), 0.05),
-                             {dof(kY, 70, ph + 0.3, true)});
+    const int shin =
+        addPart(b, "leg_" + tag + "_shin", thigh, V(0, 0.01 * s, -0.42),
+                capsule(V::Zero(), V(0, 0, -0.4), 0.05), {dof(kY, 70, ph + 0.3, true)});
     addPart(b, "leg_" + tag + "_foot", shin, V(0, 0, -0.4),
             ellipsoid(V(0.07, 0, -0.04), V(0.12, 0.05, 0.04)), {dof(kY, 20, ph + 0.5)});
   }
@@ -376,10 +377,9 @@ Body spider() {
       const double ph = ((i + side) % 2) * 0.5;
       const std::string tag = std::string(side == 0 ? "l" : "r") + std::to_string(i + 1);
       const V knee = 0.32 * dir + V(0, 0, 0.18);
-      const int upper =
-          addPart(b, "leg_" + tag + "_upper", body, V(0.22 * dir.x(), 0.15 * dir.y(), 0.02),
-                  capsule(V::Zero(), knee, 0.035),
-                  {dof(kZ, 25 * s, ph), dof(tangent, -15, ph + 0.25)});
+      const int upper = addPart(
+          b, "leg_" + tag + "_upper", body, V(0.22 * dir.x(), 0.15 * dir.y(), 0.02),
+          capsule(V::Zero(), knee, 0.035), {dof(kZ, 25 * s, ph), dof(tangent, -15, ph + 0.25)});
       addPart(b, "leg_" + tag + "_lower", upper, knee,
               capsule(V::Zero(), 0.14 * dir + V(0, 0, -0.42), 0.028),
               {dof(tangent, 20, ph + 0.25)});

@@ -1,7 +1,6 @@
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
-
-#include <gtest/gtest.h>
 
 #include <random>
 
@@ -203,9 +202,9 @@ TEST(Evaluate, PooledAriRewardsTemporalCoherence) {
   EXPECT_DOUBLE_EQ(no_pos.label_consistency, -1.0);
 
   const std::string json = r.toJson();
-  for (const char* key : {"\"pooled_ari\"", "\"mean_frame_ari\"", "\"frame_ari\"",
-                          "\"predicted_parts\"", "\"true_parts\"", "\"rigidity_error\"",
-                          "\"label_consistency\"", "\"points\": 400"})
+  for (const char* key :
+       {"\"pooled_ari\"", "\"mean_frame_ari\"", "\"frame_ari\"", "\"predicted_parts\"",
+        "\"true_parts\"", "\"rigidity_error\"", "\"label_consistency\"", "\"points\": 400"})
     EXPECT_NE(json.find(key), std::string::npos) << key;
   EXPECT_NE(no_pos.toJson().find("\"rigidity_error\": null"), std::string::npos);
 }

@@ -1,12 +1,9 @@
+#include <gtest/gtest.h>
+#include <pcl/search/kdtree.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/synth/articulated.h>
 
-#include <pcl/search/kdtree.h>
-
 #include <Eigen/Geometry>
-
-#include <gtest/gtest.h>
-
 #include <algorithm>
 #include <cmath>
 #include <set>
@@ -67,7 +64,8 @@ double worstPartResidual(const std::vector<Eigen::Matrix3Xd>& positions,
 }
 
 /** Fraction of points in the largest connected component of the "within `radius`" graph. */
-double largestComponentFraction(const pcl_animseg::PointCloudSequence::Cloud::Ptr& cloud, double radius) {
+double largestComponentFraction(const pcl_animseg::PointCloudSequence::Cloud::Ptr& cloud,
+                                double radius) {
   pcl::search::KdTree<pcl::PointNormal> tree;
   tree.setInputCloud(cloud);
   std::vector<int> comp(cloud->size(), -1);
@@ -220,8 +218,8 @@ TEST(Articulated, DeterministicPerSeed) {
   const auto c = sy::generate(p);
   bool differ = false;
   for (std::size_t t = 0; t < a.size() && !differ; ++t)
-    differ = a[t].cloud->size() != c[t].cloud->size() ||
-             pos((*a[t].cloud)[0]) != pos((*c[t].cloud)[0]);
+    differ =
+        a[t].cloud->size() != c[t].cloud->size() || pos((*a[t].cloud)[0]) != pos((*c[t].cloud)[0]);
   EXPECT_TRUE(differ);
 }
 

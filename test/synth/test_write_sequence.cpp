@@ -1,9 +1,8 @@
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/frame_readers.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/synth/articulated.h>
-
-#include <gtest/gtest.h>
 
 #include <algorithm>
 #include <cstdlib>

@@ -90,10 +90,10 @@ TEST(SynthEvalCli, MeshSequenceReportsRigidity) {
 TEST(SynthEvalCli, ErrorsAreOneLine) {
   TempDir tmp;
   const std::string seq = tmp.str() + "/seq";
-  ASSERT_EQ(run(tool("animseg_synth") + " --output " + seq + " --frames 2 --points 100 --quiet",
-                tmp.path)
-                .code,
-            0);
+  ASSERT_EQ(
+      run(tool("animseg_synth") + " --output " + seq + " --frames 2 --points 100 --quiet", tmp.path)
+          .code,
+      0);
   // A non-empty output directory is refused unless --force; --force replaces stale frames.
   auto r = run(tool("animseg_synth") + " --output " + seq + " --frames 1 --points 100", tmp.path);
   EXPECT_EQ(r.code, 1);

@@ -1,8 +1,7 @@
 #pragma once
-/** \file metrics.h Scores of a decomposition: ARI, temporal consistency, rigidity (free functions). */
+/** \file metrics.h Scores of a decomposition: ARI, temporal consistency, rigidity (free fns). */
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <string>
 #include <vector>
 
@@ -32,20 +31,21 @@ int countParts(const std::vector<int>& labels);
  * part, the Kabsch fit from frame 0 to every frame; RMS residual over all points and frames divided
  * by frame 0's bounding-box diagonal. positions[t] is 3 x N (same N for every frame); labels is one
  * labelling of the N vertices (e.g. frame 0's) — points with label < 0 are ignored. */
-double rigidityError(const std::vector<Eigen::Matrix3Xd>& positions, const std::vector<int>& labels);
+double rigidityError(const std::vector<Eigen::Matrix3Xd>& positions,
+                     const std::vector<int>& labels);
 
 /** \brief Everything animseg_eval reports. */
 struct Report {
-  double pooled_ari = 0.0;         ///< ARI over all points of all frames (rewards coherence)
-  double mean_frame_ari = 0.0;     ///< mean over frames of the per-frame ARI
-  std::vector<double> frame_ari;   ///< per frame
-  int predicted_parts = 0;         ///< distinct labels over the whole sequence
+  double pooled_ari = 0.0;        ///< ARI over all points of all frames (rewards coherence)
+  double mean_frame_ari = 0.0;    ///< mean over frames of the per-frame ARI
+  std::vector<double> frame_ari;  ///< per frame
+  int predicted_parts = 0;        ///< distinct labels over the whole sequence
   int true_parts = 0;
-  double rigidity_error = -1.0;    ///< -1 when vertex order is not shared
+  double rigidity_error = -1.0;  ///< -1 when vertex order is not shared
   /** Fraction of vertices whose predicted label is the same in every frame; -1 when the frames
    * do not share a vertex order (then "the same vertex" has no meaning). */
   double label_consistency = -1.0;
-  std::size_t points = 0;          ///< points scored (both labels >= 0)
+  std::size_t points = 0;  ///< points scored (both labels >= 0)
   /** \brief The report as a JSON object (keys as the fields above). */
   std::string toJson() const;
 };
@@ -54,7 +54,8 @@ struct Report {
  * `positions` (optional, 3 x N per frame, all with the same N as every pred[t]) enables the
  * rigidity error (of frame 0's predicted labelling) and the label consistency. Throws Error on a
  * length mismatch. */
-Report evaluate(const std::vector<std::vector<int>>& pred, const std::vector<std::vector<int>>& truth,
+Report evaluate(const std::vector<std::vector<int>>& pred,
+                const std::vector<std::vector<int>>& truth,
                 const std::vector<Eigen::Matrix3Xd>& positions = {});
 
 }  // namespace evaluation

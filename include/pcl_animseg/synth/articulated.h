@@ -3,7 +3,6 @@
 #include <pcl_animseg/sequence.h>
 
 #include <Eigen/Core>
-
 #include <string>
 #include <vector>
 
@@ -31,8 +30,8 @@ struct SynthParams {
   double noise = 0.0;            ///< Gaussian noise sigma, as a fraction of the bbox diagonal
   double motion = 1.0;           ///< joint-angle amplitude multiplier (1: large, gallop-like)
   double scale = 1.0;            ///< uniform scale of the whole body
-  bool mesh = false;             ///< mesh mode: one triangulated surface, same vertex order every frame
-  int mesh_resolution = 24;      ///< tessellation per part in mesh mode
+  bool mesh = false;         ///< mesh mode: one triangulated surface, same vertex order every frame
+  int mesh_resolution = 24;  ///< tessellation per part in mesh mode
   unsigned seed = 1;
 };
 
