@@ -57,6 +57,7 @@ int main(int argc, char** argv) {
         if (png.empty() && !visualization::displayAvailable())
           throw Error("no display (DISPLAY is not set): use --png FILE to render a contact sheet "
                       "headless");
+        const Eigen::Vector3f up = parseUp(ctx.vm["up"].as<std::string>());
         progress.begin("load");
         const visualization::LabelledSequence seq = visualization::loadLabelledSequence(
             ctx.vm["input"].as<std::string>(), ctx.vm["frames"].as<std::string>());
@@ -69,7 +70,7 @@ int main(int argc, char** argv) {
           opt.columns = ctx.vm["columns"].as<int>();
           opt.frames = ctx.vm["count"].as<int>();
           opt.width = ctx.vm["width"].as<int>();
-          opt.up = parseUp(ctx.vm["up"].as<std::string>());
+          opt.up = up;
           progress.begin("render");
           visualization::writePNG(png, visualization::renderContactSheet(seq, opt));
           progress.end("-> " + png);
