@@ -554,12 +554,16 @@ RawFrame readPLY(const std::string& path) {
             inz = propIndex(*vertex, {"nz", "normal_z"});
   const bool has_normals = inx >= 0 && iny >= 0 && inz >= 0;
 
-  if (format != "ascii") {
-    // A lower bound, checked first so that a cut-off file says how much is missing.
-    double need = 0;
+  {
+    // A lower bound, checked first so that a cut-off file says how much is missing (and a bogus
+    // count is not allocated). In ascii every value takes at least a digit and a separator.
+    const bool ascii = format == "ascii";
+    double need = ascii ? -1 : 0;
     std::string what;
     for (const auto& e : elements) {
-      need += static_cast<double>(e.count) * static_cast<double>(e.min_bytes);
+      const double per =
+          ascii ? 2.0 * static_cast<double>(e.properties.size()) : static_cast<double>(e.min_bytes);
+      need += static_cast<double>(e.count) * per;
       what += (what.empty() ? "" : ", ") + e.name + " x " + std::to_string(e.count);
     }
     const double have = static_cast<double>(text.size() - body);
@@ -706,7 +710,17 @@ void checkPCDHeader(const std::string& path) {
     in.read(reinterpret_cast<char*>(sz), 8);
     if (!in || file_size < header_bytes + 8 + sz[0] || sz[1] != need)
       throw fileError(path, "truncated or corrupt compressed PCD data");
-  } else if (data != "ascii") {
+  } else if (data == "ascii") {
+    // Every value takes at least a digit and a separator: rejects a bogus count before PCL
+    // allocates for it.
+    long values = 0;
+    for (std::size_t i = 0; i < nf; ++i) values += counts.empty() ? 1 : counts[i];
+    const double need = 2.0 * static_cast<double>(width) * height * values - 1;
+    if (static_cast<double>(file_size) - static_cast<double>(header_bytes) < need)
+      throw fileError(path, "truncated: the PCD header announces " +
+                                std::to_string(width * height) +
+                                " points but the file is too short to hold them");
+  } else {
     throw fileError(path, "PCD header: unknown DATA encoding '" + data + "'");
   }
 }

@@ -476,6 +476,20 @@ TEST(BadInput, TruncatedTextFormats) {
   expectError([&] { loadOne(dir / "g.obj"); }, {"g.obj", "line 4", "vertex 4"});
 }
 
+TEST(BadInput, HugeCountsAreTruncationNotAllocation) {
+  TempDir dir;
+  fixtures::writeText(dir / "big.ply",
+                      "ply\nformat ascii 1.0\nelement vertex 900000000000\nproperty float x\n"
+                      "property float y\nproperty float z\nend_header\n0 0 0\n");
+  expectError([&] { loadOne(dir / "big.ply"); }, {"big.ply", "truncated"});
+  fixtures::writeText(dir / "big.pcd",
+                      "VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                      "WIDTH 900000000000\nHEIGHT 1\nPOINTS 900000000000\nDATA ascii\n0 0 0\n");
+  expectError([&] { loadOne(dir / "big.pcd"); }, {"big.pcd", "truncated"});
+  fixtures::writeText(dir / "big.off", "OFF\n900000000000 1 0\n0 0 0\n");
+  expectError([&] { loadOne(dir / "big.off"); }, {"big.off", "truncated"});
+}
+
 TEST(BadInput, GarbageFiles) {
   TempDir dir;
   std::string garbage;
