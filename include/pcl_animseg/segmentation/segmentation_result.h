@@ -15,6 +15,14 @@ struct Saddle {
   double density = 0.0;
 };
 
+/** \brief One step of a merge hierarchy: the group holding label a and the group holding label b
+ * become one (a and b are the smallest label of each group), at the given cost. */
+struct ClusterMerge {
+  int a = -1;
+  int b = -1;
+  double cost = 0.0;
+};
+
 /** \brief Result of clustering a whole sequence jointly.
  *
  * Labels are 0..num_clusters-1 and mean the same part in every frame. `labels[t][j]` is the
@@ -29,6 +37,10 @@ struct SegmentationResult {
   std::vector<double> mode_density;
   /** Saddle densities between adjacent clusters (each unordered pair once). */
   std::vector<Saddle> saddles;
+  /** Coarser levels found by the motion method: the merges it would make after its stopping
+   * point, cheapest first, down to one group per connected piece (empty for the paper's
+   * method). Cost: rigid-motion residual of the union (mean over frames), in point spacings. */
+  std::vector<ClusterMerge> merges;
 };
 
 }  // namespace segmentation

@@ -1,0 +1,68 @@
+#pragma once
+// Pieces shared by the two methods of MeanShiftSegmentation (not installed).
+#include <pcl_animseg/segmentation/mean_shift.h>
+
+#include <Eigen/Core>
+
+#include <memory>
+#include <vector>
+
+namespace pcl_animseg {
+namespace segmentation {
+namespace detail {
+
+/** The joint feature space of Eq. 5-6 (see mean_shift.h). */
+struct JointSpace {
+  Eigen::MatrixXf z;                ///< N x D raw features (p / s, n, sigma)
+  std::vector<char> keypoint;       ///< per point
+  Eigen::RowVectorXf metric_plain;  ///< per-dimension factor sqrt(weight) / w, Eq. 6
+  Eigen::RowVectorXf metric_key;    ///< the same with w3 on the signature, Eq. 5
+  bool has_keypoints = false;
+  double scale = 1.0;               ///< sequence scale s
+  std::vector<std::size_t> offsets;
+};
+
+JointSpace buildJointSpace(const PointCloudSequence& seq, const std::vector<Eigen::MatrixXf>& sig,
+                           const std::vector<std::vector<int>>& keypoints,
+                           const MeanShiftParams& params);
+
+/** Kernel sums sum_j K(y, z_j) values_j of Eq. 8 / 10 over all data points, with the keypoint
+ * pair rule of Eq. 5 realised as a sum over two point sets. */
+class JointKernelSum {
+ public:
+  JointKernelSum(const JointSpace& space, const Eigen::MatrixXf& values,
+                 const MeanShiftParams& params);
+  ~JointKernelSum();
+  /** out.row(r) = sums at raw position y.row(r) for r in rows (others untouched); query_key[r]
+   * says whether the query started from a keypoint (empty: none did). */
+  void evaluate(const Eigen::MatrixXf& y, const std::vector<int>& rows,
+                const std::vector<char>& query_key, Eigen::MatrixXf& out) const;
+  int valueCount() const { return value_count_; }
+
+  struct Backend;
+
+ private:
+  struct Group;
+  std::vector<std::unique_ptr<Group>> groups_;
+  const JointSpace& space_;
+  int value_count_ = 0;
+};
+
+/** Within-frame k-NN graph: neighbours of flattened point i are graph[i*k .. i*k+k) (global
+ * indices, -1 padding). */
+std::vector<int> knnGraph(const PointCloudSequence& seq, int k);
+
+/** Fills modes (when `modes_known` is false: the densest point of each cluster), mode densities
+ * and saddles from the point labels (flattened, 0..C-1). */
+void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, int num_clusters,
+                  const std::vector<int>& graph, int k, const MeanShiftParams& params,
+                  const PointCloudSequence& seq, bool modes_known, SegmentationResult& result);
+
+/** The motion method; fills result.labels, num_clusters and merges. */
+void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params,
+               std::vector<int>& flat_labels, int& num_clusters,
+               std::vector<ClusterMerge>& merges, Progress* progress);
+
+}  // namespace detail
+}  // namespace segmentation
+}  // namespace pcl_animseg
