@@ -22,7 +22,7 @@ bool validNormal(const pcl::PointNormal& p) {
  * rows' entries (from the input distances), `ref` the normals whose orientation to keep. */
 void projectOnce(const Cloud& src, const Neighbourhoods& nb, const std::vector<int>& limit,
                  const std::vector<float>& weights, const std::vector<Eigen::Vector3f>& ref,
-                 Cloud& dst) {
+                 bool exact, Cloud& dst) {
   const long n = static_cast<long>(src.size());
 #pragma omp parallel for schedule(dynamic, 512)
   for (long jl = 0; jl < n; ++jl) {
@@ -49,17 +49,38 @@ void projectOnce(const Cloud& src, const Neighbourhoods& nb, const std::vector<i
     if (m >= 3 && sw > 0.0) {
       const Eigen::Vector3d c = s1 / sw;
       const Eigen::Matrix3d cov = s2 / sw - c * c.transpose();
-      Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-      es.computeDirect(cov);
-      const Eigen::Vector3d ev = es.eigenvalues();
-      // A plane needs two clearly non-zero spreads; on a line or a single spot keep the point.
-      if (ev(1) > 1e-10 * std::max(ev(2), 1e-300) && ev(2) > 0.0) {
-        Eigen::Vector3d nn = es.eigenvectors().col(0);
+      const double tr = cov.trace();
+      Eigen::Vector3d nn;
+      double lmin = 0.0;
+      bool ok = tr > 0.0;
+      if (ok && exact) {
+        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
+        es.computeDirect(cov);
+        const Eigen::Vector3d ev = es.eigenvalues();
+        // A plane needs two clearly non-zero spreads; on a line or a single spot keep the point.
+        ok = ev(1) > 1e-10 * std::max(ev(2), 1e-300) && ev(2) > 0.0;
+        nn = es.eigenvectors().col(0);
+        lmin = ev(0);
+      } else if (ok) {
+        // Diffusion steps after the first: the normal moves little per step, so a few power
+        // iterations on tr(C) I - C from the previous normal replace a full eigensolver (which
+        // was most of the scale space's time); errors do not accumulate since each step
+        // restarts from the last estimate.
+        const Eigen::Matrix3d M = tr * Eigen::Matrix3d::Identity() - cov;
+        nn = nref.cast<double>();
+        for (int it = 0; it < 4; ++it) nn = (M * nn).normalized();
+        lmin = nn.dot(cov * nn);
+        const double rest = tr - lmin;  // spread in the plane: must not be a line or a spot
+        const Eigen::Vector3d a = nn.unitOrthogonal(), b = nn.cross(a);
+        const double caa = a.dot(cov * a), cbb = b.dot(cov * b), cab = a.dot(cov * b);
+        ok = rest > 0.0 && (caa * cbb - cab * cab) > 1e-10 * rest * rest && nn.allFinite();
+      }
+      if (ok) {
         if (nn.cast<float>().dot(nref) < 0.0f) nn = -nn;
         const Eigen::Vector3f x = xj + (c.dot(nn) * nn).cast<float>();
         out.getVector3fMap() = x;
         out.getNormalVector3fMap() = nn.normalized().cast<float>();
-        out.curvature = static_cast<float>(ev(0) / std::max(ev.sum(), 1e-300));
+        out.curvature = static_cast<float>(lmin / tr);
         projected = true;
       }
     }
@@ -161,7 +182,7 @@ void MLSScaleSpace::compute(ScaleSpace& output) const {
   for (int i = 0; i < levels_; ++i) {
     while (done < counts[i]) {
       Cloud::Ptr next(new Cloud(*cur));
-      projectOnce(*cur, *nb, limit, weights, ref, *next);
+      projectOnce(*cur, *nb, limit, weights, ref, done == 0, *next);
       for (std::size_t j = 0; j < n; ++j) ref[j] = (*next)[j].getNormalVector3fMap();
       cur = next;
       ++done;
