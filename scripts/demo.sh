@@ -5,8 +5,8 @@ cd "$(dirname "$0")/.."
 bash scripts/install-deps.sh
 bash scripts/build.sh
 rm -rf out/demo
-./build/bin/animseg --input datasets/quadruped_points --output out/demo "$@"
-echo "demo: labelled frames in out/demo (open out/demo/f000.pcd with pcl_viewer, key 5 or l for labels)"
+./build/bin/animseg --input datasets/quadruped_points --output out/demo --png "$@"
+echo "demo: labelled frames in out/demo (pcl_viewer out/demo/f000.pcd, key 5 or l for labels); picture: out/demo/contact_sheet.png"
 if [ -x ./build/bin/animseg_eval ]; then
   ./build/bin/animseg_eval --pred out/demo --truth datasets/quadruped_points
 fi

@@ -3,8 +3,10 @@
 #include <pcl_animseg/io/atomic_file.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/pipeline.h>
+#include <pcl_animseg/segmentation/rigid_motion.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/tool_common.h>
+#include <pcl_animseg/visualization/contact_sheet.h>
 
 #include <iomanip>
 #include <iostream>
@@ -57,68 +59,101 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   return os.str();
 }
 
-std::string transformsJson(const PointCloudSequence& seq, const PipelineResult& r) {
-  std::ostringstream os;
-  os << std::setprecision(9);
-  os << "{\n  \"frames\": [";
-  for (std::size_t t = 0; t < seq.size(); ++t)
-    os << (t ? ", " : "") << "\"" << tools::jsonEscape(seq.name(t)) << "\"";
-  os << "],\n  \"parts\": [";
-  for (std::size_t i = 0; i < r.motions.size(); ++i) {
-    const PartMotion& m = r.motions[i];
-    os << (i ? ",\n" : "\n") << "    {\"part\": " << m.part << ", \"frames\": [";
-    for (std::size_t t = 0; t < m.rotation.size(); ++t) {
-      const auto& R = m.rotation[t];
-      const auto& tr = m.translation[t];
-      os << (t ? ", " : "") << "{\"rotation\": [";
-      for (int a = 0; a < 3; ++a)
-        for (int b = 0; b < 3; ++b) os << (a || b ? ", " : "") << R(a, b);
-      os << "], \"translation\": [" << tr.x() << ", " << tr.y() << ", " << tr.z()
-         << "], \"rms\": " << m.rms[t] << "}";
-    }
-    os << "]}";
-  }
-  os << (r.motions.empty() ? "" : "\n  ") << "]\n}\n";
-  return os.str();
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
+  const PipelineParams defaults;
+  const auto& msd = defaults.mean_shift;
+  const auto w = [](double v) {
+    std::ostringstream os;
+    os << v;
+    return os.str();
+  };
   po::options_description od("Options");
   od.add_options()
     ("input,i", po::value<std::string>()->required(),
      "sequence: a directory of .obj/.ply/.off/.pcd/.xyz frames (natural order) or a list file")
     ("output,o", po::value<std::string>()->required(), "output directory")
     ("device", po::value<std::string>()->default_value("auto"), "mean shift device: auto|cpu|gpu")
-    ("levels", po::value<int>()->default_value(4), "hierarchy levels above level 0 (at most)")
-    ("bandwidth", po::value<double>()->default_value(0.3), "mean shift bandwidth w (Eq. 4)")
-    ("weights", po::value<std::string>()->default_value("0.5,0.5,2,1"),
+    ("levels", po::value<int>()->default_value(defaults.levels),
+     "hierarchy levels above level 0, at most (Sect. 5)")
+    ("bandwidth", po::value<double>()->default_value(msd.bandwidth),
+     "mean shift bandwidth w (Eq. 4), positions in units of the sequence size")
+    ("weights", po::value<std::string>()->default_value(w(msd.w1) + "," + w(msd.w2) + "," + w(msd.w3) +
+                                                        "," + w(msd.w4)),
      "w1,w2,w3,w4: normal, position, signature between keypoints, signature otherwise (Eq. 5-6)")
-    ("method", po::value<std::string>()->default_value("default"),
-     "segmentation method: default (motion-coherent) | paper (mean shift of the paper only)")
-    ("seed", po::value<unsigned>()->default_value(1), "random seed (results are deterministic)");
+    ("method", po::value<std::string>()->default_value("motion"),
+     "motion (default: patches tracked by ICP, merged by rigid motion) | paper (joint mean shift "
+     "of Sect. 3.2 only)")
+    ("backend", po::value<std::string>()->default_value("gkdtree"),
+     "kernel sums: gkdtree (Gaussian kd-tree, Sect. 3.3) | exact (kd-tree, reference)")
+    ("parts", po::value<int>()->default_value(0),
+     "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")
+    ("patches", po::value<int>()->default_value(msd.patches),
+     "motion method: patches of the over-segmentation (0: automatic)")
+    ("motion-threshold", po::value<double>()->default_value(msd.motion_threshold),
+     "motion method: stop merging above this rigid-motion residual (point spacings)")
+    ("scale-h", po::value<double>()->default_value(defaults.multiscale.h),
+     "smallest scale h of the scale space (Eq. 1), in point spacings")
+    ("scale-k", po::value<double>()->default_value(defaults.multiscale.k),
+     "factor k between adjacent scales (Eq. 1)")
+    ("scale-levels", po::value<int>()->default_value(defaults.multiscale.levels),
+     "levels of the scale space")
+    ("signature-h", po::value<double>()->default_value(defaults.multiscale.signature_h),
+     "scale h of the signature (Eq. 2), in point spacings")
+    ("narrow-band", po::value<double>()->default_value(defaults.refinement.narrow_band),
+     "refinement: L_r, width of the band W (point spacings)")
+    ("outer-band", po::value<double>()->default_value(defaults.refinement.outer_band),
+     "refinement: L_R, outer width of the bands F and B (point spacings)")
+    ("rp-step", po::value<double>()->default_value(defaults.hierarchy.step),
+     "hierarchy: raise of the region-persistence threshold per level (0.05-0.1)")
+    ("png", po::value<std::string>()->implicit_value(""),
+     "also render a contact sheet of the result (headless) to FILE, default OUT/contact_sheet.png")
+    ("png-level", po::value<int>()->default_value(0), "hierarchy level shown by --png")
+    ("no-features", "skip scale space, keypoints and signatures (mean shift on p, n only)")
+    ("no-refine", "skip the GMM boundary refinement")
+    ("no-transforms", "skip the rigid motion per part (transforms.json lists no parts)")
+    ("seed", po::value<unsigned>()->default_value(msd.seed), "random seed (results are deterministic)");
   return tools::runTool(
       argc, argv, "animseg",
       "animseg --input IN --output OUT [--device auto|cpu|gpu] [--levels L] [--bandwidth w]\n"
       "               [--weights w1,w2,w3,w4] [--seed S] [--config FILE]",
       od, [&](const tools::ToolContext& ctx) {
         Progress progress(ctx.quiet, ctx.verbose);
+        const auto& vm = ctx.vm;
         PipelineParams params;
-        params.device = ctx.vm["device"].as<std::string>();
-        params.levels = ctx.vm["levels"].as<int>();
-        params.bandwidth = ctx.vm["bandwidth"].as<double>();
-        const auto w = tools::parseNumberList(ctx.vm["weights"].as<std::string>(), 4, "--weights");
-        params.w1 = w[0];
-        params.w2 = w[1];
-        params.w3 = w[2];
-        params.w4 = w[3];
-        params.method = ctx.vm["method"].as<std::string>();
-        params.seed = ctx.vm["seed"].as<unsigned>();
+        params.device = vm["device"].as<std::string>();
+        params.levels = vm["levels"].as<int>();
+        auto& ms = params.mean_shift;
+        ms.bandwidth = vm["bandwidth"].as<double>();
+        const auto wt = tools::parseNumberList(vm["weights"].as<std::string>(), 4, "--weights");
+        ms.w1 = wt[0];
+        ms.w2 = wt[1];
+        ms.w3 = wt[2];
+        ms.w4 = wt[3];
+        std::string method = vm["method"].as<std::string>();
+        if (method == "default") method = "motion";
+        ms.method = segmentation::meanShiftMethodFromString(method);
+        ms.backend = segmentation::meanShiftBackendFromString(vm["backend"].as<std::string>());
+        ms.target_clusters = vm["parts"].as<int>();
+        ms.patches = vm["patches"].as<int>();
+        ms.motion_threshold = vm["motion-threshold"].as<double>();
+        ms.seed = vm["seed"].as<unsigned>();
+        params.multiscale.h = vm["scale-h"].as<double>();
+        params.multiscale.k = vm["scale-k"].as<double>();
+        params.multiscale.levels = vm["scale-levels"].as<int>();
+        params.multiscale.signature_h = vm["signature-h"].as<double>();
+        params.refinement.narrow_band = vm["narrow-band"].as<double>();
+        params.refinement.outer_band = vm["outer-band"].as<double>();
+        params.hierarchy.step = vm["rp-step"].as<double>();
+        params.features = !vm.count("no-features");
+        params.refine = !vm.count("no-refine");
+        params.motions = !vm.count("no-transforms");
         validate(params);  // fail before the (long) load on a bad parameter
 
-        const std::string input = ctx.vm["input"].as<std::string>();
-        const std::string out = ctx.vm["output"].as<std::string>();
+        const std::string input = vm["input"].as<std::string>();
+        const std::string out = vm["output"].as<std::string>();
+        // Fig. 1, top to bottom.
         PointCloudSequence seq = io::loadSequence(input, io::LoadOptions(), &progress);
         progress.info("loaded " + std::to_string(seq.size()) + " frames, " +
                       std::to_string(seq.totalPoints()) + " points");
@@ -136,8 +171,17 @@ int main(int argc, char** argv) {
           io::saveLabelledPLY(base + ".ply", *seq.frame(t), r.levels[0][t]);
           progress.update(t + 1);
         }
-        io::writeTextAtomically(out + "/transforms.json", transformsJson(seq, r));
+        segmentation::writeTransformsJson(out + "/transforms.json", seq, r.motions);
         progress.end();
+        if (vm.count("png")) {
+          progress.begin("png");
+          std::string png = vm["png"].as<std::string>();
+          if (png.empty()) png = out + "/contact_sheet.png";
+          visualization::ContactSheetOptions opt;
+          opt.level = std::min<int>(vm["png-level"].as<int>(), static_cast<int>(r.levels.size()) - 1);
+          visualization::renderContactSheet(out, png, opt);
+          progress.end(png);
+        }
         const auto timings = progress.timings();
         io::writeTextAtomically(out + "/summary.json",
                                 summaryJson(ctx, input, seq, r, timings, progress.elapsed()));
@@ -146,8 +190,9 @@ int main(int argc, char** argv) {
         for (std::size_t l = 0; l < r.parts_per_level.size(); ++l)
           parts << (l ? " " : "") << r.parts_per_level[l];
         progress.info("animseg: " + std::to_string(seq.size()) + " frames, " +
-                      std::to_string(seq.totalPoints()) + " points, parts per level [" + parts.str() +
-                      "], device " + r.device_used + ", " + num(progress.elapsed()) + " s -> " + out);
+                      std::to_string(seq.totalPoints()) + " points, " + std::to_string(r.keypoints) +
+                      " keypoints, parts per level [" + parts.str() + "], device " + r.device_used +
+                      ", " + num(progress.elapsed()) + " s -> " + out);
         for (const auto& m : r.missing) progress.info("  stage not available in this build: " + m);
         return 0;
       });

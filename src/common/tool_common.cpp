@@ -1,6 +1,8 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/tool_common.h>
 
+#include <pcl/console/print.h>
+
 #include <boost/property_tree/json_parser.hpp>
 #include <boost/property_tree/ptree.hpp>
 
@@ -145,6 +147,9 @@ int runTool(int argc, char** argv, const std::string& name, const std::string& u
     }
     ctx.quiet = ctx.vm.count("quiet") > 0;
     ctx.verbose = ctx.vm.count("verbose") > 0 && !ctx.quiet;
+    // PCL's own warnings (e.g. ICP on a part that left the view) are expected and handled by the
+    // library; they would drown the progress lines, so only --verbose shows them.
+    pcl::console::setVerbosityLevel(ctx.verbose ? pcl::console::L_WARN : pcl::console::L_ALWAYS);
     return body(ctx);
   } catch (const std::bad_alloc&) {
     std::cerr << "error: out of memory" << std::endl;

@@ -8,17 +8,18 @@
 namespace pcl_animseg {
 
 void validate(const PipelineParams& p) {
-  if (!(p.bandwidth > 0.0)) throw Error("bandwidth must be > 0 (got " + std::to_string(p.bandwidth) + ")");
-  for (double w : {p.w1, p.w2, p.w3, p.w4})
+  const auto& ms = p.mean_shift;
+  if (!(ms.bandwidth > 0.0))
+    throw Error("bandwidth must be > 0 (got " + std::to_string(ms.bandwidth) + ")");
+  for (double w : {ms.w1, ms.w2, ms.w3, ms.w4})
     if (!(w >= 0.0)) throw Error("weights must be >= 0 (got " + std::to_string(w) + ")");
   if (p.device != "auto" && p.device != "cpu" && p.device != "gpu")
     throw Error("device must be auto, cpu or gpu (got '" + p.device + "')");
-  if (p.method != "default" && p.method != "paper")
-    throw Error("method must be default or paper (got '" + p.method + "')");
-  if (p.levels < 0) throw Error("levels must be >= 0");
+  if (p.levels < 0) throw Error("levels must be >= 0 (got " + std::to_string(p.levels) + ")");
 }
 
 namespace {
+
 int countLabels(const std::vector<std::vector<int>>& labels) {
   std::set<int> s;
   for (const auto& f : labels)
@@ -26,6 +27,13 @@ int countLabels(const std::vector<std::vector<int>>& labels) {
       if (l >= 0) s.insert(l);
   return static_cast<int>(s.size());
 }
+
+std::string keypointDetail(const SequenceFeatures& f) {
+  std::size_t n = 0;
+  for (const auto& k : f.keypoints) n += k.size();
+  return std::to_string(n) + " keypoints";
+}
+
 }  // namespace
 
 PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& params,
@@ -33,19 +41,81 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   validate(params);
   if (seq.empty()) throw Error("the sequence has no frames");
   PipelineResult r;
-  const std::size_t T = seq.size();
+  // The stages take shared pointers; the caller owns the sequence for the whole call.
+  const PointCloudSequence::ConstPtr shared(&seq, [](const PointCloudSequence*) {});
 
-  // Stages not built yet are reported, never faked.
-  for (const char* s : {"scale_space", "keypoints", "signature", "mean_shift", "refine", "hierarchy",
-                        "rigid_motion"})
-    r.missing.push_back(s);
+  // 1. Multi-scale features (Sect. 3.1): scale space, DoG keypoints, signatures.
+  SequenceFeatures features;
+  if (params.features) {
+    features = computeSequenceFeatures(seq, params.multiscale, &progress);
+    for (const auto& k : features.keypoints) {
+      r.keypoints_per_frame.push_back(k.size());
+      r.keypoints += k.size();
+    }
+    progress.debug(keypointDetail(features));
+  } else {
+    r.notes.push_back("features disabled: mean shift on position and normal only");
+  }
 
-  // Without a segmenter every point is in one part: the honest "no decomposition" answer.
-  std::vector<std::vector<int>> level0(T);
-  for (std::size_t t = 0; t < T; ++t) level0[t].assign(seq.frame(t)->size(), 0);
-  r.levels.push_back(level0);
-  r.notes.push_back("no segmentation stage in this build: every point is labelled 0");
+  // 2. All frames clustered jointly (Sect. 3.2-3.3).
+  segmentation::MeanShiftParams msp = params.mean_shift;
+  if (params.device == "gpu")
+    throw Error("--device gpu: this build's mean shift has no GPU backend yet");
+  r.device_used = "cpu";
+  segmentation::MeanShiftSegmentation ms;
+  ms.setInputSequence(shared);
+  ms.setParams(msp);
+  if (params.features) {
+    ms.setSignatures(features.signatures);
+    ms.setKeypoints(features.keypoints);
+  }
+  ms.setProgress(&progress);
+  segmentation::SegmentationResult clusters;
+  progress.begin("mean_shift");
+  ms.segment(clusters);
+  progress.end(std::to_string(clusters.num_clusters) + " clusters");
+
+  // 3. Boundary refinement (Sect. 4), built over all frames jointly.
+  segmentation::SegmentationResult refined;
+  if (params.refine && clusters.num_clusters > 1) {
+    progress.begin("refine");
+    segmentation::GMMBoundaryRefinement gmm;
+    gmm.setInputSequence(&seq);
+    segmentation::RefinementParams rp = params.refinement;
+    rp.seed = msp.seed;
+    gmm.setParams(rp);
+    gmm.refine(clusters, refined);
+    std::size_t changed = 0;
+    for (std::size_t c : gmm.getStats().changed) changed += c;
+    progress.end(std::to_string(changed) + " points relabelled");
+  } else {
+    refined = clusters;
+  }
+
+  // 4. Hierarchy by region persistence (Sect. 5): nested levels, no re-clustering.
+  progress.begin("hierarchy");
+  segmentation::PersistenceHierarchy hierarchy;
+  segmentation::HierarchyParams hp = params.hierarchy;
+  hp.max_levels = params.levels;
+  hierarchy.setParams(hp);
+  segmentation::HierarchyResult levels;
+  hierarchy.compute(refined, levels);
+  r.levels = levels.labels;
   for (const auto& l : r.levels) r.parts_per_level.push_back(countLabels(l));
+  progress.end(std::to_string(r.levels.size()) + " levels");
+
+  // 5. Rigid motion of every level-0 part (what skinning / bone estimation needs).
+  if (params.motions) {
+    progress.begin("rigid_motion");
+    segmentation::RigidMotionEstimation rme;
+    rme.setInputSequence(&seq);
+    rme.setParams(params.rigid_motion);
+    segmentation::LevelMotion lm;
+    lm.level = 0;
+    lm.parts = rme.compute(r.levels[0]);
+    r.motions.push_back(std::move(lm));
+    progress.end();
+  }
   r.timings = progress.timings();
   return r;
 }
