@@ -16,19 +16,20 @@ namespace seg = pcl_animseg::segmentation;
 int main(int argc, char** argv) {
   seg::HierarchyParams d;
   po::options_description od("Options");
-  od.add_options()
-    ("input,i", po::value<std::string>()->required(), "sequence (directory of frames or list file)")
-    ("labels,l", po::value<std::string>()->required(),
-     "directory with NAME.labels per frame (first column) and segmentation.txt (mode densities "
-     "and saddles, as animseg_meanshift / animseg_refine write them)")
-    ("segmentation", po::value<std::string>(), "segmentation.txt elsewhere than in --labels")
-    ("output,o", po::value<std::string>()->required(),
-     "output directory: NAME.labels (one column per level, finest first), NAME.pcd, transforms.json")
-    ("levels", po::value<int>()->default_value(d.max_levels), "levels above level 0, at most")
-    ("initial-factor", po::value<double>()->default_value(d.initial_factor),
-     "first threshold RP_delta = factor * mean(RP) (Eq. 12)")
-    ("step", po::value<double>()->default_value(d.step), "RP_delta increase per level (0.05-0.1)")
-    ("no-transforms", po::bool_switch(), "do not estimate the parts' rigid motions");
+  od.add_options()("input,i", po::value<std::string>()->required(),
+                   "sequence (directory of frames or list file)")(
+      "labels,l", po::value<std::string>()->required(),
+      "directory with NAME.labels per frame (first column) and segmentation.txt (mode densities "
+      "and saddles, as animseg_meanshift / animseg_refine write them)")(
+      "segmentation", po::value<std::string>(), "segmentation.txt elsewhere than in --labels")(
+      "output,o", po::value<std::string>()->required(),
+      "output directory: NAME.labels (one column per level, finest first), NAME.pcd, "
+      "transforms.json")("levels", po::value<int>()->default_value(d.max_levels),
+                         "levels above level 0, at most")(
+      "initial-factor", po::value<double>()->default_value(d.initial_factor),
+      "first threshold RP_delta = factor * mean(RP) (Eq. 12)")(
+      "step", po::value<double>()->default_value(d.step), "RP_delta increase per level (0.05-0.1)")(
+      "no-transforms", po::bool_switch(), "do not estimate the parts' rigid motions");
   return pcl_animseg::tools::runTool(
       argc, argv, "animseg_hierarchy",
       "animseg_hierarchy --input SEQ --labels DIR --output DIR [--levels L] [--step s]", od,

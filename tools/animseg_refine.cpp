@@ -6,9 +6,8 @@
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 #include <pcl_animseg/tool_common.h>
 
-#include <filesystem>
-
 #include <algorithm>
+#include <filesystem>
 #include <string>
 
 namespace po = boost::program_options;
@@ -17,25 +16,26 @@ namespace seg = pcl_animseg::segmentation;
 int main(int argc, char** argv) {
   seg::RefinementParams d;
   po::options_description od("Options");
-  od.add_options()
-    ("input,i", po::value<std::string>()->required(), "sequence (directory of frames or list file)")
-    ("labels,l", po::value<std::string>()->required(),
-     "directory with NAME.labels per frame (first column used) and, optionally, segmentation.txt")
-    ("output,o", po::value<std::string>()->required(),
-     "output directory: NAME.labels, NAME.pcd, segmentation.txt (copied through)")
-    ("narrow-band", po::value<double>()->default_value(d.narrow_band),
-     "L_r: width of the band W that may change label, in point spacings")
-    ("outer-band", po::value<double>()->default_value(d.outer_band),
-     "L_R: outer width of the training bands F and B, in point spacings")
-    ("train-distance", po::value<double>()->default_value(d.training_min_distance),
-     "only F/B points farther than this from the boundary train the GMMs (spacings)")
-    ("min-log-ratio", po::value<double>()->default_value(d.min_log_ratio),
-     "a point changes side only when log p(other)/p(own) exceeds this (0: the paper's Eq. 11)")
-    ("spatial-weight", po::value<double>()->default_value(d.spatial_weight),
-     "weight of the optional distance-to-band term (0: normals only)")
-    ("iterations", po::value<int>()->default_value(d.max_iterations), "refinement iterations at most")
-    ("per-frame", po::bool_switch(), "refine each frame on its own instead of pooling all frames")
-    ("seed", po::value<unsigned>()->default_value(1), "random seed of the GMM initialisation");
+  od.add_options()("input,i", po::value<std::string>()->required(),
+                   "sequence (directory of frames or list file)")(
+      "labels,l", po::value<std::string>()->required(),
+      "directory with NAME.labels per frame (first column used) and, optionally, segmentation.txt")(
+      "output,o", po::value<std::string>()->required(),
+      "output directory: NAME.labels, NAME.pcd, segmentation.txt (copied through)")(
+      "narrow-band", po::value<double>()->default_value(d.narrow_band),
+      "L_r: width of the band W that may change label, in point spacings")(
+      "outer-band", po::value<double>()->default_value(d.outer_band),
+      "L_R: outer width of the training bands F and B, in point spacings")(
+      "train-distance", po::value<double>()->default_value(d.training_min_distance),
+      "only F/B points farther than this from the boundary train the GMMs (spacings)")(
+      "min-log-ratio", po::value<double>()->default_value(d.min_log_ratio),
+      "a point changes side only when log p(other)/p(own) exceeds this (0: the paper's Eq. 11)")(
+      "spatial-weight", po::value<double>()->default_value(d.spatial_weight),
+      "weight of the optional distance-to-band term (0: normals only)")(
+      "iterations", po::value<int>()->default_value(d.max_iterations),
+      "refinement iterations at most")(
+      "per-frame", po::bool_switch(), "refine each frame on its own instead of pooling all frames")(
+      "seed", po::value<unsigned>()->default_value(1), "random seed of the GMM initialisation");
   return pcl_animseg::tools::runTool(
       argc, argv, "animseg_refine",
       "animseg_refine --input SEQ --labels DIR --output DIR [--narrow-band Lr] [--outer-band LR]",

@@ -3,7 +3,6 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/LU>
-
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -63,7 +62,8 @@ void updateGMMCache(GaussianMixture& gmm) {
   for (int c = 0; c < k; ++c) {
     Eigen::LLT<Eigen::Matrix3d> llt(gmm.covariances[c]);
     if (llt.info() != Eigen::Success)
-      throw Error("GMM component " + std::to_string(c) + " has a covariance that is not positive "
+      throw Error("GMM component " + std::to_string(c) +
+                  " has a covariance that is not positive "
                   "definite; increase the regularization");
     const Eigen::Matrix3d l = llt.matrixL();
     const double log_det = 2.0 * (l.diagonal().array().log().sum());
@@ -108,7 +108,8 @@ GaussianMixture fitGMM(const Eigen::MatrixX3d& x, const GMMOptions& options) {
   // Global covariance: the fallback for a component that owns too few points to estimate one.
   const Eigen::RowVector3d mean_all = x.colwise().mean();
   const Eigen::MatrixX3d centred_all = x.rowwise() - mean_all;
-  const Eigen::Matrix3d cov_all = centred_all.transpose() * centred_all / static_cast<double>(n) + reg;
+  const Eigen::Matrix3d cov_all =
+      centred_all.transpose() * centred_all / static_cast<double>(n) + reg;
 
   GaussianMixture gmm;
   gmm.weights.assign(k, 0.0);

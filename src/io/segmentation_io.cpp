@@ -24,7 +24,8 @@ void saveSegmentationInfo(const std::string& path, const segmentation::Segmentat
       for (Eigen::Index d = 0; d < r.modes.cols(); ++d) s << ' ' << r.modes(c, d);
     s << '\n';
   }
-  for (const auto& sd : r.saddles) s << "saddle " << sd.a << ' ' << sd.b << ' ' << sd.density << '\n';
+  for (const auto& sd : r.saddles)
+    s << "saddle " << sd.a << ' ' << sd.b << ' ' << sd.density << '\n';
   writeTextAtomically(path, s.str());
 }
 
@@ -99,7 +100,8 @@ std::vector<std::vector<int>> loadSequenceLabels(const std::string& dir,
     const std::vector<int> input = loadLabels(path, column);
     if (input.size() != sequence.inputSize(t))
       throw Error(path + ": " + std::to_string(input.size()) + " labels for a frame of " +
-                  std::to_string(sequence.inputSize(t)) + " points (labels from another sequence?)");
+                  std::to_string(sequence.inputSize(t)) +
+                  " points (labels from another sequence?)");
     const std::vector<int>& index = sequence.inputIndex(t);
     out[t].resize(index.size());
     for (std::size_t j = 0; j < index.size(); ++j) out[t][j] = input[index[j]];

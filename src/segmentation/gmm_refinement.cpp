@@ -1,9 +1,8 @@
+#include <pcl/kdtree/kdtree_flann.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/math/gmm.h>
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
-
-#include <pcl/kdtree/kdtree_flann.h>
 
 #include <algorithm>
 #include <cmath>
@@ -24,9 +23,9 @@ using XYZCloud = pcl::PointCloud<pcl::PointXYZ>;
 struct BandPoint {
   int frame;
   int index;
-  int pair;   // dense pair id
-  int side;   // 0: label == pair's a (F), 1: label == pair's b (B)
-  float dist; // distance to the pair's boundary, in spacings
+  int pair;    // dense pair id
+  int side;    // 0: label == pair's a (F), 1: label == pair's b (B)
+  float dist;  // distance to the pair's boundary, in spacings
 };
 
 struct Pair {
@@ -98,8 +97,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // Per part and frame, the map from frame t into frame 0 (identity when not pooling). Estimated
   // once from the initial labels: the refinement changes only a thin band, which ICP's
   // correspondence rejection ignores anyway.
-  std::vector<std::vector<RigidTransform>> to_ref(num_labels,
-                                                  std::vector<RigidTransform>(frames));
+  std::vector<std::vector<RigidTransform>> to_ref(num_labels, std::vector<RigidTransform>(frames));
   const bool pool = p.pool_frames && frames > 1;
   if (pool) {
     RigidMotionEstimation motion;
@@ -111,6 +109,13 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     for (int l = 0; l < num_labels; ++l)
       for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
   }
+
+  // After the first pass, only points near the previous boundary can become boundary points: a
+  // label changes only inside W, so a new boundary point is a changed point or a neighbour of one.
+  // This keeps the kNN scan, the costliest step, to the band in later iterations.
+  std::vector<std::vector<char>> candidate(frames);
+  const double candidate_reach = p.narrow_band + p.boundary_max_distance + 1.0;
+  const bool restrict_scan = p.outer_band >= candidate_reach;
 
   for (int iter = 0; iter < std::max(1, p.max_iterations); ++iter) {
     // 1. Boundary points and bands, frame by frame (labels are joint, so pair ids agree).
@@ -127,7 +132,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       std::vector<int> idx;
       std::vector<float> d2;
       for (std::size_t j = 0; j < cloud.size(); ++j) {
-        if (lab[j] < 0) continue;
+        if (lab[j] < 0 || (!candidate[t].empty() && !candidate[t][j])) continue;
         trees[t].nearestKSearch(cloud[j], p.boundary_k + 1, idx, d2);
         // The most frequent other label among the near neighbours names the pair.
         int other = -1, best = 0;
@@ -194,6 +199,11 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         if (best_q < 0) continue;
         band[t].push_back(BandPoint{t, static_cast<int>(j), best_q, l == pairs[best_q].a ? 0 : 1,
                                     static_cast<float>(best_d / s)});
+      }
+      if (restrict_scan) {
+        candidate[t].assign(cloud.size(), 0);
+        for (const BandPoint& bp : band[t])
+          if (bp.dist <= candidate_reach) candidate[t][bp.index] = 1;
       }
     }
 

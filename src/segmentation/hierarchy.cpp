@@ -36,14 +36,15 @@ void PersistenceHierarchy::compute(const SegmentationResult& input, HierarchyRes
   const int k = input.num_clusters;
   if (k < 0) throw Error("hierarchy: negative cluster count");
   if (static_cast<int>(input.mode_density.size()) != k)
-    throw Error("hierarchy: " + std::to_string(input.mode_density.size()) +
-                " mode densities for " + std::to_string(k) + " clusters");
+    throw Error("hierarchy: " + std::to_string(input.mode_density.size()) + " mode densities for " +
+                std::to_string(k) + " clusters");
   if (!(params_.step > 0.0)) throw Error("hierarchy: the threshold step must be positive");
   if (params_.initial_factor < 0.0) throw Error("hierarchy: the initial factor must be >= 0");
   for (const auto& frame : input.labels)
     for (int l : frame)
-      if (l >= k) throw Error("hierarchy: label " + std::to_string(l) + " >= cluster count " +
-                              std::to_string(k));
+      if (l >= k)
+        throw Error("hierarchy: label " + std::to_string(l) + " >= cluster count " +
+                    std::to_string(k));
 
   // Region densities and the highest saddle between each pair of adjacent regions.
   std::vector<double> density = input.mode_density;
@@ -66,7 +67,8 @@ void PersistenceHierarchy::compute(const SegmentationResult& input, HierarchyRes
     return std::max(0.0, std::min(density[a], density[b]) - s);
   };
   double norm = 0.0;
-  for (const auto& [key, s] : saddle) norm = std::max(norm, rawPersistence(key.first, key.second, s));
+  for (const auto& [key, s] : saddle)
+    norm = std::max(norm, rawPersistence(key.first, key.second, s));
   if (norm <= 0.0) norm = 1.0;
   out = HierarchyResult();
   double mean_rp = 0.0;

@@ -1,13 +1,12 @@
+#include <pcl/common/centroid.h>
+#include <pcl/common/common.h>
+#include <pcl/registration/icp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
-#include <pcl/common/centroid.h>
-#include <pcl/common/common.h>
-#include <pcl/registration/icp.h>
-
+#include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -62,6 +61,17 @@ Cloud::Ptr partCloud(const Cloud& frame, const std::vector<int>& labels, int par
   return out;
 }
 
+// Dominant axis of a part (unit, sign arbitrary) and how dominant it is (λ1 / λ2).
+std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
+  Eigen::Vector4f c;
+  Eigen::Matrix3f cov;
+  pcl::computeMeanAndCovarianceMatrix(cloud, cov, c);
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3f> es(cov);
+  const Eigen::Vector3f ev = es.eigenvalues();  // ascending
+  return {es.eigenvectors().col(2).cast<double>(),
+          ev[1] > 0.0f ? static_cast<double>(ev[2] / ev[1]) : 1e9};
+}
+
 }  // namespace
 
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
@@ -69,8 +79,8 @@ std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::ve
   if (!sequence_ || sequence_->empty()) throw Error("rigid motion: no input sequence");
   const std::size_t frames = sequence_->size();
   if (labels.size() != frames)
-    throw Error("rigid motion: " + std::to_string(labels.size()) + " label frames for a sequence of " +
-                std::to_string(frames) + " frames");
+    throw Error("rigid motion: " + std::to_string(labels.size()) +
+                " label frames for a sequence of " + std::to_string(frames) + " frames");
   int max_label = -1;
   for (std::size_t t = 0; t < frames; ++t) {
     if (labels[t].size() != sequence_->frame(t)->size())
@@ -103,6 +113,7 @@ std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::ve
     const double part_diag = (mx.getVector3fMap() - mn.getVector3fMap()).norm();
 
     RigidTransform prev = motion.frames[0];
+    const auto [axis0, prev_ratio] = principalAxis(*source);
     for (std::size_t t = 1; t < frames; ++t) {
       Cloud::Ptr target = partCloud(*sequence_->frame(t), labels[t], part, 0);
       RigidTransform& result = motion.frames[t];
@@ -115,26 +126,66 @@ std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::ve
       Eigen::Vector4f ct;
       pcl::compute3DCentroid(*target, ct);
       RigidTransform guess = prev;
-      guess.translation = ct.head<3>().cast<double>() - prev.rotation * c0.head<3>().cast<double>();
+      // An elongated part (a limb) can turn a lot between frames; turning the previous estimate
+      // so that the part's long axis matches the new frame's gives ICP a start in the right
+      // basin (the roll about the axis is left to ICP). Blob-like parts skip this.
+      const auto [axis, ratio] = principalAxis(*target);
+      if (ratio > 2.0 && prev_ratio > 2.0) {
+        const Eigen::Vector3d from = prev.rotation * axis0;
+        const Eigen::Vector3d to = from.dot(axis) >= 0.0 ? axis : Eigen::Vector3d(-axis);
+        guess.rotation =
+            Eigen::Quaterniond::FromTwoVectors(from, to).toRotationMatrix() * prev.rotation;
+      }
+      guess.translation =
+          ct.head<3>().cast<double>() - guess.rotation * c0.head<3>().cast<double>();
 
+      // Annealed rejection distance: wide first passes capture a large motion between frames,
+      // the last pass uses a few point spacings so that neighbouring parts' points (mislabelled
+      // near a boundary) do not pull. The wide passes are point-to-point: point-to-plane's
+      // linear system is nearly singular on a limb (a tube slides along and spins about its
+      // axis) and can throw the estimate far off while correspondences are still poor.
+      const double fine = p.max_correspondence_spacings * spacing[t];
+      const double coarse = std::max(fine, p.coarse_distance * part_diag);
+      const double passes[2] = {coarse, std::max(fine, coarse / 6.0)};
+      Eigen::Matrix4f m = toMatrix(guess);
+      Cloud aligned;
+      pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> p2p;
+      p2p.setInputSource(source);
+      p2p.setInputTarget(target);
+      // Converged when an iteration moves the part by less than a hundredth of a spacing (PCL
+      // compares the squared translation) or the mean squared error stops improving.
+      p2p.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing[t], 2));
+      p2p.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
+      for (double distance : passes) {
+        p2p.setMaxCorrespondenceDistance(distance);
+        p2p.setMaximumIterations(std::max(1, p.max_iterations / 2));
+        p2p.align(aligned, m);
+        if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
+      }
+      p2p.setMaxCorrespondenceDistance(fine);
+      p2p.setMaximumIterations(p.max_iterations);
+      p2p.align(aligned, m);
+      if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
+      double rms = std::sqrt(p2p.getFitnessScore());
+      // Final point-to-plane pass (sub-spacing accuracy on sampled surfaces); kept only when it
+      // lowers the residual, so a degenerate part cannot make the estimate worse.
       pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
       icp.setInputSource(source);
       icp.setInputTarget(target);
-      icp.setTransformationEpsilon(p.transformation_epsilon);
-      icp.setEuclideanFitnessEpsilon(0.0);
-      Cloud aligned;
-      // Coarse pass: wide rejection distance to capture a large motion; fine pass: a few point
-      // spacings so that neighbouring parts' points (mislabelled near a boundary) do not pull.
-      icp.setMaxCorrespondenceDistance(p.coarse_distance * part_diag);
-      icp.setMaximumIterations(std::max(1, p.max_iterations / 2));
-      icp.align(aligned, toMatrix(guess));
-      Eigen::Matrix4f m = icp.getFinalTransformation();
-      icp.setMaxCorrespondenceDistance(p.max_correspondence_spacings * spacing[t]);
+      icp.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing[t], 2));
+      icp.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
+      icp.setMaxCorrespondenceDistance(fine);
       icp.setMaximumIterations(p.max_iterations);
       icp.align(aligned, m);
-      if (icp.getFinalTransformation().allFinite()) m = icp.getFinalTransformation();
+      if (icp.getFinalTransformation().allFinite()) {
+        const double rms_plane = std::sqrt(icp.getFitnessScore());
+        if (rms_plane <= rms) {
+          m = icp.getFinalTransformation();
+          rms = rms_plane;
+        }
+      }
       result = fromMatrix(m);
-      result.rms = std::sqrt(icp.getFitnessScore());
+      result.rms = rms;
       result.valid = std::isfinite(result.rms);
       if (result.valid) prev = result;
     }

@@ -2,12 +2,10 @@
 // Small articulated test sequences with exact ground truth, made inside the tests so that they do
 // not depend on the synth module: a chain of mitred tubes (parts meet at creases, like an elbow)
 // and a chain of boxes moved rigidly (shared vertex order in "mesh" mode).
+#include <pcl/kdtree/kdtree_flann.h>
 #include <pcl_animseg/sequence.h>
 
-#include <pcl/kdtree/kdtree_flann.h>
-
 #include <Eigen/Geometry>
-
 #include <cmath>
 #include <random>
 #include <vector>
@@ -38,8 +36,7 @@ inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::ve
   const double kPi = 3.14159265358979323846;
   for (int t = 0; t < frames; ++t) {
     std::vector<double> bend(parts, 0.0);
-    for (int k = 0; k + 1 < parts; ++k)
-      bend[k] = bend0[k] + 0.35 * std::sin(0.7 * t + 1.3 * k);
+    for (int k = 0; k + 1 < parts; ++k) bend[k] = bend0[k] + 0.35 * std::sin(0.7 * t + 1.3 * k);
     // Part frames in the chain's xz plane.
     std::vector<Eigen::Vector3d> start(parts + 1), dir(parts), side(parts);
     double alpha = 0.0;
@@ -52,8 +49,9 @@ inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::ve
     }
     std::vector<Eigen::Vector3d> mitre(parts);  // mitre normal at the end of part i
     for (int i = 0; i + 1 < parts; ++i) mitre[i] = (dir[i] + dir[i + 1]).normalized();
-    const Eigen::Affine3d global = Eigen::Translation3d(0.3 * t, 0.1 * std::sin(0.5 * t), 0.05 * t) *
-                                   Eigen::AngleAxisd(0.15 * t, Eigen::Vector3d(0.3, 1, 0.2).normalized());
+    const Eigen::Affine3d global =
+        Eigen::Translation3d(0.3 * t, 0.1 * std::sin(0.5 * t), 0.05 * t) *
+        Eigen::AngleAxisd(0.15 * t, Eigen::Vector3d(0.3, 1, 0.2).normalized());
     const int n = static_cast<int>(points * (0.8 + 0.4 * u01(rng)));
     Cloud::Ptr cloud(new Cloud);
     std::vector<int> truth, shifted;
@@ -69,7 +67,8 @@ inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::ve
       while (i + 1 < parts && r > lengths[i]) r -= lengths[i++];
       const double s = -ext + u01(rng) * (lengths[i] + 2 * ext);
       const double phi = 2 * kPi * u01(rng);
-      const Eigen::Vector3d nrm = std::cos(phi) * side[i] + std::sin(phi) * Eigen::Vector3d::UnitY();
+      const Eigen::Vector3d nrm =
+          std::cos(phi) * side[i] + std::sin(phi) * Eigen::Vector3d::UnitY();
       const Eigen::Vector3d x = start[i] + s * dir[i] + radius * nrm;
       if (i + 1 < parts && (x - start[i + 1]).dot(mitre[i]) > 0) continue;
       if (i > 0 && (x - start[i]).dot(mitre[i - 1]) < 0) continue;
@@ -100,7 +99,8 @@ inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::ve
 /** Fraction of points within `radius_spacings` spacings of a true boundary whose label is wrong. */
 inline double boundaryError(const pcl_animseg::PointCloudSequence& seq,
                             const std::vector<std::vector<int>>& truth,
-                            const std::vector<std::vector<int>>& labels, double radius_spacings = 3.0) {
+                            const std::vector<std::vector<int>>& labels,
+                            double radius_spacings = 3.0) {
   std::size_t near = 0, wrong = 0;
   for (std::size_t t = 0; t < seq.size(); ++t) {
     const Cloud::Ptr& f = seq.frame(t);
@@ -182,7 +182,8 @@ inline BoxChain makeBoxChain(int frames, int points, bool mesh, unsigned seed) {
     for (int i = 0; i < parts; ++i) {
       poses[i] = acc;
       const double bend = 0.4 + 0.3 * std::sin(0.6 * t + i);
-      acc = acc * Eigen::Translation3d(0, 0, dims[i].z()) * Eigen::AngleAxisd(bend, Eigen::Vector3d::UnitY()) *
+      acc = acc * Eigen::Translation3d(0, 0, dims[i].z()) *
+            Eigen::AngleAxisd(bend, Eigen::Vector3d::UnitY()) *
             Eigen::AngleAxisd(0.2 * std::sin(0.3 * t + 2 * i), Eigen::Vector3d::UnitZ());
     }
     if (!mesh || t == 0) {

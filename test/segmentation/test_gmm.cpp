@@ -1,7 +1,6 @@
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/math/gmm.h>
-
-#include <gtest/gtest.h>
 
 #include <algorithm>
 #include <random>
@@ -31,8 +30,7 @@ Eigen::MatrixX3d sampleMixture(const std::vector<Eigen::Vector3d>& means,
 }  // namespace
 
 TEST(GMM, RecoversWellSeparatedComponents) {
-  const std::vector<Eigen::Vector3d> means = {
-      {0, 0, 1}, {1, 0, 0}, {0, 1, 0}, {-0.7, -0.7, 0}};
+  const std::vector<Eigen::Vector3d> means = {{0, 0, 1}, {1, 0, 0}, {0, 1, 0}, {-0.7, -0.7, 0}};
   const std::vector<Eigen::Vector3d> sigmas = {
       {0.05, 0.05, 0.02}, {0.02, 0.08, 0.03}, {0.04, 0.04, 0.04}, {0.03, 0.03, 0.06}};
   const std::vector<int> counts = {400, 300, 200, 100};
@@ -47,14 +45,15 @@ TEST(GMM, RecoversWellSeparatedComponents) {
       if ((gmm.means[c] - means[k]).norm() < (gmm.means[best] - means[k]).norm()) best = c;
     EXPECT_LT((gmm.means[best] - means[k]).norm(), 0.02) << "component " << k;
     for (int d = 0; d < 3; ++d)
-      EXPECT_NEAR(std::sqrt(gmm.covariances[best](d, d)), sigmas[k][d], 0.25 * sigmas[k][d] + 0.005);
+      EXPECT_NEAR(std::sqrt(gmm.covariances[best](d, d)), sigmas[k][d],
+                  0.25 * sigmas[k][d] + 0.005);
     EXPECT_NEAR(gmm.weights[best], counts[k] / 1000.0, 0.02);
   }
 }
 
 TEST(GMM, DeterministicForASeed) {
-  const Eigen::MatrixX3d x = sampleMixture({{0, 0, 0}, {1, 1, 1}}, {{0.3, 0.3, 0.3}, {0.3, 0.3, 0.3}},
-                                           {150, 150}, 11);
+  const Eigen::MatrixX3d x =
+      sampleMixture({{0, 0, 0}, {1, 1, 1}}, {{0.3, 0.3, 0.3}, {0.3, 0.3, 0.3}}, {150, 150}, 11);
   const GaussianMixture a = fitGMM(x, 4, 50, 5);
   const GaussianMixture b = fitGMM(x, 4, 50, 5);
   ASSERT_EQ(a.size(), b.size());
@@ -81,7 +80,8 @@ TEST(GMM, ClassifiesBetterThanChanceAndLikelihoodIsNormalised) {
   std::uniform_real_distribution<double> u(-6.0, 6.0);
   double sum = 0.0;
   const int samples = 200000;
-  for (int i = 0; i < samples; ++i) sum += std::exp(gw.logPdf(Eigen::Vector3d(u(rng), u(rng), u(rng))));
+  for (int i = 0; i < samples; ++i)
+    sum += std::exp(gw.logPdf(Eigen::Vector3d(u(rng), u(rng), u(rng))));
   EXPECT_NEAR(sum / samples * 12.0 * 12.0 * 12.0, 1.0, 0.05);
   const Eigen::VectorXd r = gf.responsibilities(Eigen::Vector3d(0, 0, 1));
   EXPECT_NEAR(r.sum(), 1.0, 1e-9);

@@ -1,8 +1,7 @@
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/segmentation/gmm_refinement.h>
-
-#include <gtest/gtest.h>
 
 #include <iostream>
 
@@ -31,7 +30,8 @@ Outcome run(const animseg_test::TubeChain& chain, const RefinementParams& params
   o.error_before = animseg_test::boundaryError(chain.sequence, chain.truth, chain.shifted);
   o.error_after = animseg_test::boundaryError(chain.sequence, chain.truth, out.labels);
   const std::vector<int> truth = animseg_test::pooled(chain.truth);
-  o.ari_before = pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(chain.shifted), truth);
+  o.ari_before =
+      pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(chain.shifted), truth);
   o.ari_after = pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(out.labels), truth);
   std::cout << "boundary error " << o.error_before << " -> " << o.error_after << ", pooled ARI "
             << o.ari_before << " -> " << o.ari_after << ", iterations "
@@ -64,7 +64,8 @@ TEST(GMMRefinement, ElbowBoundaryErrorDropsPerFrame) {
 
 // Three and four parts: joints bent different ways, boundaries shifted toward different sides.
 TEST(GMMRefinement, ChainOfFourParts) {
-  const auto chain = animseg_test::makeTubeChain({0.8, 0.7, 0.9, 0.6}, {0.9, -1.0, 1.2}, 5, 9000, 2.0, 3);
+  const auto chain =
+      animseg_test::makeTubeChain({0.8, 0.7, 0.9, 0.6}, {0.9, -1.0, 1.2}, 5, 9000, 2.0, 3);
   const Outcome o = run(chain, RefinementParams(), 4);
   EXPECT_LE(o.error_after, 0.7 * o.error_before);
   EXPECT_GE(o.ari_after, o.ari_before);

@@ -1,9 +1,8 @@
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/io/segmentation_io.h>
 #include <pcl_animseg/segmentation/hierarchy.h>
-
-#include <gtest/gtest.h>
 
 #include <cstdio>
 #include <fstream>
@@ -36,7 +35,8 @@ SegmentationResult overSegment(const animseg_test::BoxChain& chain, int pieces, 
       const int p = chain.truth[t][j];
       const Eigen::Vector3d local =
           chain.pose[p][t].inverse() * f[j].getVector3fMap().cast<double>();
-      const int piece = std::min(pieces - 1, std::max(0, static_cast<int>(local.z() / length[p] * pieces)));
+      const int piece =
+          std::min(pieces - 1, std::max(0, static_cast<int>(local.z() / length[p] * pieces)));
       labels[j] = p * pieces + piece;
     }
     r.labels.push_back(labels);
@@ -88,8 +88,9 @@ TEST(Hierarchy, NestedLevelsRecoverTruePartsFromOverSegmentation) {
     EXPECT_EQ(out.num_parts.back(), 1);
     const int level = out.levelClosestTo(3);
     EXPECT_EQ(out.num_parts[level], 3) << "seed " << seed;
-    EXPECT_GE(pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(out.labels[level]), truth),
-              0.9)
+    EXPECT_GE(
+        pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(out.labels[level]), truth),
+        0.9)
         << "seed " << seed;
   }
 }

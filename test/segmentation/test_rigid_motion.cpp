@@ -1,8 +1,7 @@
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
-
-#include <gtest/gtest.h>
 
 #include <cstdio>
 #include <fstream>
@@ -10,9 +9,9 @@
 
 #include "synthetic_parts.h"
 
+using animseg_test::Cloud;
 using pcl_animseg::segmentation::PartMotion;
 using pcl_animseg::segmentation::RigidMotionEstimation;
-using animseg_test::Cloud;
 
 namespace {
 
@@ -45,12 +44,14 @@ TEST(RigidMotion, MeshModeMatchesKabschFromCorrespondences) {
     for (std::size_t j = 0; j < f0.size(); ++j)
       if (chain.truth[0][j] == part) idx.push_back(static_cast<int>(j));
     src.resize(3, idx.size());
-    for (std::size_t k = 0; k < idx.size(); ++k) src.col(k) = f0[idx[k]].getVector3fMap().cast<double>();
+    for (std::size_t k = 0; k < idx.size(); ++k)
+      src.col(k) = f0[idx[k]].getVector3fMap().cast<double>();
     ASSERT_TRUE(motion[part].frames[0].valid);
     for (std::size_t t = 1; t < chain.sequence.size(); ++t) {
       const Cloud& ft = *chain.sequence.frame(t);
       Eigen::Matrix3Xd dst(3, idx.size());
-      for (std::size_t k = 0; k < idx.size(); ++k) dst.col(k) = ft[idx[k]].getVector3fMap().cast<double>();
+      for (std::size_t k = 0; k < idx.size(); ++k)
+        dst.col(k) = ft[idx[k]].getVector3fMap().cast<double>();
       const auto fit = pcl_animseg::evaluation::kabsch(src, dst);
       const auto& icp = motion[part].frames[t];
       ASSERT_TRUE(icp.valid) << "part " << part << " frame " << t;
@@ -126,7 +127,8 @@ TEST(RigidMotion, WrongLabelsGiveLargeResidualAndMissingPartsAreInvalid) {
   EXPECT_NE(json.find("\"rotation\": [["), std::string::npos);
   EXPECT_NE(json.find("null"), std::string::npos);  // part 3 in frames >= 1
   std::size_t count = 0;
-  for (std::size_t p = json.find("\"rms\""); p != std::string::npos; p = json.find("\"rms\"", p + 1))
+  for (std::size_t p = json.find("\"rms\""); p != std::string::npos;
+       p = json.find("\"rms\"", p + 1))
     ++count;
   EXPECT_EQ(count, 3u * 5u + 1u);
   std::remove(path.c_str());

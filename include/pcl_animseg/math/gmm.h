@@ -7,7 +7,6 @@
  * so a small fixed-size Eigen EM is both the simplest and the fastest option.
  */
 #include <Eigen/Core>
-
 #include <vector>
 
 namespace pcl_animseg {
@@ -15,13 +14,13 @@ namespace math {
 
 /** \brief Knobs of fitGMM. */
 struct GMMOptions {
-  int components = 4;          ///< K (the paper uses 4 per band)
-  int max_iterations = 100;    ///< EM iterations at most
-  double tolerance = 1e-6;     ///< stop when the mean log-likelihood gains less than this
+  int components = 4;        ///< K (the paper uses 4 per band)
+  int max_iterations = 100;  ///< EM iterations at most
+  double tolerance = 1e-6;   ///< stop when the mean log-likelihood gains less than this
   /** Added to every covariance's diagonal after each M step. Keeps a component on a flat patch
    * (all normals equal, zero variance) from collapsing to a singular covariance. */
   double regularization = 1e-4;
-  unsigned seed = 0;           ///< seed of the k-means++ initialisation
+  unsigned seed = 0;  ///< seed of the k-means++ initialisation
 };
 
 /** \brief A fitted mixture: weights, means and full covariances of K 3-D Gaussians. */

@@ -1,5 +1,6 @@
 #pragma once
-/** \file rigid_motion.h The rigid motion of every part, frame 0 -> frame t, without correspondences.
+/** \file rigid_motion.h The rigid motion of every part, frame 0 -> frame t, without
+ * correspondences.
  *
  * What a rigging or skinning user needs from a decomposition (the paper's rigid-bone application):
  * for each part, the rotation and translation that best map its points in frame 0 onto the same
@@ -11,7 +12,6 @@
 #include <pcl_animseg/sequence.h>
 
 #include <Eigen/Core>
-
 #include <memory>
 #include <string>
 #include <vector>
@@ -41,11 +41,14 @@ struct RigidMotionParams {
   int min_points = 6;
   int max_iterations = 40;
   /** Correspondence rejection distance of the final ICP pass, in units of the target frame's mean
-   * spacing. A first pass uses `coarse_distance` x the part's bounding-box diagonal so that large
-   * motions between consecutive frames are still captured. */
+   * spacing. A first pass uses `coarse_distance` x the part's bounding-box diagonal (so that large
+   * motions between consecutive frames are still captured), a second a sixth of that. */
   double max_correspondence_spacings = 4.0;
   double coarse_distance = 0.25;
-  double transformation_epsilon = 1e-10;
+  /** Convergence: an iteration that moves the part by less than this many spacings, or that
+   * improves the mean squared error by less than this relative amount. */
+  double transformation_epsilon = 0.01;
+  double relative_mse_epsilon = 1e-5;
 };
 
 /** \brief Transforms of one part in every frame (frames[t]; frames[0] is the identity). */
