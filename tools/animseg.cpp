@@ -186,14 +186,24 @@ int main(int argc, char** argv) {
         io::writeTextAtomically(out + "/summary.json",
                                 summaryJson(ctx, input, seq, r, timings, progress.elapsed()));
 
-        std::ostringstream parts;
+        // One screen at the end: what was decomposed, into what, and where the time went.
+        std::ostringstream parts, sum;
         for (std::size_t l = 0; l < r.parts_per_level.size(); ++l)
           parts << (l ? " " : "") << r.parts_per_level[l];
-        progress.info("animseg: " + std::to_string(seq.size()) + " frames, " +
-                      std::to_string(seq.totalPoints()) + " points, " + std::to_string(r.keypoints) +
-                      " keypoints, parts per level [" + parts.str() + "], device " + r.device_used +
-                      ", " + num(progress.elapsed()) + " s -> " + out);
-        for (const auto& m : r.missing) progress.info("  stage not available in this build: " + m);
+        sum << "summary\n"
+            << "  frames            " << seq.size() << "\n"
+            << "  points            " << seq.totalPoints() << "\n"
+            << "  keypoints         " << r.keypoints << "\n"
+            << "  parts per level   " << parts.str() << "\n"
+            << "  device            " << r.device_used << "\n";
+        for (const auto& st : timings) {
+          if (st.first.find('/') != std::string::npos) continue;  // sub-stages: see --verbose log
+          sum << "  " << std::left << std::setw(18) << (st.first + " (s)") << num(st.second) << "\n";
+        }
+        sum << "  " << std::left << std::setw(18) << "total (s)" << num(progress.elapsed()) << "\n"
+            << "  output            " << out;
+        progress.info(sum.str());
+        for (const auto& n : r.notes) progress.info("  note: " + n);
         return 0;
       });
 }

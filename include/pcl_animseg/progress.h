@@ -17,12 +17,14 @@ class Progress {
  public:
   explicit Progress(bool quiet = false, bool verbose = false);
 
-  /** \brief Start a named stage (ends the previous one if still open). */
+  /** \brief Start a named stage. A stage begun while another is open is its sub-stage: its time
+   * is recorded as "parent/stage" and the parent keeps running (a library stage may report its
+   * own steps inside the caller's stage). */
   void begin(const std::string& stage, std::size_t total = 0);
   /** \brief Report that `done` of the stage's `total` units are finished. Thread-safe enough to
    * call from one thread inside an OpenMP loop (call it from thread 0). */
   void update(std::size_t done);
-  /** \brief End the current stage; its time is recorded under its name. */
+  /** \brief End the innermost open stage; its time is recorded under its (prefixed) name. */
   double end(const std::string& detail = "");
   /** \brief A line of information (not printed when quiet). */
   void info(const std::string& message) const;
@@ -41,12 +43,14 @@ class Progress {
   bool quiet_;
   bool verbose_;
   bool tty_;
-  std::string stage_;
-  std::size_t total_ = 0;
-  int last_decile_ = -1;
+  struct Stage {
+    std::string name;  ///< full name, "parent/child" for sub-stages
+    std::size_t total = 0;
+    int last_shown = -1;
+    Clock::time_point start;
+  };
   Clock::time_point start_;
-  Clock::time_point stage_start_;
-  bool open_ = false;
+  std::vector<Stage> open_;
   std::vector<std::pair<std::string, double>> timings_;
 };
 

@@ -12,56 +12,59 @@ Progress::Progress(bool quiet, bool verbose)
     : quiet_(quiet),
       verbose_(verbose && !quiet),
       tty_(isatty(STDERR_FILENO) != 0),
-      start_(Clock::now()),
-      stage_start_(start_) {}
+      start_(Clock::now()) {}
 
 double Progress::elapsed() const {
   return std::chrono::duration<double>(Clock::now() - start_).count();
 }
 
 void Progress::begin(const std::string& stage, std::size_t total) {
-  if (open_) end();
-  stage_ = stage;
-  total_ = total;
-  last_decile_ = -1;
-  open_ = true;
-  stage_start_ = Clock::now();
-  if (!quiet_) std::cerr << "[" << stage_ << "] started" << std::endl;
+  Stage s;
+  s.name = open_.empty() ? stage : open_.back().name + "/" + stage;
+  s.total = total;
+  s.start = Clock::now();
+  open_.push_back(s);
+  if (!quiet_) std::cerr << "[" << s.name << "] started" << std::endl;
 }
 
 void Progress::update(std::size_t done) {
-  if (quiet_ || !open_ || total_ == 0) return;
-  const double frac = std::min(1.0, static_cast<double>(done) / static_cast<double>(total_));
-  const int decile = static_cast<int>(frac * 10.0);
-  const double secs = std::chrono::duration<double>(Clock::now() - stage_start_).count();
+  if (quiet_ || open_.empty() || open_.back().total == 0) return;
+  Stage& s = open_.back();
+  const double frac = std::min(1.0, static_cast<double>(done) / static_cast<double>(s.total));
+  const double secs = std::chrono::duration<double>(Clock::now() - s.start).count();
   if (tty_) {
     // A bar that rewrites itself; at most 100 redraws per stage.
     const int pct = static_cast<int>(frac * 100.0);
-    if (pct == last_decile_) return;
-    last_decile_ = pct;
+    if (pct == s.last_shown) return;
+    s.last_shown = pct;
     const int width = 30;
     const int fill = static_cast<int>(frac * width);
-    std::fprintf(stderr, "\r[%s] |%s%s| %zu/%zu %.1fs", stage_.c_str(), std::string(fill, '#').c_str(),
-                 std::string(width - fill, ' ').c_str(), done, total_, secs);
+    std::fprintf(stderr, "\r[%s] |%s%s| %zu/%zu %.1fs", s.name.c_str(),
+                 std::string(fill, '#').c_str(), std::string(width - fill, ' ').c_str(), done,
+                 s.total, secs);
     std::fflush(stderr);
   } else {
-    if (decile == last_decile_) return;
-    last_decile_ = decile;
-    std::fprintf(stderr, "[%s] %zu/%zu (%d%%) %.1fs\n", stage_.c_str(), done, total_, decile * 10, secs);
+    // Plain lines for logs: at most one per 10%.
+    const int decile = static_cast<int>(frac * 10.0);
+    if (decile == s.last_shown) return;
+    s.last_shown = decile;
+    std::fprintf(stderr, "[%s] %zu/%zu (%d%%) %.1fs\n", s.name.c_str(), done, s.total, decile * 10,
+                 secs);
   }
 }
 
 double Progress::end(const std::string& detail) {
-  if (!open_) return 0.0;
-  const double secs = std::chrono::duration<double>(Clock::now() - stage_start_).count();
-  timings_.emplace_back(stage_, secs);
-  open_ = false;
+  if (open_.empty()) return 0.0;
+  const Stage s = open_.back();
+  open_.pop_back();
+  const double secs = std::chrono::duration<double>(Clock::now() - s.start).count();
+  timings_.emplace_back(s.name, secs);
   if (!quiet_) {
-    if (tty_ && total_ > 0) std::cerr << "\n";
+    if (tty_ && s.total > 0 && s.last_shown >= 0) std::cerr << "\n";
     std::ostringstream os;
     os.setf(std::ios::fixed);
     os.precision(3);
-    os << "[" << stage_ << "] done in " << secs << " s";
+    os << "[" << s.name << "] done in " << secs << " s";
     if (!detail.empty()) os << " (" << detail << ")";
     std::cerr << os.str() << std::endl;
   }
