@@ -1,0 +1,238 @@
+// Quality of the default (motion) decomposition on generated articulated sequences: no
+// correspondences, >= 10 parts, large joint motion, +-20% point-count variation. Lives with the
+// pipeline tests because it needs the synth and evaluation modules.
+#include <gtest/gtest.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/segmentation/mean_shift.h>
+#include <pcl_animseg/segmentation/motion_tracking.h>
+#include <pcl_animseg/synth/articulated.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+
+namespace seg = pcl_animseg::segmentation;
+namespace synth = pcl_animseg::synth;
+namespace ev = pcl_animseg::evaluation;
+
+namespace {
+
+struct RunResult {
+  double ari = 0.0;
+  double frame_ari = 0.0;
+  int clusters = 0;
+  double seconds = 0.0;
+  seg::SegmentationResult result;
+};
+
+std::vector<std::vector<int>> truthOf(const std::vector<synth::SynthFrame>& frames) {
+  std::vector<std::vector<int>> truth;
+  for (const auto& f : frames) truth.push_back(f.labels);
+  return truth;
+}
+
+RunResult runOn(const std::vector<synth::SynthFrame>& frames, const seg::MeanShiftParams& params) {
+  auto seq = std::make_shared<pcl_animseg::PointCloudSequence>(synth::toSequence(frames));
+  seg::MeanShiftSegmentation ms;
+  ms.setInputSequence(seq);
+  ms.setParams(params);
+  RunResult r;
+  const auto t0 = std::chrono::steady_clock::now();
+  ms.segment(r.result);
+  r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const auto rep = ev::evaluate(r.result.labels, truthOf(frames));
+  r.ari = rep.pooled_ari;
+  r.frame_ari = rep.mean_frame_ari;
+  r.clusters = r.result.num_clusters;
+  return r;
+}
+
+synth::SynthParams sequenceParams(synth::BodyPlan plan, int frames, int points, unsigned seed) {
+  synth::SynthParams sp;
+  sp.plan = plan;
+  sp.frames = frames;
+  sp.points = points;
+  sp.point_variation = 0.2;
+  sp.motion = 1.0;
+  sp.seed = seed;
+  return sp;
+}
+
+int envInt(const char* name, int fallback) {
+  const char* v = std::getenv(name);
+  return v ? std::atoi(v) : fallback;
+}
+
+double envDouble(const char* name, double fallback) {
+  const char* v = std::getenv(name);
+  return v ? std::atof(v) : fallback;
+}
+
+}  // namespace
+
+// The quality goal (>= 10 parts, >= 20 frames, large motion, +-20% point counts, no
+// correspondences) at the hierarchy level with the true part count. The pooled ARI reached is
+// below the 0.90 goal; the bounds are the measured numbers minus a margin, so that a regression
+// shows (see docs/mean_shift_experiments.md).
+TEST(MotionQuality, QuadrupedAndSpiderAtTruePartCount) {
+  const struct {
+    synth::BodyPlan plan;
+    double bound;
+  } cases[] = {{synth::BodyPlan::Quadruped, 0.55}, {synth::BodyPlan::Spider, 0.38}};
+  for (const auto& c : cases) {
+    const auto frames = synth::generate(sequenceParams(c.plan, 20, 700, 3));
+    seg::MeanShiftParams p;
+    p.target_clusters = synth::partCount(c.plan);
+    const RunResult r = runOn(frames, p);
+    std::printf("%s: pooled ARI %.3f, %d parts (truth %d), %.1f s\n",
+                synth::toString(c.plan).c_str(), r.ari, r.clusters, synth::partCount(c.plan),
+                r.seconds);
+    EXPECT_GE(r.ari, c.bound) << synth::toString(c.plan);
+    EXPECT_LE(r.clusters, synth::partCount(c.plan));
+    // Parts that lose every point to their neighbours vanish, so fewer than asked is possible.
+    EXPECT_GE(r.clusters, synth::partCount(c.plan) / 2);
+    // Every point of every frame is labelled, and a label means one part throughout.
+    ASSERT_EQ(r.result.labels.size(), frames.size());
+    for (std::size_t t = 0; t < frames.size(); ++t) {
+      ASSERT_EQ(r.result.labels[t].size(), frames[t].labels.size());
+      for (int l : r.result.labels[t]) {
+        EXPECT_GE(l, 0);
+        EXPECT_LT(l, r.clusters);
+      }
+    }
+    // The hierarchy continues down to one part per connected piece.
+    EXPECT_FALSE(r.result.merges.empty());
+  }
+}
+
+TEST(MotionQuality, SameSeedSameLabels) {
+  const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Snake, 6, 500, 5));
+  const auto seq = synth::toSequence(frames);
+  seg::MotionTrackingParams mp;
+  std::vector<int> a, b;
+  int na = 0, nb = 0;
+  std::vector<seg::ClusterMerge> ma, mb;
+  seg::segmentByTracking(seq, mp, a, na, ma);
+  seg::segmentByTracking(seq, mp, b, nb, mb);
+  EXPECT_EQ(a, b);
+  EXPECT_EQ(na, nb);
+  ASSERT_EQ(ma.size(), mb.size());
+  for (std::size_t i = 0; i < ma.size(); ++i) {
+    EXPECT_EQ(ma[i].a, mb[i].a);
+    EXPECT_EQ(ma[i].b, mb[i].b);
+    EXPECT_EQ(ma[i].cost, mb[i].cost);
+  }
+}
+
+TEST(MotionQuality, RejectsBadParameters) {
+  const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Snake, 3, 200, 5));
+  const auto seq = synth::toSequence(frames);
+  seg::MotionTrackingParams mp;
+  mp.reference_frame = 7;
+  EXPECT_THROW(seg::trackSamples(seq, mp), pcl_animseg::Error);
+  mp.reference_frame = -1;
+  mp.neighbourhood = 2;
+  EXPECT_THROW(seg::trackSamples(seq, mp), pcl_animseg::Error);
+}
+
+// Measurement harness for docs/mean_shift_experiments.md (PLANS, FRAMES, POINTS, SEED, METHOD,
+// THRESHOLD, SAMPLES from the environment).
+TEST(MotionQuality, DISABLED_Table) {
+  const char* plans = std::getenv("PLANS");
+  std::string list = plans ? plans : "quadruped,humanoid,spider,hand";
+  const int frames_n = envInt("FRAMES", 20);
+  const int points = envInt("POINTS", 1500);
+  const unsigned seed = static_cast<unsigned>(envInt("SEED", 3));
+  const char* method = std::getenv("METHOD");
+  std::size_t pos = 0;
+  while (pos < list.size()) {
+    const std::size_t comma = std::min(list.find(',', pos), list.size());
+    const auto plan = synth::bodyPlanFromString(list.substr(pos, comma - pos));
+    pos = comma + 1;
+    const auto frames = synth::generate(sequenceParams(plan, frames_n, points, seed));
+    seg::MeanShiftParams p;
+    if (method) p.method = seg::meanShiftMethodFromString(method);
+    p.patches = envInt("SAMPLES", 0);
+    p.motion_threshold = envDouble("THRESHOLD", p.motion_threshold);
+    p.target_clusters = synth::partCount(plan);
+    const RunResult at_truth = runOn(frames, p);
+    p.target_clusters = 0;
+    const RunResult own = runOn(frames, p);
+    std::printf(
+        "%-10s T=%d parts %2d | at truth: ARI %.3f (frame %.3f, %d clusters, %.1f s) | "
+        "threshold: ARI %.3f (%d clusters, %.1f s)\n",
+        synth::toString(plan).c_str(), frames_n, synth::partCount(plan), at_truth.ari,
+        at_truth.frame_ari, at_truth.clusters, at_truth.seconds, own.ari, own.clusters,
+        own.seconds);
+    std::printf("  merges after threshold:");
+    for (std::size_t i = 0; i < std::min<std::size_t>(8, own.result.merges.size()); ++i)
+      std::printf(" %.2f", own.result.merges[i].cost);
+    std::printf("\n");
+    std::fflush(stdout);
+  }
+}
+
+// Diagnostics: how many tracked samples stay on their true part, per frame.
+TEST(MotionQuality, DISABLED_Tracking) {
+  const char* plan_name = std::getenv("PLANS");
+  const auto plan = synth::bodyPlanFromString(plan_name ? plan_name : "quadruped");
+  const auto frames = synth::generate(
+      sequenceParams(plan, envInt("FRAMES", 20), envInt("POINTS", 1500), envInt("SEED", 3)));
+  const auto seq = synth::toSequence(frames);
+  seg::MotionTrackingParams mp;
+  mp.samples = envInt("SAMPLES", 0);
+  mp.neighbourhood = envInt("NBH", mp.neighbourhood);
+  mp.icp_iterations = envInt("ITERS", mp.icp_iterations);
+  auto t0 = std::chrono::steady_clock::now();
+  const seg::SampleTracks tr = seg::trackSamples(seq, mp);
+  const double t_track =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const int S = static_cast<int>(tr.sample_points.size());
+  std::vector<int> truth0(S);
+  for (int s = 0; s < S; ++s) truth0[s] = frames[0].labels[tr.sample_points[s]];
+  std::printf("%d samples, tracking %.1f s, spacing %.4f\n", S, t_track, tr.spacing);
+  for (std::size_t t = 0; t < frames.size(); ++t) {
+    const auto& c = *frames[t].cloud;
+    int ok = 0;
+    for (int s = 0; s < S; ++s) {
+      const Eigen::Vector3d p = tr.positions[t].col(s);
+      double best = 1e300;
+      int lab = -1;
+      for (std::size_t j = 0; j < c.size(); ++j) {
+        const double d = (Eigen::Vector3d(c[j].x, c[j].y, c[j].z) - p).squaredNorm();
+        if (d < best) best = d, lab = frames[t].labels[j];
+      }
+      ok += lab == truth0[s];
+    }
+    // Residual of each sample under the Kabsch fit of its true part's samples.
+    std::vector<double> err(S, 0.0);
+    for (int part = 0; part < synth::partCount(plan); ++part) {
+      std::vector<int> m;
+      for (int s = 0; s < S; ++s)
+        if (truth0[s] == part) m.push_back(s);
+      if (m.size() < 3) continue;
+      Eigen::Matrix3Xd a(3, m.size()), b(3, m.size());
+      for (std::size_t k = 0; k < m.size(); ++k)
+        a.col(k) = tr.positions[0].col(m[k]), b.col(k) = tr.positions[t].col(m[k]);
+      const auto fit = ev::kabsch(a, b);
+      for (std::size_t k = 0; k < m.size(); ++k)
+        err[m[k]] = ((fit.rotation * a.col(k) + fit.translation) - b.col(k)).norm() / tr.spacing;
+    }
+    std::sort(err.begin(), err.end());
+    int bad = 0;
+    for (double e : err) bad += e > 3.0;
+    std::printf(
+        "frame %2zu: on part %.3f, residual %.2f, part-fit err median %.2f p90 %.2f "
+        ">3: %d\n",
+        t, double(ok) / S, tr.residual[t], err[S / 2], err[S * 9 / 10], bad);
+  }
+  t0 = std::chrono::steady_clock::now();
+  mp.target_clusters = synth::partCount(plan);
+  const seg::TrajectoryClusters tc = seg::clusterTrajectories(seq, tr, mp);
+  std::printf("clustering %.2f s, %d groups, sample ARI vs truth %.3f\n",
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(),
+              tc.groups, ev::adjustedRandIndex(tc.group, truth0));
+}
