@@ -304,6 +304,12 @@ RawFrame readOFF(const std::string& path) {
   if (vals.size() < 2 || vals[0] < 0 || vals[1] < 0 || vals[0] != std::floor(vals[0]) ||
       vals[1] != std::floor(vals[1]))
     throw fileError(path, "bad vertex/face counts");
+  // Checked as doubles first: a count beyond size_t (found by fuzz_off) must not be cast.
+  if (vals[0] + vals[1] > static_cast<double>(lines.size()))
+    throw fileError(path, "truncated: the header announces " + std::to_string(vals[0]) +
+                              " vertices and " + std::to_string(vals[1]) +
+                              " faces but the file has only " +
+                              std::to_string(lines.size()) + " lines");
   const std::size_t nv = static_cast<std::size_t>(vals[0]);
   const std::size_t nf = static_cast<std::size_t>(vals[1]);
   if (lines.size() - next < nv)
@@ -592,6 +598,9 @@ RawFrame readPLY(const std::string& path) {
           face_list = static_cast<int>(i);
     }
     values.resize(e.properties.size());
+    // An element without properties holds no data; looping over a huge count of it would hang
+    // (found by fuzz_ply).
+    if (e.properties.empty()) continue;
     for (long k = 0; k < e.count; ++k) {
       const std::string where = "element '" + e.name + "' " + std::to_string(k);
       for (std::size_t pi = 0; pi < e.properties.size(); ++pi) {
@@ -689,14 +698,23 @@ void checkPCDHeader(const std::string& path) {
   long point_size = 0;
   for (std::size_t i = 0; i < nf; ++i) {
     const long c = counts.empty() ? 1 : counts[i];
+    // COUNT is bounded so that the sums below cannot overflow (found by fuzz_pcd).
     if ((sizes[i] != 1 && sizes[i] != 2 && sizes[i] != 4 && sizes[i] != 8) || c < 1 ||
+        c > (1L << 24) ||
         std::string("IUF").find(types[i]) == std::string::npos)
       throw fileError(path, "PCD header: bad SIZE/TYPE/COUNT for field '" + fields[i] + "'");
     point_size += sizes[i] * c;
   }
-  if (width < 0 || height < 1) throw fileError(path, "PCD header: bad WIDTH/HEIGHT");
+  // PCL keeps WIDTH and HEIGHT as uint32; larger values would also overflow the products below.
+  if (width < 0 || height < 1 || width > 0xffffffffL || height > 0xffffffffL ||
+      static_cast<double>(width) * static_cast<double>(height) > 1e15)
+    throw fileError(path, "PCD header: bad WIDTH/HEIGHT");
   if (points >= 0 && points != width * height)
     throw fileError(path, "PCD header: POINTS is not WIDTH x HEIGHT");
+  // No file we read holds a petabyte: bounds the product below, which must not wrap around.
+  if (static_cast<double>(width) * static_cast<double>(height) * static_cast<double>(point_size) >
+      1e15)
+    throw fileError(path, "PCD header: WIDTH x HEIGHT x point size is absurdly large");
   const std::uintmax_t need = static_cast<std::uintmax_t>(width) * height * point_size;
   if (data == "binary") {
     if (file_size < header_bytes + need)
