@@ -3,6 +3,7 @@
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/gpu/mean_shift.h>
+#include <pcl_animseg/segmentation/mean_shift.h>
 
 #include "gkdtree_device.h"
 
@@ -166,52 +167,8 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
 void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain,
                 const Eigen::VectorXf& density, double merge_radius, std::vector<int>& labels,
                 std::vector<int>& mode_rep) {
-  const Eigen::Index n = y.rows();
-  const int dim = static_cast<int>(y.cols());
-  if (density.size() != n || metric_plain.size() != dim)
-    throw Error("groupModes: sizes of end points, density and metric differ");
-  if (!(merge_radius > 0.0)) throw Error("groupModes: merge radius must be positive");
-  const Eigen::MatrixXf ys = y.array().rowwise() * metric_plain.array();
-  const float cell = static_cast<float>(merge_radius / 5.0);
-  std::unordered_map<std::string, int> cell_group;
-  std::vector<int> group_of(n);
-  std::vector<int> group_rep;
-  std::string k(sizeof(int) * dim, '\0');
-  for (Eigen::Index i = 0; i < n; ++i) {
-    for (int c = 0; c < dim; ++c) {
-      const int q = static_cast<int>(std::floor(ys(i, c) / cell));
-      std::memcpy(&k[sizeof(int) * c], &q, sizeof(int));
-    }
-    auto it = cell_group.find(k);
-    if (it == cell_group.end()) {
-      it = cell_group.emplace(k, static_cast<int>(group_rep.size())).first;
-      group_rep.push_back(static_cast<int>(i));
-    } else if (density[i] > density[group_rep[it->second]]) {
-      group_rep[it->second] = static_cast<int>(i);
-    }
-    group_of[i] = it->second;
-  }
-  std::vector<int> order(group_rep.size());
-  std::iota(order.begin(), order.end(), 0);
-  std::stable_sort(order.begin(), order.end(), [&](int a, int b) {
-    return density[group_rep[a]] > density[group_rep[b]];
-  });
-  const float r2 = static_cast<float>(merge_radius * merge_radius);
-  mode_rep.clear();
-  std::vector<int> group_mode(group_rep.size(), -1);
-  for (int g : order) {
-    const auto yg = ys.row(group_rep[g]);
-    int found = -1;
-    for (std::size_t m = 0; m < mode_rep.size() && found < 0; ++m)
-      if ((ys.row(mode_rep[m]) - yg).squaredNorm() < r2) found = static_cast<int>(m);
-    if (found < 0) {
-      found = static_cast<int>(mode_rep.size());
-      mode_rep.push_back(group_rep[g]);
-    }
-    group_mode[g] = found;
-  }
-  labels.resize(n);
-  for (Eigen::Index i = 0; i < n; ++i) labels[i] = group_mode[group_of[i]];
+  // One implementation for both paths, so that they cannot drift apart.
+  segmentation::groupModes(y, metric_plain, density, merge_radius, labels, mode_rep);
 }
 
 }  // namespace gpu

@@ -9,8 +9,10 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <functional>
 #include <map>
 #include <numeric>
+#include <queue>
 #include <sstream>
 #include <unordered_map>
 
@@ -293,14 +295,32 @@ std::vector<int> knnGraph(const PointCloudSequence& seq, int k) {
 
 void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
                   const std::vector<int>& graph, int k, const MeanShiftParams& params,
-                  const PointCloudSequence& seq, bool modes_known, SegmentationResult& result) {
+                  const PointCloudSequence& seq, bool modes_known, SegmentationResult& result,
+                  MeanShiftDeviceBackend* device) {
   const Eigen::Index n = space.z.rows();
-  const Eigen::MatrixXf ones = Eigen::MatrixXf::Ones(n, 1);
-  JointKernelSum density(space, ones, params);
-  std::vector<int> all(n);
-  std::iota(all.begin(), all.end(), 0);
-  Eigen::MatrixXf f(n, 1);
-  density.evaluate(space.z, all, space.keypoint, f);
+  // Density (Eq. 4) at the points and, when known, at the modes: on the device or the CPU.
+  std::function<void(const Eigen::MatrixXf&, const std::vector<char>&, Eigen::MatrixXf&)> dens;
+  std::unique_ptr<JointKernelSum> cpu;
+  const std::vector<char> no_keys;
+  if (device) {
+    const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
+    dens = [&, device](const Eigen::MatrixXf& q, const std::vector<char>& qk, Eigen::MatrixXf& o) {
+      Eigen::VectorXf v;
+      device->density(space.z, space.metric_plain, space.metric_key, keys, params, q,
+                      space.has_keypoints ? qk : no_keys, v);
+      o = v;
+    };
+  } else {
+    cpu = std::make_unique<JointKernelSum>(space, Eigen::MatrixXf::Ones(n, 1), params);
+    dens = [&](const Eigen::MatrixXf& q, const std::vector<char>& qk, Eigen::MatrixXf& o) {
+      std::vector<int> rows(q.rows());
+      std::iota(rows.begin(), rows.end(), 0);
+      o.resize(q.rows(), 1);
+      cpu->evaluate(q, rows, qk, o);
+    };
+  }
+  Eigen::MatrixXf f;
+  dens(space.z, space.keypoint, f);
   result.num_clusters = num_clusters;
   if (!modes_known) {
     result.modes.resize(num_clusters, space.z.cols());
@@ -315,10 +335,8 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
     }
   } else {
     // Density at the modes themselves (Eq. 4), queried as plain points.
-    Eigen::MatrixXf fm(num_clusters, 1);
-    std::vector<int> rows(num_clusters);
-    std::iota(rows.begin(), rows.end(), 0);
-    density.evaluate(result.modes, rows, {}, fm);
+    Eigen::MatrixXf fm;
+    dens(result.modes, {}, fm);
     result.mode_density.resize(num_clusters);
     for (int c = 0; c < num_clusters; ++c) result.mode_density[c] = fm(c, 0);
     // The filter is approximate: keep a mode at least as dense as its cluster's points, so that
@@ -353,22 +371,171 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
 
 }  // namespace detail
 
+void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain,
+                const Eigen::VectorXf& density, double merge_radius, std::vector<int>& labels,
+                std::vector<int>& mode_rep) {
+  const Eigen::Index n = y.rows();
+  const int dim = static_cast<int>(y.cols());
+  if (density.size() != n || metric_plain.size() != dim)
+    throw Error("groupModes: sizes of end points, density and metric differ");
+  if (!(merge_radius > 0.0)) throw Error("groupModes: merge radius must be positive");
+  labels.assign(n, 0);
+  mode_rep.clear();
+  if (n == 0) return;
+  // 1. End points that coincide (cells of a fifth of the merge radius) form one group,
+  //    represented by its densest point. Hash of the integer cell coordinates: O(N d).
+  using RowMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
+  const RowMatrix ys = y.array().rowwise() * metric_plain.array();
+  const float cell = static_cast<float>(merge_radius / 5.0);
+  std::unordered_map<std::string, int> cell_group;
+  cell_group.reserve(static_cast<std::size_t>(n / 4 + 16));
+  std::vector<int> group_of(n);
+  std::vector<int> group_rep;
+  std::string key(sizeof(int) * dim, '\0');
+  for (Eigen::Index i = 0; i < n; ++i) {
+    for (int c = 0; c < dim; ++c) {
+      const int q = static_cast<int>(std::floor(ys(i, c) / cell));
+      std::memcpy(&key[sizeof(int) * c], &q, sizeof(int));
+    }
+    auto it = cell_group.find(key);
+    if (it == cell_group.end()) {
+      it = cell_group.emplace(key, static_cast<int>(group_rep.size())).first;
+      group_rep.push_back(static_cast<int>(i));
+    } else if (density[i] > density[group_rep[it->second]]) {
+      group_rep[it->second] = static_cast<int>(i);
+    }
+    group_of[i] = it->second;
+  }
+  const int ng = static_cast<int>(group_rep.size());
+  std::vector<int> order(ng);
+  std::iota(order.begin(), order.end(), 0);
+  std::stable_sort(order.begin(), order.end(), [&](int a, int b) {
+    return density[group_rep[a]] > density[group_rep[b]];
+  });
+  // 2. Greedy from the densest group: a group joins the first (densest) kept mode within the
+  //    merge radius, else it becomes a mode. Every kept mode was visited before the group, so
+  //    "the densest kept mode among the group's neighbours within r" is the same answer as the
+  //    scan over all kept modes, found with one radius search per group in a kd-tree over the
+  //    group representatives (O(G log G) for the well-separated groups mean shift leaves, instead
+  //    of O(G x modes), which did not finish at 800k points with ~10^4 unconverged groups).
+  RowMatrix reps(ng, dim);
+  for (int g = 0; g < ng; ++g) reps.row(g) = ys.row(group_rep[g]);
+  std::vector<int> group_mode(ng, -1);
+  const float r2 = static_cast<float>(merge_radius * merge_radius);
+  if (ng > 1) {
+    flann::Index<flann::L2<float>> index(flann::Matrix<float>(reps.data(), ng, dim),
+                                         flann::KDTreeSingleIndexParams(15));
+    index.buildIndex();
+    // Radius searches in parallel (read-only), then the sequential greedy pass over the lists.
+    std::vector<std::vector<int>> near(ng);
+#pragma omp parallel
+    {
+      std::vector<std::vector<int>> idx(1);
+      std::vector<std::vector<float>> dst(1);
+      flann::SearchParams sp(flann::FLANN_CHECKS_UNLIMITED);
+      sp.cores = 1;
+      sp.sorted = false;
+#pragma omp for schedule(dynamic, 64)
+      for (int g = 0; g < ng; ++g) {
+        flann::Matrix<float> qm(reps.data() + static_cast<std::size_t>(g) * dim, 1, dim);
+        // FLANN keeps squared distances below the radius; a hair more, then the exact test below
+        // (the same float expression as the old all-pairs scan) decides.
+        index.radiusSearch(qm, idx, dst, r2 * 1.001f, sp);
+        for (int j : idx[0])
+          if (j != g && (reps.row(j) - reps.row(g)).squaredNorm() < r2) near[g].push_back(j);
+      }
+    }
+    for (int g : order) {
+      int found = -1;
+      for (int j : near[g]) {
+        const int m = group_mode[j];
+        // j is a kept mode (its own representative) visited before g.
+        if (m >= 0 && mode_rep[m] == group_rep[j] && (found < 0 || m < found)) found = m;
+      }
+      if (found < 0) {
+        found = static_cast<int>(mode_rep.size());
+        mode_rep.push_back(group_rep[g]);
+      }
+      group_mode[g] = found;
+    }
+  } else {
+    group_mode[0] = 0;
+    mode_rep.push_back(group_rep[0]);
+  }
+  for (Eigen::Index i = 0; i < n; ++i) labels[i] = group_mode[group_of[i]];
+}
+
 namespace {
 
 using detail::JointKernelSum;
 using detail::JointSpace;
 
-/** Paper's method: mean shift of every point (Eq. 9) until it stops, then modes. */
-void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
-              const MeanShiftParams& params, std::vector<int>& flat, Eigen::MatrixXf& modes,
-              int& num_clusters, Progress* progress) {
+/** Hybrid ending of the Gaussian kd-tree backend: the approximate iteration leaves the end points
+ * near the modes of the approximated density, whose small ripples (cells replaced by their means,
+ * queries interpolated between nearby cells) add modes and stop points on slopes. The end points
+ * are grouped in cells of a tenth of the merge radius and each group's first point continues with
+ * up to `refine_iterations` EXACT mean shift steps (the exact backend's kernel sums over all data
+ * points); the group follows it. Cheap because groups are few compared with points. */
+void refineEndPoints(const JointSpace& space, const MeanShiftParams& params, Eigen::MatrixXf& y) {
+  const Eigen::Index n = y.rows();
+  const int dim = static_cast<int>(y.cols());
+  Eigen::MatrixXf values(n, dim + 1);
+  values.leftCols(dim) = space.z;
+  values.col(dim).setOnes();
+  const float cell = static_cast<float>(params.merge_radius / 10.0);
+  std::unordered_map<std::string, int> cell_group;
+  std::vector<int> group_of(n), rep;
+  std::string key(sizeof(int) * dim, '\0');
+  for (Eigen::Index i = 0; i < n; ++i) {
+    for (int c = 0; c < dim; ++c) {
+      const int q = static_cast<int>(std::floor(y(i, c) * space.metric_plain[c] / cell));
+      std::memcpy(&key[sizeof(int) * c], &q, sizeof(int));
+    }
+    auto it = cell_group.emplace(key, static_cast<int>(rep.size())).first;
+    if (it->second == static_cast<int>(rep.size())) rep.push_back(static_cast<int>(i));
+    group_of[i] = it->second;
+  }
+  const int g = static_cast<int>(rep.size());
+  Eigen::MatrixXf yg(g, dim);
+  std::vector<char> key_of(space.has_keypoints ? g : 0);
+  for (int r = 0; r < g; ++r) {
+    yg.row(r) = y.row(rep[r]);
+    if (space.has_keypoints) key_of[r] = space.keypoint[rep[r]];
+  }
+  MeanShiftParams exact_params = params;
+  exact_params.backend = MeanShiftBackend::Exact;
+  JointKernelSum exact(space, values, exact_params);
+  Eigen::MatrixXf out(g, dim + 1);
+  std::vector<int> active(g);
+  std::iota(active.begin(), active.end(), 0);
+  const float tol2 = static_cast<float>(params.convergence * params.convergence);
+  for (int it = 0; it < params.refine_iterations && !active.empty(); ++it) {
+    exact.evaluate(yg, active, key_of, out);
+    std::vector<int> still;
+    for (int r : active) {
+      const float den = out(r, dim);
+      if (!(den > 0.0f)) continue;
+      const Eigen::RowVectorXf next = out.row(r).head(dim) / den;
+      const float step2 = (next - yg.row(r)).cwiseProduct(space.metric_plain).squaredNorm();
+      yg.row(r) = next;
+      if (!(step2 < tol2)) still.push_back(r);
+    }
+    active.swap(still);
+  }
+  for (Eigen::Index i = 0; i < n; ++i) y.row(i) = yg.row(group_of[i]);
+}
+
+/** The paper method's iteration on the CPU: Eq. 9 from every point until it stops; y the end
+ * points, end_density the kernel sum there. */
+void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen::MatrixXf& y,
+                  Eigen::VectorXf& end_density, Progress* progress) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
   Eigen::MatrixXf values(n, dim + 1);
   values.leftCols(dim) = space.z;
   values.col(dim).setOnes();
   JointKernelSum sums(space, values, params);
-  Eigen::MatrixXf y = space.z;
+  y = space.z;
   Eigen::MatrixXf out(n, dim + 1);
   std::vector<int> active(n);
   std::iota(active.begin(), active.end(), 0);
@@ -398,54 +565,42 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     if (progress) progress->update(it + 1);
   }
   if (progress) progress->end(std::to_string(active.size()) + " points not converged");
-
+  if (params.backend == MeanShiftBackend::GaussianKdTree && params.refine_iterations > 0)
+    refineEndPoints(space, params, y);
   // Density at the end points, to visit them from the highest.
   std::vector<int> all(n);
   std::iota(all.begin(), all.end(), 0);
   sums.evaluate(y, all, space.keypoint, out);
-  // Group end points that coincide (cells of a fifth of the merge radius), then merge groups
-  // greedily from the densest: a group within the merge radius of a kept mode joins it.
-  const Eigen::MatrixXf ys = y.array().rowwise() * space.metric_plain.array();
-  const float cell = static_cast<float>(params.merge_radius / 5.0);
-  std::unordered_map<std::string, int> cell_group;
-  std::vector<int> group_of(n);
-  std::vector<int> group_rep;
-  std::string key(sizeof(int) * dim, '\0');
-  for (Eigen::Index i = 0; i < n; ++i) {
-    for (int c = 0; c < dim; ++c) {
-      const int q = static_cast<int>(std::floor(ys(i, c) / cell));
-      std::memcpy(&key[sizeof(int) * c], &q, sizeof(int));
+  end_density = out.col(dim);
+}
+
+/** Paper's method: mean shift of every point (Eq. 9) until it stops (on the CPU or the device),
+ * then modes. */
+void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
+              const MeanShiftParams& params, MeanShiftDeviceBackend* device,
+              std::vector<int>& flat, Eigen::MatrixXf& modes, int& num_clusters,
+              Progress* progress) {
+  const Eigen::Index n = space.z.rows();
+  const int dim = static_cast<int>(space.z.cols());
+  Eigen::MatrixXf y;
+  Eigen::VectorXf end_density;
+  if (device) {
+    const std::vector<char> no_keys;
+    const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
+    if (progress) progress->begin("mean shift on " + device->name(), 1);
+    device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y,
+                      end_density);
+    if (progress) progress->end();
+    if (params.refine_iterations > 0) {
+      refineEndPoints(space, params, y);
+      device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
+                      end_density);
     }
-    auto it = cell_group.find(key);
-    if (it == cell_group.end()) {
-      it = cell_group.emplace(key, static_cast<int>(group_rep.size())).first;
-      group_rep.push_back(static_cast<int>(i));
-    } else if (out(i, dim) > out(group_rep[it->second], dim)) {
-      group_rep[it->second] = static_cast<int>(i);
-    }
-    group_of[i] = it->second;
+  } else {
+    seekModesCpu(space, params, y, end_density, progress);
   }
-  std::vector<int> order(group_rep.size());
-  std::iota(order.begin(), order.end(), 0);
-  std::stable_sort(order.begin(), order.end(), [&](int a, int b) {
-    return out(group_rep[a], dim) > out(group_rep[b], dim);
-  });
-  const float r2 = static_cast<float>(params.merge_radius * params.merge_radius);
   std::vector<int> mode_rep;  // point whose end point is the mode
-  std::vector<int> group_mode(group_rep.size(), -1);
-  for (int g : order) {
-    const auto yg = ys.row(group_rep[g]);
-    int found = -1;
-    for (std::size_t m = 0; m < mode_rep.size() && found < 0; ++m)
-      if ((ys.row(mode_rep[m]) - yg).squaredNorm() < r2) found = static_cast<int>(m);
-    if (found < 0) {
-      found = static_cast<int>(mode_rep.size());
-      mode_rep.push_back(group_rep[g]);
-    }
-    group_mode[g] = found;
-  }
-  flat.resize(n);
-  for (Eigen::Index i = 0; i < n; ++i) flat[i] = group_mode[group_of[i]];
+  groupModes(y, space.metric_plain, end_density, params.merge_radius, flat, mode_rep);
   int nm = static_cast<int>(mode_rep.size());
 
   // Absorb tiny clusters into the neighbour they share most k-NN edges with, smallest first.
@@ -462,12 +617,18 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     }
   std::vector<int> target(nm);
   std::iota(target.begin(), target.end(), 0);
-  for (;;) {
-    int c = -1;
-    for (int m = 0; m < nm; ++m)
-      if (target[m] == m && size[m] < min_size && !adj[m].empty() && (c < 0 || size[m] < size[c]))
-        c = m;
-    if (c < 0) break;
+  // Smallest eligible cluster first (ties: lowest id), from a min-heap with lazy deletion: an
+  // entry is stale when its cluster was absorbed or has grown since. A cluster without k-NN
+  // edges is dropped and pushed again when it gains one (a neighbour absorbed a cluster next to
+  // it). O(C log C) instead of a scan over all clusters per absorption.
+  using Entry = std::pair<long, int>;
+  std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> heap;
+  for (int m = 0; m < nm; ++m)
+    if (size[m] < min_size) heap.push({size[m], m});
+  while (!heap.empty()) {
+    const auto [sz, c] = heap.top();
+    heap.pop();
+    if (target[c] != c || size[c] != sz || adj[c].empty()) continue;
     int b = -1;
     long best = -1;
     for (const auto& [nb, cnt] : adj[c])
@@ -480,9 +641,11 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
       if (nb == b) continue;
       adj[b][nb] += cnt;
       adj[nb][b] += cnt;
+      if (size[nb] < min_size) heap.push({size[nb], nb});
     }
     adj[b].erase(c);
     adj[c].clear();
+    if (size[b] < min_size) heap.push({size[b], b});
   }
   auto root = [&](int c) {
     while (target[c] != c) c = target[c];
@@ -515,14 +678,38 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
   std::vector<int> flat;
   int num_clusters = 0;
   result = SegmentationResult();
+  device_used_ = "cpu";
+  fallback_reason_.clear();
+  MeanShiftDeviceBackend* device = device_.get();
+  // A device failure either propagates or, with the fall-back on, sends the rest of the stage to
+  // the CPU (never a silent wrong result: the reason is kept for the caller to log).
+  auto guarded = [&](const std::function<void(MeanShiftDeviceBackend*)>& work) {
+    if (!device) return work(nullptr);
+    try {
+      work(device);
+      device_used_ = device->name();
+    } catch (const Error& e) {
+      if (!cpu_fallback_) throw;
+      fallback_reason_ = e.what();
+      device = nullptr;
+      device_used_ = "cpu";
+      work(nullptr);
+    }
+  };
   if (params_.method == MeanShiftMethod::Paper) {
-    Eigen::MatrixXf modes;
-    runPaper(space, graph, k, params_, flat, modes, num_clusters, progress_);
-    result.modes = modes;
-    detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, true, result);
+    guarded([&](MeanShiftDeviceBackend* d) {
+      Eigen::MatrixXf modes;
+      runPaper(space, graph, k, params_, d, flat, modes, num_clusters, progress_);
+      result.modes = modes;
+    });
+    guarded([&](MeanShiftDeviceBackend* d) {
+      detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, true, result, d);
+    });
   } else {
     detail::runMotion(seq, params_, flat, num_clusters, result.merges, progress_);
-    detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, false, result);
+    guarded([&](MeanShiftDeviceBackend* d) {
+      detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, false, result, d);
+    });
   }
 }
 

@@ -53,10 +53,11 @@ class JointKernelSum {
 std::vector<int> knnGraph(const PointCloudSequence& seq, int k);
 
 /** Fills modes (when `modes_known` is false: the densest point of each cluster), mode densities
- * and saddles from the point labels (flattened, 0..C-1). */
+ * and saddles from the point labels (flattened, 0..C-1); densities on `device` when given. */
 void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, int num_clusters,
                   const std::vector<int>& graph, int k, const MeanShiftParams& params,
-                  const PointCloudSequence& seq, bool modes_known, SegmentationResult& result);
+                  const PointCloudSequence& seq, bool modes_known, SegmentationResult& result,
+                  MeanShiftDeviceBackend* device = nullptr);
 
 /** The motion method; fills result.labels, num_clusters and merges. */
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params,

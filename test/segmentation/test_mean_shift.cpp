@@ -3,7 +3,9 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <map>
 #include <random>
 
 namespace seg = pcl_animseg::segmentation;
@@ -138,4 +140,88 @@ TEST(MeanShift, OneFrameAndIdenticalPoints) {
     const auto r = run(same, p);
     EXPECT_EQ(r.num_clusters, 1);
   }
+}
+
+namespace {
+
+// The grouping as it was (every group against every kept mode): the reference for the indexed
+// version on small inputs.
+void groupModesBruteForce(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric,
+                          const Eigen::VectorXf& density, double radius, std::vector<int>& labels,
+                          std::vector<int>& mode_rep) {
+  const Eigen::Index n = y.rows();
+  const Eigen::MatrixXf ys = y.array().rowwise() * metric.array();
+  const float cell = static_cast<float>(radius / 5.0);
+  std::map<std::vector<int>, int> cell_group;
+  std::vector<int> group_of(n), group_rep;
+  for (Eigen::Index i = 0; i < n; ++i) {
+    std::vector<int> key(y.cols());
+    for (Eigen::Index c = 0; c < y.cols(); ++c)
+      key[c] = static_cast<int>(std::floor(ys(i, c) / cell));
+    auto it = cell_group.find(key);
+    if (it == cell_group.end()) {
+      it = cell_group.emplace(key, static_cast<int>(group_rep.size())).first;
+      group_rep.push_back(static_cast<int>(i));
+    } else if (density[i] > density[group_rep[it->second]]) {
+      group_rep[it->second] = static_cast<int>(i);
+    }
+    group_of[i] = it->second;
+  }
+  std::vector<int> order(group_rep.size());
+  for (std::size_t g = 0; g < order.size(); ++g) order[g] = static_cast<int>(g);
+  std::stable_sort(order.begin(), order.end(), [&](int a, int b) {
+    return density[group_rep[a]] > density[group_rep[b]];
+  });
+  const float r2 = static_cast<float>(radius * radius);
+  mode_rep.clear();
+  std::vector<int> group_mode(group_rep.size(), -1);
+  for (int g : order) {
+    int found = -1;
+    for (std::size_t m = 0; m < mode_rep.size() && found < 0; ++m)
+      if ((ys.row(mode_rep[m]) - ys.row(group_rep[g])).squaredNorm() < r2)
+        found = static_cast<int>(m);
+    if (found < 0) {
+      found = static_cast<int>(mode_rep.size());
+      mode_rep.push_back(group_rep[g]);
+    }
+    group_mode[g] = found;
+  }
+  labels.resize(n);
+  for (Eigen::Index i = 0; i < n; ++i) labels[i] = group_mode[group_of[i]];
+}
+
+}  // namespace
+
+TEST(MeanShift, IndexedModeGroupingEqualsTheAllPairsScan) {
+  // End points as mean shift leaves them: tight clumps at the modes plus scattered unconverged
+  // points, in 12-D, with chains of clumps closer than the merge radius (order matters there).
+  std::mt19937 rng(7);
+  std::normal_distribution<float> g(0.0f, 1.0f);
+  std::uniform_real_distribution<float> u(0.0f, 1.0f);
+  for (int trial = 0; trial < 4; ++trial) {
+    const int d = 12, n = 3000;
+    Eigen::MatrixXf centres(40, d);
+    for (int c = 0; c < 40; ++c)
+      for (int k = 0; k < d; ++k) centres(c, k) = (k < 3 ? 0.6f : 0.05f) * g(rng);
+    Eigen::MatrixXf y(n, d);
+    Eigen::VectorXf density(n);
+    for (int i = 0; i < n; ++i) {
+      const int c = static_cast<int>(u(rng) * 40) % 40;
+      const float spread = u(rng) < 0.1f ? 0.3f : 0.002f;
+      for (int k = 0; k < d; ++k) y(i, k) = centres(c, k) + spread * g(rng);
+      density[i] = 1.0f + c + u(rng);
+    }
+    Eigen::RowVectorXf metric = Eigen::RowVectorXf::Constant(d, 4.0f);
+    const double radius = 0.3 + 0.2 * trial;
+    std::vector<int> la, ma, lb, mb;
+    seg::groupModes(y, metric, density, radius, la, ma);
+    groupModesBruteForce(y, metric, density, radius, lb, mb);
+    EXPECT_EQ(la, lb) << "trial " << trial;
+    EXPECT_EQ(ma, mb) << "trial " << trial;
+    EXPECT_GT(ma.size(), 3u);
+  }
+  std::vector<int> l, m;
+  EXPECT_THROW(seg::groupModes(Eigen::MatrixXf::Zero(3, 2), Eigen::RowVectorXf::Ones(2),
+                               Eigen::VectorXf::Ones(2), 0.5, l, m),
+               pcl_animseg::Error);
 }

@@ -79,6 +79,11 @@ struct MeanShiftParams {
   int max_iterations = 60;
   /** A trajectory stops when it moves less than this many bandwidths in one step. */
   double convergence = 1e-3;
+  /** Gaussian kd-tree backend, paper method: after the approximate iteration, up to this many
+   * exact mean-shift steps from each group of coinciding end points (a hybrid: the filter does
+   * the long walk, exact sums over the data the last steps; see refineEndPoints in the source).
+   * 0: pure filter. */
+  int refine_iterations = 40;
   /** Modes closer than this many bandwidths are one mode. */
   double merge_radius = 0.5;
   /** Clusters with fewer points (whole sequence) are absorbed by a neighbour; 0: 0.2% of the
@@ -99,6 +104,37 @@ struct MeanShiftParams {
   int icp_iterations = 25;
   /** Reference frame of the motion method (-1: the first). */
   int reference_frame = -1;
+};
+
+/** \brief Where the kernel sums of the stage run when not on the CPU: an engine object that a
+ * device library implements (the CUDA module: gpu::makeMeanShiftBackend() in
+ * <pcl_animseg/gpu/mean_shift_backend.h>) and the caller hands to
+ * MeanShiftSegmentation::setDeviceBackend. The segmentation module itself never links a device
+ * library. A device backend evaluates with the Gaussian kd-tree (MeanShiftParams::gkdtree),
+ * whatever MeanShiftParams::backend says. Every method throws Error on a device failure (no
+ * device, out of memory, kernel fault): never a silent wrong result.
+ *
+ * The data are the joint space of Eq. 5-6: z (N x D raw features), the per-dimension metrics
+ * sqrt(weight) / w of Eq. 6 (plain) and Eq. 5 (keypoint pairs), and the keypoint flags (empty:
+ * no pair rule). */
+class MeanShiftDeviceBackend {
+ public:
+  virtual ~MeanShiftDeviceBackend() = default;
+  /** \brief For logs, e.g. "gpu (NVIDIA H100 80GB HBM3)". */
+  virtual std::string name() const = 0;
+  /** \brief The paper method's iteration: Eq. 9 from every row of z until the step is below
+   * params.convergence or params.max_iterations; y (N x D) the end points, density (N) the
+   * kernel sum at each end point (a keypoint's with the pair rule). */
+  virtual void seekModes(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+                         const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
+                         const MeanShiftParams& params, Eigen::MatrixXf& y,
+                         Eigen::VectorXf& density) = 0;
+  /** \brief The density of Eq. 4 (kernel sum over all rows of z) at the rows of `queries`
+   * (raw coordinates); query_key[r] says whether query r is a keypoint (empty: none is). */
+  virtual void density(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+                       const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
+                       const MeanShiftParams& params, const Eigen::MatrixXf& queries,
+                       const std::vector<char>& query_key, Eigen::VectorXf& out) = 0;
 };
 
 /** \brief Segments a whole sequence so that a label means the same part in every frame.
@@ -141,6 +177,20 @@ class MeanShiftSegmentation {
   void setMergeRadius(double r) { params_.merge_radius = r; }
   void setMinClusterSize(int n) { params_.min_cluster_size = n; }
   void setProgress(Progress* progress) { progress_ = progress; }
+  /** \brief Runs the kernel sums on a device (see MeanShiftDeviceBackend): the paper method
+   * entirely (iteration and densities), the motion method its densities. nullptr: the CPU.
+   * With `cpu_fallback`, a device failure (Error from the backend) is not fatal: the stage
+   * reruns that part on the CPU and fallbackReason() says why; otherwise the Error propagates. */
+  void setDeviceBackend(std::shared_ptr<MeanShiftDeviceBackend> backend,
+                        bool cpu_fallback = false) {
+    device_ = std::move(backend);
+    cpu_fallback_ = cpu_fallback;
+  }
+  std::shared_ptr<MeanShiftDeviceBackend> getDeviceBackend() const { return device_; }
+  /** \brief After segment(): "cpu", or the device backend's name when it did the work. */
+  const std::string& deviceUsed() const { return device_used_; }
+  /** \brief After segment(): why the device was left for the CPU (empty: it was not). */
+  const std::string& fallbackReason() const { return fallback_reason_; }
 
   /** \brief Runs the selected method. Throws Error on bad parameters or input. */
   void segment(SegmentationResult& result);
@@ -160,7 +210,22 @@ class MeanShiftSegmentation {
   std::vector<std::vector<int>> keypoints_;
   MeanShiftParams params_;
   Progress* progress_ = nullptr;
+  std::shared_ptr<MeanShiftDeviceBackend> device_;
+  bool cpu_fallback_ = false;
+  std::string device_used_ = "cpu";
+  std::string fallback_reason_;
 };
+
+/** \brief Mode grouping of the paper method (used by the CPU and the GPU path alike): end points
+ * y (N x D, raw joint-space coordinates) falling in the same cell (a fifth of the merge radius,
+ * in the plain metric) form a group represented by its densest point; groups are visited from the
+ * densest and join the densest kept mode within `merge_radius` (plain metric), else become a mode.
+ * labels[i] is the mode of point i (0..modes-1, modes in order of decreasing density); mode_rep[m]
+ * is the point whose end point is mode m. One radius search per group in a kd-tree: about
+ * O(N log N). Throws Error on mismatched sizes or a non-positive radius. */
+void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain,
+                const Eigen::VectorXf& density, double merge_radius, std::vector<int>& labels,
+                std::vector<int>& mode_rep);
 
 /** \brief The sequence scale s: mean bounding-box diagonal over frames. */
 double sequenceScale(const PointCloudSequence& sequence);

@@ -71,9 +71,10 @@ class MeanShift {
   MeanShiftStats stats_;
 };
 
-/** \brief Mode grouping of the CPU's paper method (host code, O(N)): end points falling in the
+/** \brief Mode grouping of the CPU's paper method: forwards to segmentation::groupModes (host
+ * code, about O(N log N)). End points falling in the
  * same cell (a fifth of the merge radius, in the plain metric) form a group represented by its
- * densest point; groups are visited from the densest and join the first kept mode within
+ * densest point; groups are visited from the densest and join the densest kept mode within
  * `merge_radius`, else become a mode. labels[i] is the mode of point i (0..modes-1, modes in order
  * of decreasing density); mode_rep[m] is the point whose end point is mode m. */
 void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain,

@@ -1,0 +1,55 @@
+#pragma once
+/** \file mean_shift_backend.h The CUDA engine behind segmentation::MeanShiftSegmentation.
+ *
+ * \code
+ * #include <pcl_animseg/gpu/device.h>
+ * #include <pcl_animseg/gpu/mean_shift_backend.h>
+ * std::string why;
+ * if (pcl_animseg::gpu::gpuAvailable(&why))
+ *   ms.setDeviceBackend(pcl_animseg::gpu::makeMeanShiftBackend(), allow_cpu_fallback);
+ * else
+ *   log("GPU not used: " + why);   // or throw for --device gpu
+ * ms.segment(result);              // ms.deviceUsed(), ms.fallbackReason() tell what happened
+ * \endcode
+ *
+ * The paper method runs its iteration (gpu::MeanShift) and its densities on the device; the
+ * motion method its densities. Kernel sums use the Gaussian kd-tree with
+ * MeanShiftParams::gkdtree, exactly the CPU filter's tree, so the labels agree with the CPU's
+ * gkdtree backend. The exact refinement of the end points (MeanShiftParams::refine_iterations)
+ * stays on the CPU. Every CUDA failure throws pcl_animseg::Error.
+ */
+#include <pcl_animseg/gpu/mean_shift.h>
+#include <pcl_animseg/segmentation/mean_shift.h>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace pcl_animseg {
+namespace gpu {
+
+/** \brief segmentation::MeanShiftDeviceBackend on the current CUDA device. */
+class MeanShiftBackend : public segmentation::MeanShiftDeviceBackend {
+ public:
+  std::string name() const override;
+  void seekModes(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+                 const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
+                 const segmentation::MeanShiftParams& params, Eigen::MatrixXf& y,
+                 Eigen::VectorXf& density) override;
+  void density(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+               const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
+               const segmentation::MeanShiftParams& params, const Eigen::MatrixXf& queries,
+               const std::vector<char>& query_key, Eigen::VectorXf& out) override;
+  /** \brief Timings and memory of the last seekModes. */
+  const MeanShiftStats& lastStats() const { return stats_; }
+
+ private:
+  MeanShiftStats stats_;
+};
+
+/** \brief A MeanShiftBackend; throws Error when no usable GPU is present (check gpuAvailable
+ * first to fall back quietly). */
+std::shared_ptr<segmentation::MeanShiftDeviceBackend> makeMeanShiftBackend();
+
+}  // namespace gpu
+}  // namespace pcl_animseg

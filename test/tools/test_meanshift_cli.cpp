@@ -1,0 +1,79 @@
+// The command-line contract of `animseg_meanshift`: outputs in input order, segmentation.txt that
+// the hierarchy stage reads, bad input.
+#include "tools/cli_util.h"
+
+#include <pcl_animseg/io/segmentation_io.h>
+
+#include <gtest/gtest.h>
+
+namespace fs = std::filesystem;
+using namespace cli_test;
+
+namespace {
+
+// Three frames of one sphere (points + normals), the middle one with NaN points.
+void makeSequence(const fs::path& dir) {
+  fs::create_directories(dir);
+  for (int t = 0; t < 3; ++t)
+    writeSphereXYZ((dir / ("f" + std::to_string(t) + ".xyz")).string(), 250 + 30 * t, 0.05 * t,
+                   3 + t, t == 1 ? 40 : 0);
+}
+
+}  // namespace
+
+TEST(MeanShiftCli, WritesLabelsPcdAndSegmentationInfo) {
+  TempDir tmp;
+  makeSequence(tmp.path / "in");
+  for (const char* method : {"paper", "motion"}) {
+    const std::string out = tmp.str() + "/out_" + method;
+    const RunResult r = run(tool("animseg_meanshift") + " --quiet --no-features --input " +
+                                tmp.str() + "/in --output " + out + " --method " + method +
+                                " --bandwidth 0.2",
+                            tmp.path);
+    ASSERT_EQ(r.code, 0) << r.err;
+    EXPECT_TRUE(r.err.empty()) << r.err;  // --quiet
+    for (int t = 0; t < 3; ++t) {
+      const std::string base = out + "/f" + std::to_string(t);
+      ASSERT_TRUE(fs::exists(base + ".pcd")) << base;
+      const std::string labels = slurp(base + ".labels");
+      EXPECT_EQ(countLines(labels), 250 + 30 * t) << base;
+      if (t == 1) {
+        std::istringstream ls(labels);
+        std::string line;
+        for (int i = 0; std::getline(ls, line); ++i) {
+          if (i % 40 == 39) {
+            EXPECT_EQ(line, "-1") << "NaN point " << i;
+          }
+        }
+      }
+    }
+    pcl_animseg::segmentation::SegmentationResult info;
+    ASSERT_NO_THROW(pcl_animseg::io::loadSegmentationInfo(out + "/segmentation.txt", info));
+    EXPECT_GE(info.num_clusters, 1);
+    EXPECT_EQ(static_cast<int>(info.mode_density.size()), info.num_clusters);
+  }
+}
+
+TEST(MeanShiftCli, BadInputIsOneErrorLine) {
+  TempDir tmp;
+  makeSequence(tmp.path / "in");
+  const std::string base = tool("animseg_meanshift") + " --no-features --input " + tmp.str() +
+                           "/in --output " + tmp.str() + "/out";
+  for (const std::string extra :
+       {" --bandwidth 0", " --bandwidth -1", " --weights 1,2,3", " --weights 1,-1,1,1",
+        " --method magic", " --backend magic", " --parts -2", " --no-such-option"}) {
+    const RunResult r = run(base + extra, tmp.path);
+    EXPECT_EQ(r.code, 1) << extra;
+    EXPECT_TRUE(isOneErrorLine(r.err)) << extra << ": " << r.err;
+  }
+  const RunResult missing =
+      run(tool("animseg_meanshift") + " --input " + tmp.str() + "/nope --output " + tmp.str() +
+              "/out",
+          tmp.path);
+  EXPECT_EQ(missing.code, 1);
+  EXPECT_TRUE(isOneErrorLine(missing.err)) << missing.err;
+  EXPECT_FALSE(fs::exists(tmp.path / "out"));
+  const RunResult help = run(tool("animseg_meanshift") + " --help", tmp.path);
+  EXPECT_EQ(help.code, 0);
+  EXPECT_NE(help.out.find("--backend"), std::string::npos);
+}
