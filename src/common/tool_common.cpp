@@ -88,7 +88,13 @@ std::string ToolContext::optionsJson() const {
     const auto& v = kv.second.value();
     std::string text;
     bool quote = true;
-    if (const auto* s = boost::any_cast<std::string>(&v)) text = *s;
+    if (const auto* s = boost::any_cast<std::string>(&v)) {
+      text = *s;
+      if (text.empty() && kv.second.defaulted() == false) {  // a bare flag that was given
+        text = "true";
+        quote = false;
+      }
+    }
     else if (const auto* d = boost::any_cast<double>(&v)) {
       std::ostringstream n;
       n.precision(10);

@@ -2,6 +2,11 @@
 #include <pcl_animseg/pipeline.h>
 #include <pcl_animseg/progress.h>
 
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/mean_shift_backend.h>
+#endif
+
 #include <algorithm>
 #include <set>
 
@@ -59,12 +64,26 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
 
   // 2. All frames clustered jointly (Sect. 3.2-3.3).
   segmentation::MeanShiftParams msp = params.mean_shift;
-  if (params.device == "gpu")
-    throw Error("--device gpu: this build's mean shift has no GPU backend yet");
-  r.device_used = "cpu";
   segmentation::MeanShiftSegmentation ms;
   ms.setInputSequence(shared);
   ms.setParams(msp);
+  if (params.device != "cpu") {
+    // gpu: the GPU or an error; auto: the GPU when one works, else a logged fall-back to the CPU.
+    std::string why;
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+    if (gpu::gpuAvailable(&why)) {
+      ms.setDeviceBackend(gpu::makeMeanShiftBackend(), /*cpu_fallback=*/params.device == "auto");
+      why.clear();
+    }
+#else
+    why = "this build has no CUDA module (nvcc was not found when it was configured)";
+#endif
+    if (!why.empty()) {
+      if (params.device == "gpu") throw Error("--device gpu: no usable GPU: " + why);
+      r.notes.push_back("device auto: the CPU was used: " + why);
+      progress.debug("device auto: the CPU is used: " + why);
+    }
+  }
   if (params.features) {
     ms.setSignatures(features.signatures);
     ms.setKeypoints(features.keypoints);
@@ -74,6 +93,11 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   progress.begin("mean_shift");
   ms.segment(clusters);
   progress.end(std::to_string(clusters.num_clusters) + " clusters");
+  r.device_used = ms.deviceUsed();
+  if (!ms.fallbackReason().empty()) {
+    r.notes.push_back("the GPU failed, the CPU was used: " + ms.fallbackReason());
+    progress.info("warning: the GPU failed, the CPU was used: " + ms.fallbackReason());
+  }
 
   // 3. Boundary refinement (Sect. 4), built over all frames jointly.
   segmentation::SegmentationResult refined;
