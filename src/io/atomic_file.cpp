@@ -1,5 +1,6 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
+#include <signal.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -7,12 +8,49 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <mutex>
+#include <set>
 #include <system_error>
 
 namespace pcl_animseg {
 namespace io {
 
 namespace fs = std::filesystem;
+
+namespace {
+
+/** Removes `dir/.NAME.tmp.PID` files whose process no longer exists: what a writer killed between
+ * creating its temporary and the rename leaves behind (SIGKILL, power loss). Such files are hidden
+ * and never have a final name, but would pile up over reruns into the same directory. A temporary
+ * of a live process (a concurrent writer, or a reused PID) is left alone. Each directory is swept
+ * once per process (a sweep per write would be quadratic in the number of outputs). */
+void removeStaleTemporaries(const fs::path& dir) {
+  static std::mutex mutex;
+  static std::set<std::string> swept;
+  std::error_code ec;
+  const std::string key = fs::absolute(dir, ec).lexically_normal().string();
+  {
+    std::lock_guard<std::mutex> lock(mutex);
+    if (!swept.insert(key).second) return;
+  }
+  for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
+    const std::string f = it->path().filename().string();
+    const std::size_t mark = f.rfind(".tmp.");
+    if (f.size() < 2 || f[0] != '.' || mark == std::string::npos || mark == 0) continue;
+    const std::string digits = f.substr(mark + 5);
+    if (digits.empty() || digits.size() > 9 ||
+        digits.find_first_not_of("0123456789") != std::string::npos)
+      continue;
+    const long pid = std::stol(digits);
+    if (pid == static_cast<long>(::getpid())) continue;
+    if (::kill(static_cast<pid_t>(pid), 0) != 0 && errno == ESRCH) {
+      std::error_code rm;
+      fs::remove(it->path(), rm);
+    }
+  }
+}
+
+}  // namespace
 
 void writeAtomically(const std::string& path,
                      const std::function<void(const std::string&)>& write) {
@@ -31,6 +69,7 @@ void writeAtomically(const std::string& path,
     const fs::path dir = target.parent_path().empty() ? fs::path(".") : target.parent_path();
     if (!fs::is_directory(dir, ec))
       throw Error("cannot write '" + path + "': directory '" + dir.string() + "' does not exist");
+    removeStaleTemporaries(dir);
   }
   try {
     write(tmp_str);

@@ -8,6 +8,7 @@
 #include <cctype>
 #include <cerrno>
 #include <cmath>
+#include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
@@ -705,16 +706,18 @@ void checkPCDHeader(const std::string& path) {
       throw fileError(path, "PCD header: bad SIZE/TYPE/COUNT for field '" + fields[i] + "'");
     point_size += sizes[i] * c;
   }
-  // PCL keeps WIDTH and HEIGHT as uint32; larger values would also overflow the products below.
-  if (width < 0 || height < 1 || width > 0xffffffffL || height > 0xffffffffL ||
-      static_cast<double>(width) * static_cast<double>(height) > 1e15)
-    throw fileError(path, "PCD header: bad WIDTH/HEIGHT");
+  if (width < 0 || height < 1) throw fileError(path, "PCD header: bad WIDTH/HEIGHT");
+  // No file we read holds a petabyte; bounding the sizes first keeps the products below from
+  // overflowing (found by fuzz_pcd). Such a header is a truncated (or corrupt) file.
+  const double announced = static_cast<double>(width) * static_cast<double>(height);
+  if (announced > 1e15 || announced * static_cast<double>(point_size) > 1e15) {
+    char count[32];
+    std::snprintf(count, sizeof(count), "%.0f", announced);
+    throw fileError(path, std::string("truncated: the PCD header announces ") + count +
+                              " points, more than any file holds");
+  }
   if (points >= 0 && points != width * height)
     throw fileError(path, "PCD header: POINTS is not WIDTH x HEIGHT");
-  // No file we read holds a petabyte: bounds the product below, which must not wrap around.
-  if (static_cast<double>(width) * static_cast<double>(height) * static_cast<double>(point_size) >
-      1e15)
-    throw fileError(path, "PCD header: WIDTH x HEIGHT x point size is absurdly large");
   const std::uintmax_t need = static_cast<std::uintmax_t>(width) * height * point_size;
   if (data == "binary") {
     if (file_size < header_bytes + need)

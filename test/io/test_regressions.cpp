@@ -1,0 +1,92 @@
+// Regression tests: inputs found by the fuzzers (fuzz/) and by the forced-abort test, kept so the
+// fixes stay fixed. Each reader must answer a bad file with pcl_animseg::Error, never a crash.
+#include <gtest/gtest.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/io/atomic_file.h>
+#include <pcl_animseg/io/frame_readers.h>
+#include <pcl_animseg/io/sequence_io.h>
+#include <stdlib.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+namespace fs = std::filesystem;
+namespace io = pcl_animseg::io;
+
+namespace {
+
+struct TempDir {
+  fs::path path;
+  TempDir() {
+    std::string tmpl = (fs::temp_directory_path() / "animseg_regr_XXXXXX").string();
+    path = mkdtemp(tmpl.data());
+  }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(path, ec);
+  }
+};
+
+std::string write(const fs::path& dir, const std::string& name, const std::string& bytes) {
+  const fs::path p = dir / name;
+  std::ofstream(p, std::ios::binary) << bytes;
+  return p.string();
+}
+
+}  // namespace
+
+// A writer killed between creating its temporary and the rename (animseg under SIGKILL, see
+// test/tools/test_atomic_kill.cpp) leaves `.NAME.tmp.PID`; the next write into that directory
+// removes temporaries of dead processes, and only those.
+TEST(AtomicWrite, RemovesStaleTemporariesOfDeadProcesses) {
+  TempDir tmp;
+  // PIDs are at most 2^22 on Linux, so 999999999 is never a live process.
+  const std::string dead = write(tmp.path, ".f0.labels.tmp.999999999", "1\n2\n");
+  const std::string mine =
+      write(tmp.path, ".f1.labels.tmp." + std::to_string(::getpid()), "partial");
+  const std::string other = write(tmp.path, ".notes.tmp.txt", "not ours");
+  io::writeTextAtomically((tmp.path / "summary.json").string(), "{}\n");
+  EXPECT_FALSE(fs::exists(dead));
+  EXPECT_TRUE(fs::exists(mine));
+  EXPECT_TRUE(fs::exists(other));
+  EXPECT_TRUE(fs::exists(tmp.path / "summary.json"));
+}
+
+// fuzz_off: a vertex count beyond size_t was cast before being compared with the file length
+// (undefined behaviour; UBSan float-cast-overflow).
+TEST(ReaderRegressions, OffCountTooLargeForSizeT) {
+  TempDir tmp;
+  const std::string p = write(tmp.path, "big.off", "OFF\n1e300 0 0\n");
+  EXPECT_THROW(io::readOFF(p), pcl_animseg::Error);
+  const std::string q = write(tmp.path, "faces.off", "OFF\n3 1e300 0\n0 0 0\n1 0 0\n0 1 0\n");
+  EXPECT_THROW(io::readOFF(q), pcl_animseg::Error);
+}
+
+// fuzz_ply: an element with no properties and a huge count made the reader loop for ever.
+TEST(ReaderRegressions, PlyElementWithoutPropertiesAndHugeCount) {
+  TempDir tmp;
+  const std::string p = write(tmp.path, "loop.ply",
+                              "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
+                              "property float y\nproperty float z\n"
+                              "element junk 1000000000000000\nend_header\n1 2 3\n");
+  const io::RawFrame raw = io::readPLY(p);  // the empty element holds no data: nothing to skip
+  ASSERT_EQ(raw.points.size(), 1u);
+  EXPECT_FLOAT_EQ(raw.points[0].z(), 3.0f);
+}
+
+// fuzz_pcd: WIDTH x HEIGHT and SIZE x COUNT overflowed `long` in the header check (UBSan
+// signed-integer-overflow), and a wrapped size would have let PCL trust the header.
+TEST(ReaderRegressions, PcdHeaderProductsOverflow) {
+  TempDir tmp;
+  const std::string head = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n";
+  for (const std::string& rest :
+       {std::string("WIDTH 4294967296\nHEIGHT 4294967296\nPOINTS 1\nDATA binary\n"),
+        std::string("WIDTH 9223372036854775807\nHEIGHT 2\nDATA binary\n"),
+        std::string("COUNT 1 1 4611686018427387904\nWIDTH 1\nHEIGHT 1\nDATA binary\n"),
+        std::string("WIDTH 4294967295\nHEIGHT 4294967295\nDATA ascii\n1 2 3\n")}) {
+    const std::string p = write(tmp.path, "bad.pcd", head + rest);
+    EXPECT_THROW(io::readPCD(p), pcl_animseg::Error) << rest;
+  }
+}
