@@ -8,6 +8,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <limits>
+#include <string>
+#include <utility>
 
 namespace pcl_animseg {
 
@@ -18,19 +22,78 @@ int Neighbourhoods::countWithin(std::size_t i, float r) const {
   return static_cast<int>(std::upper_bound(b, e, r2) - b);
 }
 
+namespace {
+
+/** Uniform grid of cell size `radius`: the points sorted by cell key (x major, z minor), so that
+ * the three cells (ix, iy, iz - 1 .. iz + 1) of a column are one contiguous run. */
+struct CellGrid {
+  Eigen::Vector3f origin;
+  float inv_cell = 0.0f;
+  std::int64_t ny = 0, nz = 0;
+  std::vector<std::int64_t> keys;  // sorted
+  std::vector<int> order;          // point index of each sorted key
+
+  std::int64_t key(std::int64_t ix, std::int64_t iy, std::int64_t iz) const {
+    return (ix * ny + iy) * nz + iz;
+  }
+  Eigen::Array3i cell(const Eigen::Vector3f& x) const {
+    return ((x - origin) * inv_cell).array().floor().cast<int>();
+  }
+};
+
+}  // namespace
+
 Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, float radius,
                                     int max_neighbours) {
-  using Cloud = PointCloudSequence::Cloud;
   if (!(radius > 0.0f)) throw Error("neighbourhood radius must be positive");
   Neighbourhoods out;
   out.radius = radius;
   const std::size_t n = cloud.size();
   out.offsets.assign(n + 1, 0);
   if (n == 0) return out;
-  // The tree only reads the cloud; a non-owning pointer avoids copying the frame.
-  Cloud::ConstPtr ptr(&cloud, [](const Cloud*) {});
-  pcl::KdTreeFLANN<pcl::PointNormal> tree(true);
-  tree.setInputCloud(ptr);
+  const int cap = std::max(1, max_neighbours);
+
+  // A uniform grid with cells of the search radius instead of a kd-tree: every neighbour of a
+  // point lies in the 27 cells around it, and a fixed-radius search of ~30 neighbours per point
+  // through pcl::KdTreeFLANN cost 7 us (allocations, copies), most of the scale space's time.
+  Eigen::Vector3f lo_corner = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
+  Eigen::Vector3f hi_corner = -lo_corner;
+  for (const auto& p : cloud.points)
+    if (p.getVector3fMap().allFinite()) {
+      lo_corner = lo_corner.cwiseMin(p.getVector3fMap());
+      hi_corner = hi_corner.cwiseMax(p.getVector3fMap());
+    }
+  if (!(hi_corner.array() >= lo_corner.array()).all())
+    lo_corner = hi_corner = Eigen::Vector3f::Zero();
+  CellGrid grid;
+  grid.origin = lo_corner;
+  // Cells of the search radius, or coarser where a few far-off points stretch the frame to more
+  // than 1e6 cells per axis (keys stay in 64 bits; coarser cells are only slower).
+  const float extent = (hi_corner - lo_corner).maxCoeff();
+  const float cell = std::max(radius, std::isfinite(extent) ? extent * 1.0e-6f : radius);
+  grid.inv_cell = 1.0f / cell;
+  const Eigen::Array3f ext = (hi_corner - lo_corner).array() * grid.inv_cell;
+  grid.ny = ext.allFinite() ? static_cast<std::int64_t>(ext(1)) + 3 : 3;
+  grid.nz = ext.allFinite() ? static_cast<std::int64_t>(ext(2)) + 3 : 3;
+  std::vector<char> finite(n);
+  {
+    std::vector<std::pair<std::int64_t, int>> kp(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      finite[i] = cloud[i].getVector3fMap().allFinite();
+      const Eigen::Array3i c =
+          finite[i] ? grid.cell(cloud[i].getVector3fMap()) : Eigen::Array3i(-2, 0, 0);
+      // Points with NaN coordinates get a key that no search reaches (and a row of themselves).
+      kp[i] = {finite[i] ? grid.key(c(0) + 1, c(1) + 1, c(2) + 1) : -1, static_cast<int>(i)};
+    }
+    std::sort(kp.begin(), kp.end());
+    grid.keys.resize(n);
+    grid.order.resize(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      grid.keys[i] = kp[i].first;
+      grid.order[i] = kp[i].second;
+    }
+  }
+  const float r2 = radius * radius;
 
   // Contiguous chunks per thread, concatenated in thread order, keep rows in point order
   // without a second search pass or a vector per point.
@@ -47,33 +110,43 @@ Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, floa
     }
     const int t = omp_get_thread_num();
     const std::size_t begin = n * t / threads, end = n * (t + 1) / threads;
-    std::vector<int> idx;
-    std::vector<float> d2;
+    std::vector<std::pair<float, int>> row;
     auto& my_idx = idx_parts[t];
     auto& my_d2 = d2_parts[t];
     my_idx.reserve((end - begin) * 32);
     my_d2.reserve((end - begin) * 32);
     for (std::size_t i = begin; i < end; ++i) {
-      int found = tree.radiusSearch(cloud[i], radius, idx, d2,
-                                    static_cast<unsigned int>(std::max(1, max_neighbours)));
-      // FLANN may not put the query first among coincident points; rows start with the point.
-      int self = -1;
-      for (int a = 0; a < found; ++a)
-        if (idx[a] == static_cast<int>(i)) { self = a; break; }
-      if (self < 0) {
-        my_idx.push_back(static_cast<int>(i));
-        my_d2.push_back(0.0f);
-        if (found == max_neighbours && found > 0) --found;  // keep the row at most max long
-      } else {
-        my_idx.push_back(static_cast<int>(i));
-        my_d2.push_back(0.0f);
+      const Eigen::Vector3f x = cloud[i].getVector3fMap();
+      row.clear();
+      const Eigen::Array3i c = finite[i] ? grid.cell(x) : Eigen::Array3i::Zero();
+      for (int dx = 0; dx <= 2 && finite[i]; ++dx)
+        for (int dy = 0; dy <= 2; ++dy) {
+          const std::int64_t lo = grid.key(c(0) + dx, c(1) + dy, c(2));
+          const std::int64_t hi = lo + 2;
+          auto it = std::lower_bound(grid.keys.begin(), grid.keys.end(), lo);
+          for (std::size_t a = static_cast<std::size_t>(it - grid.keys.begin());
+               a < n && grid.keys[a] <= hi; ++a) {
+            const int q = grid.order[a];
+            if (q == static_cast<int>(i)) continue;
+            const Eigen::Vector3f d = cloud[q].getVector3fMap() - x;
+            const float dd = d.squaredNorm();
+            if (dd < r2) row.emplace_back(dd, q);
+          }
+        }
+      // Rows sorted by distance, the point itself first; ties by index (duplicates) so that
+      // the rows do not depend on the search order; at most `cap` entries (the nearest).
+      const std::size_t keep = std::min<std::size_t>(row.size(), static_cast<std::size_t>(cap - 1));
+      if (keep < row.size())
+        std::partial_sort(row.begin(), row.begin() + keep, row.end());
+      else
+        std::sort(row.begin(), row.end());
+      my_idx.push_back(static_cast<int>(i));
+      my_d2.push_back(0.0f);
+      for (std::size_t a = 0; a < keep; ++a) {
+        my_idx.push_back(row[a].second);
+        my_d2.push_back(row[a].first);
       }
-      for (int a = 0; a < found; ++a) {
-        if (a == self) continue;
-        my_idx.push_back(idx[a]);
-        my_d2.push_back(d2[a]);
-      }
-      out.offsets[i + 1] = static_cast<std::size_t>(found + (self < 0 ? 1 : 0));
+      out.offsets[i + 1] = keep + 1;
     }
   }
   for (std::size_t i = 0; i < n; ++i) out.offsets[i + 1] += out.offsets[i];

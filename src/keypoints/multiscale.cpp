@@ -4,8 +4,8 @@
 #include <pcl_animseg/keypoints/dog_keypoint.h>
 #include <pcl_animseg/progress.h>
 
-#include <cmath>
 #include <algorithm>
+#include <cmath>
 #include <map>
 #include <string>
 #include <vector>
@@ -91,58 +91,68 @@ SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const Mu
   std::vector<std::size_t> kp_count(T, 0);
 
   // Stage 1: scale space of every frame.
-  forEachFrame(seq, progress, "scale_space", [&](std::size_t t) {
-    MLSScaleSpace mls;
-    mls.setInputCloud(seq.frame(t));
-    mls.setScale(p.h);
-    mls.setScaleFactor(p.k);
-    mls.setNumberOfLevels(p.levels);
-    mls.setNeighbourhoodRadius(2.0 * p.signature_h);
-    mls.setSpacing(unit);
-    mls.compute(spaces[t]);
-  }, [&] { return std::to_string(p.levels) + " levels"; });
+  forEachFrame(
+      seq, progress, "scale_space",
+      [&](std::size_t t) {
+        MLSScaleSpace mls;
+        mls.setInputCloud(seq.frame(t));
+        mls.setScale(p.h);
+        mls.setScaleFactor(p.k);
+        mls.setNumberOfLevels(p.levels);
+        mls.setNeighbourhoodRadius(2.0 * p.signature_h);
+        mls.setSpacing(unit);
+        mls.compute(spaces[t]);
+      },
+      [&] { return std::to_string(p.levels) + " levels"; });
 
   // Stage 2: keypoints.
-  forEachFrame(seq, progress, "keypoints", [&](std::size_t t) {
-    if (detect) {
-      DoGKeypoint dog;
-      dog.setScaleSpace(spaces[t]);
-      dog.setMinResponse(p.min_response);
-      dog.setEdgeRatio(p.edge_ratio);
-      DoGKeypoint::KeypointCloud kps;
-      dog.compute(kps);
-      std::map<int, std::size_t> best;  // index -> keypoint with the largest |response|
-      for (std::size_t a = 0; a < kps.size(); ++a) {
-        auto it = best.find(kps[a].index);
-        if (it == best.end() || std::fabs(kps[a].response) > std::fabs(kps[it->second].response))
-          best[kps[a].index] = a;
-      }
-      for (const auto& kv : best) {
-        out.keypoints[t].push_back(kv.first);
-        out.keypoint_scale[t].push_back(kps[kv.second].scale);
-        out.keypoint_response[t].push_back(kps[kv.second].response);
-      }
-      kp_count[t] = best.size();
-    }
-    spaces[t].levels.resize(1);
-  }, [&] {
-    std::size_t total_kp = 0;
-    for (std::size_t c : kp_count) total_kp += c;
-    return std::to_string(total_kp) + " keypoints";
-  });
+  forEachFrame(
+      seq, progress, "keypoints",
+      [&](std::size_t t) {
+        if (detect) {
+          DoGKeypoint dog;
+          dog.setScaleSpace(spaces[t]);
+          dog.setMinResponse(p.min_response);
+          dog.setEdgeRatio(p.edge_ratio);
+          DoGKeypoint::KeypointCloud kps;
+          dog.compute(kps);
+          std::map<int, std::size_t> best;  // index -> keypoint with the largest |response|
+          for (std::size_t a = 0; a < kps.size(); ++a) {
+            auto it = best.find(kps[a].index);
+            if (it == best.end() ||
+                std::fabs(kps[a].response) > std::fabs(kps[it->second].response))
+              best[kps[a].index] = a;
+          }
+          for (const auto& kv : best) {
+            out.keypoints[t].push_back(kv.first);
+            out.keypoint_scale[t].push_back(kps[kv.second].scale);
+            out.keypoint_response[t].push_back(kps[kv.second].response);
+          }
+          kp_count[t] = best.size();
+        }
+        spaces[t].levels.resize(1);
+      },
+      [&] {
+        std::size_t total_kp = 0;
+        for (std::size_t c : kp_count) total_kp += c;
+        return std::to_string(total_kp) + " keypoints";
+      });
 
   // Stage 3: signatures.
-  forEachFrame(seq, progress, "signature", [&](std::size_t t) {
-    SignatureEstimation se;
-    se.setInputCloud(signatureInput(*seq.frame(t), *spaces[t].levels[0]));
-    se.setNeighbourhoods(spaces[t].neighbourhoods);
-    se.setScale(p.signature_h * spaces[t].spacing);
-    se.setLayout(p.layout);
-    se.setKeypoints(out.keypoints[t]);
-    se.compute(out.signatures[t]);
-    if (p.keep_smoothed) out.smoothed[t] = spaces[t].levels[0];
-    spaces[t] = ScaleSpace();
-  }, [&] { return std::to_string(p.layout.dimension()) + "-D"; });
+  forEachFrame(
+      seq, progress, "signature",
+      [&](std::size_t t) {
+        SignatureEstimation se;
+        se.setInputCloud(signatureInput(*seq.frame(t), *spaces[t].levels[0]));
+        se.setNeighbourhoods(spaces[t].neighbourhoods);
+        se.setScale(p.signature_h * spaces[t].spacing);
+        se.setLayout(p.layout);
+        se.setKeypoints(out.keypoints[t]);
+        se.compute(out.signatures[t]);
+        if (p.keep_smoothed) out.smoothed[t] = spaces[t].levels[0];
+        spaces[t] = ScaleSpace();
+      },
+      [&] { return std::to_string(p.layout.dimension()) + "-D"; });
   return out;
 }
 
