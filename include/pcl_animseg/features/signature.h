@@ -61,10 +61,12 @@ class DiscSignature {
 
  private:
   SignatureLayout layout_;
-  std::vector<double> ring_radius_;                      // R
-  std::vector<double> cos_, sin_;                        // S
-  std::vector<std::complex<double>> ang_twiddle_;        // S' x S
-  std::vector<std::complex<double>> rad_twiddle_;        // R' x R
+  // The R x S sample positions (a, b) of the unit disc and their monomials up to degree 3, one
+  // array per monomial, sample q = k R + l (angle major, so a ring's samples are strided and a
+  // direction's are contiguous): the per-point work is then a few vectorisable passes.
+  std::vector<float> a_, b_, aa_, ab_, bb_, aaa_, aab_, abb_, bbb_;
+  std::vector<float> ang_cos_, ang_sin_;  // S' x S: e^{-2 pi i m k / S}
+  std::vector<float> rad_cos_, rad_sin_;  // R' x R: e^{-2 pi i a l / R}
 };
 
 /** \brief A unit tangent orthogonal to n chosen from n alone (any choice is fine: sigma does not
