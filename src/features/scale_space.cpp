@@ -31,24 +31,39 @@ void projectOnce(const Cloud& src, const Neighbourhoods& nb, const std::vector<i
     const int* row = nb.row(j);
     const float* w = weights.data() + nb.offsets[j];
     const int m = limit[j];
-    double sw = 0.0;
-    Eigen::Vector3d s1 = Eigen::Vector3d::Zero();
-    Eigen::Matrix3d s2 = Eigen::Matrix3d::Zero();
+    // Moments in float, relative to x_j (so that positions far from the origin lose no
+    // precision; the offsets are a few spacings, a few dozen terms): the upper triangle only.
+    // The double 3x3 outer products were most of a diffusion step.
+    float sw_f = 0.0f, sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    float sxx = 0.0f, sxy = 0.0f, sxz = 0.0f, syy = 0.0f, syz = 0.0f, szz = 0.0f;
     for (int a = 0; a < m; ++a) {
-      // Relative to x_j so that float positions far from the origin lose no precision.
-      const Eigen::Vector3d d = (src[row[a]].getVector3fMap() - xj).cast<double>();
-      const double wa = w[a];
-      sw += wa;
-      s1 += wa * d;
-      s2.noalias() += wa * d * d.transpose();
+      const float* q = src[row[a]].data;
+      const float dx = q[0] - xj.x(), dy = q[1] - xj.y(), dz = q[2] - xj.z();
+      const float wa = w[a];
+      sw_f += wa;
+      const float wx = wa * dx, wy = wa * dy, wz = wa * dz;
+      sx += wx;
+      sy += wy;
+      sz += wz;
+      sxx += wx * dx;
+      sxy += wx * dy;
+      sxz += wx * dz;
+      syy += wy * dy;
+      syz += wy * dz;
+      szz += wz * dz;
     }
+    const double sw = sw_f;
+    const Eigen::Vector3d s1(sx, sy, sz);
+    Eigen::Matrix3d s2;
+    s2 << sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz;
     pcl::PointNormal& out = dst[j];
     out = src[j];
     Eigen::Vector3f nref = ref[j];
     bool projected = false;
     if (m >= 3 && sw > 0.0) {
-      const Eigen::Vector3d c = s1 / sw;
-      const Eigen::Matrix3d cov = s2 / sw - c * c.transpose();
+      const double inv_sw = 1.0 / sw;
+      const Eigen::Vector3d c = s1 * inv_sw;
+      const Eigen::Matrix3d cov = s2 * inv_sw - c * c.transpose();
       const double tr = cov.trace();
       Eigen::Vector3d nn;
       double lmin = 0.0;
@@ -66,9 +81,13 @@ void projectOnce(const Cloud& src, const Neighbourhoods& nb, const std::vector<i
         // iterations on tr(C) I - C from the previous normal replace a full eigensolver (which
         // was most of the scale space's time); errors do not accumulate since each step
         // restarts from the last estimate.
-        const Eigen::Matrix3d M = tr * Eigen::Matrix3d::Identity() - cov;
+        // M = I - C / tr has eigenvalues in [0, 1] with the largest >= 2/3, so the iterates
+        // neither overflow nor underflow and one normalisation at the end suffices (divisions
+        // and square roots per iteration were the step's bottleneck).
+        const Eigen::Matrix3d M = Eigen::Matrix3d::Identity() - cov * (1.0 / tr);
         nn = nref.cast<double>();
-        for (int it = 0; it < 4; ++it) nn = (M * nn).normalized();
+        for (int it = 0; it < 4; ++it) nn = M * nn;
+        nn.normalize();
         lmin = nn.dot(cov * nn);
         const double rest = tr - lmin;  // spread in the plane: must not be a line or a spot
         const Eigen::Vector3d a = nn.unitOrthogonal(), b = nn.cross(a);
