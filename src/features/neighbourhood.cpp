@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <string>
 #include <utility>
@@ -24,20 +25,32 @@ int Neighbourhoods::countWithin(std::size_t i, float r) const {
 
 namespace {
 
-/** Uniform grid of cell size `radius`: the points sorted by cell key (x major, z minor), so that
- * the three cells (ix, iy, iz - 1 .. iz + 1) of a column are one contiguous run. */
+/** Uniform grid of cell size >= the search radius: the points sorted by cell key (x major, z
+ * minor), so that the three cells (ix, iy, iz - 1 .. iz + 1) of a column are one contiguous run
+ * of the sorted arrays, found through a dense table of cell starts (or a binary search over the
+ * sorted keys where the grid has many more cells than points). */
 struct CellGrid {
   Eigen::Vector3f origin;
   float inv_cell = 0.0f;
   std::int64_t ny = 0, nz = 0;
   std::vector<std::int64_t> keys;  // sorted
   std::vector<int> order;          // point index of each sorted key
+  std::vector<float> x, y, z;      // positions in sorted order
+  std::vector<int> start;          // dense: first sorted position of each key (size cells + 1)
 
   std::int64_t key(std::int64_t ix, std::int64_t iy, std::int64_t iz) const {
     return (ix * ny + iy) * nz + iz;
   }
-  Eigen::Array3i cell(const Eigen::Vector3f& x) const {
-    return ((x - origin) * inv_cell).array().floor().cast<int>();
+  Eigen::Array3i cell(const Eigen::Vector3f& p) const {
+    return ((p - origin) * inv_cell).array().floor().cast<int>();
+  }
+  /** Sorted positions [first, last) of the keys lo..hi. */
+  std::pair<std::size_t, std::size_t> run(std::int64_t lo, std::int64_t hi) const {
+    if (!start.empty())
+      return {static_cast<std::size_t>(start[lo]), static_cast<std::size_t>(start[hi + 1])};
+    const auto b = std::lower_bound(keys.begin(), keys.end(), lo);
+    const auto e = std::upper_bound(b, keys.end(), hi);
+    return {static_cast<std::size_t>(b - keys.begin()), static_cast<std::size_t>(e - keys.begin())};
   }
 };
 
@@ -88,9 +101,28 @@ Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, floa
     std::sort(kp.begin(), kp.end());
     grid.keys.resize(n);
     grid.order.resize(n);
+    grid.x.resize(n);
+    grid.y.resize(n);
+    grid.z.resize(n);
     for (std::size_t i = 0; i < n; ++i) {
       grid.keys[i] = kp[i].first;
       grid.order[i] = kp[i].second;
+      const pcl::PointNormal& p = cloud[kp[i].second];
+      grid.x[i] = p.x;
+      grid.y[i] = p.y;
+      grid.z[i] = p.z;
+    }
+  }
+  // Keys of finite points are < (nx + 2) ny nz with nx = ny * nz cells per x slab.
+  const std::int64_t cells =
+      (static_cast<std::int64_t>(ext.allFinite() ? ext(0) : 0) + 3) * grid.ny * grid.nz;
+  if (cells <= 8 * static_cast<std::int64_t>(n) + 4096) {
+    grid.start.assign(static_cast<std::size_t>(cells) + 1, 0);
+    std::size_t a = 0;
+    while (a < n && grid.keys[a] < 0) ++a;  // NaN points: not in the table
+    for (std::int64_t k = 0; k <= cells; ++k) {
+      while (a < n && grid.keys[a] < k) ++a;
+      grid.start[static_cast<std::size_t>(k)] = static_cast<int>(a);
     }
   }
   const float r2 = radius * radius;
@@ -110,11 +142,13 @@ Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, floa
     }
     const int t = omp_get_thread_num();
     const std::size_t begin = n * t / threads, end = n * (t + 1) / threads;
-    std::vector<std::pair<float, int>> row;
+    // (squared distance bits, index) packed in one integer: non-negative floats order like
+    // their bit patterns, so one integer sort orders by distance, then index.
+    std::vector<std::uint64_t> row;
     auto& my_idx = idx_parts[t];
     auto& my_d2 = d2_parts[t];
-    my_idx.reserve((end - begin) * 32);
-    my_d2.reserve((end - begin) * 32);
+    my_idx.reserve((end - begin) * 40);
+    my_d2.reserve((end - begin) * 40);
     for (std::size_t i = begin; i < end; ++i) {
       const Eigen::Vector3f x = cloud[i].getVector3fMap();
       row.clear();
@@ -122,20 +156,22 @@ Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, floa
       for (int dx = 0; dx <= 2 && finite[i]; ++dx)
         for (int dy = 0; dy <= 2; ++dy) {
           const std::int64_t lo = grid.key(c(0) + dx, c(1) + dy, c(2));
-          const std::int64_t hi = lo + 2;
-          auto it = std::lower_bound(grid.keys.begin(), grid.keys.end(), lo);
-          for (std::size_t a = static_cast<std::size_t>(it - grid.keys.begin());
-               a < n && grid.keys[a] <= hi; ++a) {
-            const int q = grid.order[a];
-            if (q == static_cast<int>(i)) continue;
-            const Eigen::Vector3f d = cloud[q].getVector3fMap() - x;
-            const float dd = d.squaredNorm();
-            if (dd < r2) row.emplace_back(dd, q);
+          const auto r = grid.run(lo, lo + 2);
+          for (std::size_t a = r.first; a < r.second; ++a) {
+            const float ex = grid.x[a] - x.x(), ey = grid.y[a] - x.y(), ez = grid.z[a] - x.z();
+            const float dd = ex * ex + ey * ey + ez * ez;
+            if (dd < r2 && grid.order[a] != static_cast<int>(i)) {
+              std::uint32_t bits;
+              std::memcpy(&bits, &dd, 4);
+              row.push_back((static_cast<std::uint64_t>(bits) << 32) |
+                            static_cast<std::uint32_t>(grid.order[a]));
+            }
           }
         }
       // Rows sorted by distance, the point itself first; ties by index (duplicates) so that
       // the rows do not depend on the search order; at most `cap` entries (the nearest).
-      const std::size_t keep = std::min<std::size_t>(row.size(), static_cast<std::size_t>(cap - 1));
+      const std::size_t keep =
+          std::min<std::size_t>(row.size(), static_cast<std::size_t>(cap - 1));
       if (keep < row.size())
         std::partial_sort(row.begin(), row.begin() + keep, row.end());
       else
@@ -143,13 +179,21 @@ Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, floa
       my_idx.push_back(static_cast<int>(i));
       my_d2.push_back(0.0f);
       for (std::size_t a = 0; a < keep; ++a) {
-        my_idx.push_back(row[a].second);
-        my_d2.push_back(row[a].first);
+        const std::uint32_t bits = static_cast<std::uint32_t>(row[a] >> 32);
+        float dd;
+        std::memcpy(&dd, &bits, 4);
+        my_idx.push_back(static_cast<int>(row[a] & 0xffffffffu));
+        my_d2.push_back(dd);
       }
       out.offsets[i + 1] = keep + 1;
     }
   }
   for (std::size_t i = 0; i < n; ++i) out.offsets[i + 1] += out.offsets[i];
+  if (threads == 1) {  // e.g. inside a parallel loop over frames: no copy
+    out.indices = std::move(idx_parts[0]);
+    out.sqr_distances = std::move(d2_parts[0]);
+    return out;
+  }
   out.indices.reserve(out.offsets[n]);
   out.sqr_distances.reserve(out.offsets[n]);
   for (int t = 0; t < threads; ++t) {
