@@ -139,6 +139,7 @@ struct JointKernelSum::Backend {
   /** out.row(r) (+)= sum_j exp(-|q_r - x_j|^2/2) values_j for r in rows. */
   virtual void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows,
                         Eigen::MatrixXf& out) const = 0;
+  virtual const filters::GaussianKdTree* tree() const { return nullptr; }
 };
 
 namespace {
@@ -202,6 +203,7 @@ class GkdBackend : public JointKernelSum::Backend {
     tree_.slice(sample_values_, q, rows, tmp);
     for (int r : rows) out.row(r) += tmp.row(r);
   }
+  const filters::GaussianKdTree* tree() const override { return &tree_; }
 
  private:
   filters::GaussianKdTree tree_;
@@ -246,6 +248,11 @@ JointKernelSum::JointKernelSum(const JointSpace& space, const Eigen::MatrixXf& v
 }
 
 JointKernelSum::~JointKernelSum() = default;
+
+const filters::GaussianKdTree* JointKernelSum::cellTree() const {
+  if (groups_.size() != 1 || groups_[0]->key_metric) return nullptr;
+  return groups_[0]->backend->tree();
+}
 
 void JointKernelSum::evaluate(const Eigen::MatrixXf& y, const std::vector<int>& rows,
                               const std::vector<char>& query_key, Eigen::MatrixXf& out) const {
@@ -293,13 +300,37 @@ std::vector<int> knnGraph(const PointCloudSequence& seq, int k) {
   return graph;
 }
 
+namespace {
+using DensityFn =
+    std::function<void(const Eigen::MatrixXf&, const std::vector<char>&, Eigen::MatrixXf&)>;
+void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
+                const std::vector<int>& graph, int k, const PointCloudSequence& seq,
+                bool modes_known, const DensityFn& dens, const Eigen::MatrixXf& f,
+                SegmentationResult& result);
+}  // namespace
+
+void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
+                  const std::vector<int>& graph, int k, const PointCloudSequence& seq,
+                  const JointKernelSum& sums,
+                  const Eigen::VectorXf& point_density, SegmentationResult& result) {
+  const int v = sums.valueCount();
+  DensityFn dens = [&](const Eigen::MatrixXf& q, const std::vector<char>& qk, Eigen::MatrixXf& o) {
+    std::vector<int> rows(q.rows());
+    std::iota(rows.begin(), rows.end(), 0);
+    Eigen::MatrixXf all(q.rows(), v);
+    sums.evaluate(q, rows, qk, all);
+    o = all.col(v - 1);
+  };
+  finishWith(space, flat, num_clusters, graph, k, seq, true, dens, point_density, result);
+}
+
 void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
                   const std::vector<int>& graph, int k, const MeanShiftParams& params,
                   const PointCloudSequence& seq, bool modes_known, SegmentationResult& result,
                   MeanShiftDeviceBackend* device) {
   const Eigen::Index n = space.z.rows();
   // Density (Eq. 4) at the points and, when known, at the modes: on the device or the CPU.
-  std::function<void(const Eigen::MatrixXf&, const std::vector<char>&, Eigen::MatrixXf&)> dens;
+  DensityFn dens;
   std::unique_ptr<JointKernelSum> cpu;
   const std::vector<char> no_keys;
   if (device) {
@@ -321,6 +352,15 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
   }
   Eigen::MatrixXf f;
   dens(space.z, space.keypoint, f);
+  finishWith(space, flat, num_clusters, graph, k, seq, modes_known, dens, f, result);
+}
+
+namespace {
+void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
+                const std::vector<int>& graph, int k, const PointCloudSequence& seq,
+                bool modes_known, const DensityFn& dens, const Eigen::MatrixXf& f,
+                SegmentationResult& result) {
+  const Eigen::Index n = space.z.rows();
   result.num_clusters = num_clusters;
   if (!modes_known) {
     result.modes.resize(num_clusters, space.z.cols());
@@ -368,6 +408,7 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
   for (std::size_t t = 0; t < seq.size(); ++t)
     result.labels[t].assign(flat.begin() + space.offsets[t], flat.begin() + space.offsets[t + 1]);
 }
+}  // namespace
 
 }  // namespace detail
 
@@ -476,31 +517,33 @@ using detail::JointSpace;
  * are grouped in cells of a tenth of the merge radius and each group's first point continues with
  * up to `refine_iterations` EXACT mean shift steps (the exact backend's kernel sums over all data
  * points); the group follows it. Cheap because groups are few compared with points. */
-void refineEndPoints(const JointSpace& space, const MeanShiftParams& params, Eigen::MatrixXf& y) {
-  const Eigen::Index n = y.rows();
+void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
+                     const std::vector<char>& row_key, Eigen::MatrixXf& y) {
+  const Eigen::Index n = y.rows();  // end points: one per data point or per cell
   const int dim = static_cast<int>(y.cols());
-  Eigen::MatrixXf values(n, dim + 1);
+  Eigen::MatrixXf values(space.z.rows(), dim + 1);
   values.leftCols(dim) = space.z;
   values.col(dim).setOnes();
   const float cell = static_cast<float>(params.merge_radius / 10.0);
   std::unordered_map<std::string, int> cell_group;
   std::vector<int> group_of(n), rep;
-  std::string key(sizeof(int) * dim, '\0');
+  std::string key(sizeof(int) * dim + 1, '\0');
   for (Eigen::Index i = 0; i < n; ++i) {
     for (int c = 0; c < dim; ++c) {
       const int q = static_cast<int>(std::floor(y(i, c) * space.metric_plain[c] / cell));
       std::memcpy(&key[sizeof(int) * c], &q, sizeof(int));
     }
+    key.back() = row_key.empty() ? 0 : row_key[i];
     auto it = cell_group.emplace(key, static_cast<int>(rep.size())).first;
     if (it->second == static_cast<int>(rep.size())) rep.push_back(static_cast<int>(i));
     group_of[i] = it->second;
   }
   const int g = static_cast<int>(rep.size());
   Eigen::MatrixXf yg(g, dim);
-  std::vector<char> key_of(space.has_keypoints ? g : 0);
+  std::vector<char> key_of(row_key.empty() ? 0 : g);
   for (int r = 0; r < g; ++r) {
     yg.row(r) = y.row(rep[r]);
-    if (space.has_keypoints) key_of[r] = space.keypoint[rep[r]];
+    if (!row_key.empty()) key_of[r] = row_key[rep[r]];
   }
   MeanShiftParams exact_params = params;
   exact_params.backend = MeanShiftBackend::Exact;
@@ -525,25 +568,78 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params, Eig
   for (Eigen::Index i = 0; i < n; ++i) y.row(i) = yg.row(group_of[i]);
 }
 
-/** The paper method's iteration on the CPU: Eq. 9 from every point until it stops; y the end
- * points, end_density the kernel sum there. */
+/** Starting points of the Gaussian kd-tree backend (Sect. 3.3): the cells of the filter's tree
+ * (its leaves, N/M points each), split by the keypoint flag because a keypoint's query sums with
+ * the pair rule of Eq. 5. start_of[i] is the start of point i, y0 the starts (cell means, raw
+ * coordinates), start_key their keypoint flag (empty without keypoints). */
+void cellStarts(const JointSpace& space, const MeanShiftParams& params, const JointKernelSum& sums,
+                std::vector<int>& start_of, Eigen::MatrixXf& y0, std::vector<char>& start_key) {
+  const Eigen::Index n = space.z.rows();
+  const int dim = static_cast<int>(space.z.cols());
+  // Without the pair rule the sums' own tree is over the points in the plain metric: reuse it.
+  filters::GaussianKdTree own(params.gkdtree);
+  const filters::GaussianKdTree* found = sums.cellTree();
+  if (!found) own.build((space.z.array().rowwise() * space.metric_plain.array()).matrix());
+  const filters::GaussianKdTree& tree = found ? *found : own;
+  const bool keys = space.has_keypoints;
+  std::vector<int> cell_start(tree.numSamples() * (keys ? 2 : 1), -1);
+  start_of.resize(n);
+  int m = 0;
+  for (Eigen::Index i = 0; i < n; ++i) {
+    const std::size_t c = tree.leafOf(i) * (keys ? 2 : 1) + (keys && space.keypoint[i] ? 1 : 0);
+    if (cell_start[c] < 0) cell_start[c] = m++;
+    start_of[i] = cell_start[c];
+  }
+  Eigen::MatrixXd sum = Eigen::MatrixXd::Zero(dim, m);
+  std::vector<int> count(m, 0);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    sum.col(start_of[i]) += space.z.row(i).transpose().cast<double>();
+    ++count[start_of[i]];
+  }
+  y0.resize(m, dim);
+  for (int r = 0; r < m; ++r) y0.row(r) = (sum.col(r) / count[r]).transpose().cast<float>();
+  start_key.assign(keys ? m : 0, 0);
+  if (keys)
+    for (Eigen::Index i = 0; i < n; ++i) start_key[start_of[i]] = space.keypoint[i];
+}
+
+/** The paper method's iteration on the CPU: Eq. 9 until it stops; y the end points (one row per
+ * data point), end_density the kernel sum there. The exact backend iterates every point; the
+ * Gaussian kd-tree backend iterates the M cells of its tree, each from the mean of its points,
+ * and every point takes its cell's end point: the paper's Sect. 3.3, N/M times fewer queries. */
 void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen::MatrixXf& y,
-                  Eigen::VectorXf& end_density, Progress* progress) {
+                  Eigen::VectorXf& end_density, std::unique_ptr<JointKernelSum>& sums_out,
+                  Eigen::VectorXf& point_density, Progress* progress) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
   Eigen::MatrixXf values(n, dim + 1);
   values.leftCols(dim) = space.z;
   values.col(dim).setOnes();
-  JointKernelSum sums(space, values, params);
-  y = space.z;
-  Eigen::MatrixXf out(n, dim + 1);
-  std::vector<int> active(n);
+  sums_out = std::make_unique<JointKernelSum>(space, values, params);
+  const JointKernelSum& sums = *sums_out;
+  values.resize(0, 0);
+  const bool cells = params.backend == MeanShiftBackend::GaussianKdTree;
+  std::vector<int> start_of;
+  std::vector<char> start_key;
+  Eigen::MatrixXf ys;  // the iterated rows: points (exact) or cells (Gaussian kd-tree)
+  if (cells) {
+    cellStarts(space, params, sums, start_of, ys, start_key);
+  } else {
+    ys = space.z;
+    if (space.has_keypoints) start_key = space.keypoint;
+  }
+  const Eigen::Index m = ys.rows();
+  Eigen::MatrixXf out(m, dim + 1);
+  Eigen::VectorXf start_density = Eigen::VectorXf::Zero(m);
+  std::vector<int> active(m);
   std::iota(active.begin(), active.end(), 0);
   const float tol2 = static_cast<float>(params.convergence * params.convergence);
   if (progress) progress->begin("mean shift iterations", params.max_iterations);
   for (int it = 0; it < params.max_iterations && !active.empty(); ++it) {
     // Eq. 10: homogeneous coordinates, so the last column is the denominator of Eq. 8.
-    sums.evaluate(y, active, space.keypoint, out);
+    sums.evaluate(ys, active, start_key, out);
+    // The density at the points (a cell's points: at their mean), for the saddles.
+    if (it == 0) start_density = out.col(dim);
     std::vector<char> done(active.size(), 0);
 #pragma omp parallel for schedule(static)
     for (std::size_t a = 0; a < active.size(); ++a) {
@@ -554,8 +650,8 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
         continue;
       }
       const Eigen::RowVectorXf next = out.row(r).head(dim) / den;
-      const float step2 = (next - y.row(r)).cwiseProduct(space.metric_plain).squaredNorm();
-      y.row(r) = next;
+      const float step2 = (next - ys.row(r)).cwiseProduct(space.metric_plain).squaredNorm();
+      ys.row(r) = next;
       done[a] = step2 < tol2;
     }
     std::vector<int> still;
@@ -564,14 +660,28 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
     active.swap(still);
     if (progress) progress->update(it + 1);
   }
-  if (progress) progress->end(std::to_string(active.size()) + " points not converged");
+  if (progress) progress->end(std::to_string(active.size()) + (cells ? " cells" : " points") +
+                              " not converged");
   if (params.backend == MeanShiftBackend::GaussianKdTree && params.refine_iterations > 0)
-    refineEndPoints(space, params, y);
+    refineEndPoints(space, params, start_key, ys);
   // Density at the end points, to visit them from the highest.
-  std::vector<int> all(n);
+  std::vector<int> all(m);
   std::iota(all.begin(), all.end(), 0);
-  sums.evaluate(y, all, space.keypoint, out);
-  end_density = out.col(dim);
+  sums.evaluate(ys, all, start_key, out);
+  if (!cells) {
+    y = std::move(ys);
+    end_density = out.col(dim);
+    point_density = start_density;
+    return;
+  }
+  y.resize(n, dim);
+  end_density.resize(n);
+  point_density.resize(n);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    y.row(i) = ys.row(start_of[i]);
+    end_density[i] = out(start_of[i], dim);
+    point_density[i] = start_density[start_of[i]];
+  }
 }
 
 /** Paper's method: mean shift of every point (Eq. 9) until it stops (on the CPU or the device),
@@ -579,6 +689,7 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
 void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
               const MeanShiftParams& params, MeanShiftDeviceBackend* device,
               std::vector<int>& flat, Eigen::MatrixXf& modes, int& num_clusters,
+              std::unique_ptr<JointKernelSum>& sums, Eigen::VectorXf& point_density,
               Progress* progress) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
@@ -592,12 +703,13 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
                       end_density);
     if (progress) progress->end();
     if (params.refine_iterations > 0) {
-      refineEndPoints(space, params, y);
+      refineEndPoints(space, params, space.has_keypoints ? space.keypoint : std::vector<char>(),
+                      y);
       device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
                       end_density);
     }
   } else {
-    seekModesCpu(space, params, y, end_density, progress);
+    seekModesCpu(space, params, y, end_density, sums, point_density, progress);
   }
   std::vector<int> mode_rep;  // point whose end point is the mode
   groupModes(y, space.metric_plain, end_density, params.merge_radius, flat, mode_rep);
@@ -609,11 +721,17 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
                            : std::max(1, static_cast<int>(0.002 * static_cast<double>(n)));
   std::vector<long> size(nm, 0);
   for (int c : flat) ++size[c];
+  // Symmetric edge counts (the k-NN graph is not): the absorption below removes a cluster from
+  // the lists of its neighbours, and a one-sided entry would survive as a stale neighbour that a
+  // later absorption could follow into a cycle of targets.
   std::vector<std::map<int, long>> adj(nm);
   for (Eigen::Index i = 0; i < n; ++i)
     for (int m = 0; m < k; ++m) {
       const int j = graph[i * k + m];
-      if (j >= 0 && flat[j] != flat[i]) ++adj[flat[i]][flat[j]];
+      if (j >= 0 && flat[j] != flat[i]) {
+        ++adj[flat[i]][flat[j]];
+        ++adj[flat[j]][flat[i]];
+      }
     }
   std::vector<int> target(nm);
   std::iota(target.begin(), target.end(), 0);
@@ -647,9 +765,17 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     adj[c].clear();
     if (size[b] < min_size) heap.push({size[b], b});
   }
+  // Absorption chains can be thousands long (many tiny clusters absorbed one into the next):
+  // follow each once, with path compression, instead of once per point.
   auto root = [&](int c) {
-    while (target[c] != c) c = target[c];
-    return c;
+    int r = c;
+    while (target[r] != r) r = target[r];
+    while (target[c] != r) {
+      const int next = target[c];
+      target[c] = r;
+      c = next;
+    }
+    return r;
   };
   // Final ids by decreasing mode density (mode order), modes from the densest merged mode.
   std::vector<int> final_id(nm, -1);
@@ -662,7 +788,8 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
       final_rep.push_back(mode_rep[r]);
     }
   }
-  for (Eigen::Index i = 0; i < n; ++i) flat[i] = final_id[root(flat[i])];
+  for (int m = 0; m < nm; ++m) final_id[m] = final_id[root(m)];
+  for (Eigen::Index i = 0; i < n; ++i) flat[i] = final_id[flat[i]];
   modes.resize(num_clusters, dim);
   for (int c = 0; c < num_clusters; ++c) modes.row(c) = y.row(final_rep[c]);
 }
@@ -697,13 +824,23 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     }
   };
   if (params_.method == MeanShiftMethod::Paper) {
+    // The CPU iteration leaves its kernel sums and the density at the points for the densities
+    // of the result (no second filter over the data).
+    std::unique_ptr<detail::JointKernelSum> sums;
+    Eigen::VectorXf point_density;
     guarded([&](MeanShiftDeviceBackend* d) {
       Eigen::MatrixXf modes;
-      runPaper(space, graph, k, params_, d, flat, modes, num_clusters, progress_);
+      runPaper(space, graph, k, params_, d, flat, modes, num_clusters, sums, point_density,
+               progress_);
       result.modes = modes;
     });
     guarded([&](MeanShiftDeviceBackend* d) {
-      detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, true, result, d);
+      if (!d && sums) {
+        detail::finishResult(space, flat, num_clusters, graph, k, seq, *sums, point_density,
+                             result);
+      } else {
+        detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, true, result, d);
+      }
     });
   } else {
     detail::runMotion(seq, params_, flat, num_clusters, result.merges, progress_);

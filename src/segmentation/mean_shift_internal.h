@@ -38,6 +38,9 @@ class JointKernelSum {
   void evaluate(const Eigen::MatrixXf& y, const std::vector<int>& rows,
                 const std::vector<char>& query_key, Eigen::MatrixXf& out) const;
   int valueCount() const { return value_count_; }
+  /** The Gaussian kd-tree over all points in the plain metric, in input order, when the sums
+   * use one (Gaussian kd-tree backend, no keypoint pair rule); nullptr otherwise. */
+  const filters::GaussianKdTree* cellTree() const;
 
   struct Backend;
 
@@ -58,6 +61,12 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, 
                   const std::vector<int>& graph, int k, const MeanShiftParams& params,
                   const PointCloudSequence& seq, bool modes_known, SegmentationResult& result,
                   MeanShiftDeviceBackend* device = nullptr);
+/** The same, reusing the kernel sums of the iteration (their last value column is the density,
+ * the homogeneous coordinate of Eq. 10) and the density already known at every point. */
+void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, int num_clusters,
+                  const std::vector<int>& graph, int k, const PointCloudSequence& seq,
+                  const JointKernelSum& sums,
+                  const Eigen::VectorXf& point_density, SegmentationResult& result);
 
 /** The motion method; fills result.labels, num_clusters and merges. */
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params,
