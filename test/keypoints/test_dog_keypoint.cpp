@@ -75,16 +75,18 @@ TEST(DoGKeypoint, FindsTheBumps) {
     ASSERT_GE(p.index, 0);
     ASSERT_LT(p.index, static_cast<int>(cloud->size()));
     ASSERT_GE(p.level, 1);
-    ASSERT_LE(p.level, 2);
+    ASSERT_LE(p.level, 3);  // levels 1 .. L-2 of the L-1 = 4 differences
     ASSERT_GT(p.scale, 0.0f);
-    ASSERT_GE(std::fabs(p.response), 0.03f);
+    ASSERT_GE(std::fabs(p.response), 0.04f);
   }
 }
 
-class DoGRepeatability : public ::testing::TestWithParam<unsigned> {};
+struct Repeatability {
+  double a_in_b, b_in_a;
+  std::size_t ka, kb;
+};
 
-TEST_P(DoGRepeatability, RepeatableUnderRigidMotionAndResampling) {
-  const unsigned seed = GetParam();
+Repeatability repeatabilityForSeed(unsigned seed) {
   auto a = test::bumpySphere(10000, seed);
   const Eigen::Isometry3d T = test::someMotion();
   auto b = test::transformed(*test::bumpySphere(12000, seed + 1000), T);
@@ -95,19 +97,48 @@ TEST_P(DoGRepeatability, RepeatableUnderRigidMotionAndResampling) {
   for (auto& p : kb.points)
     p.getVector3fMap() = (inv * p.getVector3fMap().cast<double>()).cast<float>();
   const double spacing = meanSpacing(*a);
-  const double r_ab = repeatability(ka, kb, spacing), r_ba = repeatability(kb, ka, spacing);
-  RecordProperty("repeatability_a_in_b", std::to_string(r_ab));
-  RecordProperty("repeatability_b_in_a", std::to_string(r_ba));
-  RecordProperty("keypoints", std::to_string(ka.size()) + "/" + std::to_string(kb.size()));
-  // Issue 3 asks for >= 80%. Measured: 0.40-0.89 over these seeds. The misses are whole bumps
-  // whose response peaks in scale at the edge of the searched range (D_1..D_{L-3}), where
-  // sampling noise decides between "extremum at the top tested level" and "peak above it";
-  // matched keypoints agree to 0.1-0.6 spacings. Guard against regressions only.
-  EXPECT_GE(r_ab, 0.35);
-  EXPECT_GE(r_ba, 0.35);
+  return {repeatability(ka, kb, spacing), repeatability(kb, ka, spacing), ka.size(), kb.size()};
+}
+
+class DoGRepeatability : public ::testing::TestWithParam<unsigned> {};
+
+TEST_P(DoGRepeatability, RepeatableUnderRigidMotionAndResampling) {
+  const Repeatability r = repeatabilityForSeed(GetParam());
+  RecordProperty("repeatability_a_in_b", std::to_string(r.a_in_b));
+  RecordProperty("repeatability_b_in_a", std::to_string(r.b_in_a));
+  RecordProperty("keypoints", std::to_string(r.ka) + "/" + std::to_string(r.kb));
+  // The sphere has 12 bumps and dents: about one keypoint each, no flood of noise extrema
+  // (a detector that finds almost nothing would make the fractions below meaningless).
+  EXPECT_GE(r.ka, 8u);
+  EXPECT_GE(r.kb, 8u);
+  EXPECT_LE(r.ka, 15u);
+  EXPECT_LE(r.kb, 15u);
+  // Issue 3 asks for >= 80%; not reached. Over 30 seeds: mean 0.61 (0.50 before the median
+  // contrast, the top level, the localisation on D_{i+1} and the suppression of near
+  // duplicates), single seeds 0.27-0.82 with ~10 keypoints each. What is left is the sub-sample
+  // position: sampling noise in D puts ~40% of the matched pairs 1-2 spacings apart (at 4x the
+  // density the median error drops from 0.4 to 0.1 spacing). A floor per seed here, the pooled
+  // value in PooledOverSeeds.
+  EXPECT_GE(r.a_in_b, 0.40);
+  EXPECT_GE(r.b_in_a, 0.40);
 }
 
 INSTANTIATE_TEST_SUITE_P(Seeds, DoGRepeatability, ::testing::Values(21u, 31u, 41u));
+
+TEST(DoGRepeatability, PooledOverSeeds) {
+  // Pooled over 6 seeds (both directions): 0.61 for these; 0.57-0.65 for other blocks of 6
+  // seeds (0.42-0.53 before).
+  double sum = 0.0;
+  int count = 0;
+  for (unsigned seed : {21u, 31u, 41u, 51u, 61u, 71u}) {
+    const Repeatability r = repeatabilityForSeed(seed);
+    sum += r.a_in_b + r.b_in_a;
+    count += 2;
+  }
+  const double pooled = sum / count;
+  RecordProperty("pooled_repeatability", std::to_string(pooled));
+  EXPECT_GE(pooled, 0.55);
+}
 
 TEST(DoGKeypoint, InvariantToUniformScaling) {
   auto a = test::bumpySphere(8000, 23);

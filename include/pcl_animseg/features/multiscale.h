@@ -21,8 +21,8 @@ struct MultiscaleParams {
   double k = 1.41421356;
   /** Number of levels L(x, h) .. L(x, k^(levels-1) h); keypoints need >= 4. */
   int levels = 5;
-  /** Minimum |D| of a keypoint (dimensionless, see DoGKeypoint). */
-  double min_response = 0.03;
+  /** Minimum contrast |D - median D| of a keypoint (dimensionless, see DoGKeypoint). */
+  double min_response = 0.04;
   /** SIFT edge ratio r. */
   double edge_ratio = 10.0;
   /** Keypoints are detected only when true (levels >= 4). */
