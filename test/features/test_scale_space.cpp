@@ -8,6 +8,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <utility>
+#include <vector>
 
 #include "features/bumpy_surface.h"
 
@@ -184,4 +187,62 @@ TEST(Neighbourhoods, RowsAreSortedAndStartWithThePoint) {
     for (int a = 1; a < nb.count(j); ++a) ASSERT_LE(nb.sqrRow(j)[a - 1], nb.sqrRow(j)[a]);
   }
   EXPECT_EQ(nb.countWithin(0, 0.0f), 1);
+}
+
+namespace {
+
+/** Rows by brute force: all j with |x_j - x_i| < r, the nearest `cap` - 1 besides i. */
+void expectRowsMatchBruteForce(const Cloud& cloud, float r, int cap = 256) {
+  const Neighbourhoods nb = radiusNeighbourhoods(cloud, r, cap);
+  ASSERT_EQ(nb.points(), cloud.size());
+  for (std::size_t i = 0; i < cloud.size(); ++i) {
+    ASSERT_EQ(nb.row(i)[0], static_cast<int>(i));
+    std::vector<std::pair<float, int>> want;
+    if (cloud[i].getVector3fMap().allFinite())
+      for (std::size_t j = 0; j < cloud.size(); ++j) {
+        if (j == i || !cloud[j].getVector3fMap().allFinite()) continue;
+        const float d2 = (cloud[j].getVector3fMap() - cloud[i].getVector3fMap()).squaredNorm();
+        if (d2 < r * r) want.emplace_back(d2, static_cast<int>(j));
+      }
+    std::sort(want.begin(), want.end());
+    if (want.size() > static_cast<std::size_t>(cap - 1)) want.resize(cap - 1);
+    ASSERT_EQ(nb.count(i), static_cast<int>(want.size()) + 1) << "row " << i;
+    for (std::size_t a = 0; a < want.size(); ++a) {
+      ASSERT_EQ(nb.row(i)[a + 1], want[a].second) << "row " << i;
+      ASSERT_FLOAT_EQ(nb.sqrRow(i)[a + 1], want[a].first);
+    }
+  }
+}
+
+}  // namespace
+
+TEST(Neighbourhoods, MatchBruteForceOnEveryPath) {
+  // Dense cell table, with duplicate points (ties broken by index) and a NaN point (a row of
+  // itself, in no other row).
+  auto cloud = test::bumpySphere(1500, 11);
+  for (int k = 0; k < 20; ++k) cloud->push_back((*cloud)[k * 7]);
+  pcl::PointNormal nan_point;
+  nan_point.x = nan_point.y = nan_point.z = std::numeric_limits<float>::quiet_NaN();
+  cloud->push_back(nan_point);
+  const float s = static_cast<float>(meanSpacing(*test::bumpySphere(1500, 11)));
+  expectRowsMatchBruteForce(*cloud, 5.0f * s);
+  // Rows capped at the nearest ones.
+  expectRowsMatchBruteForce(*cloud, 8.0f * s, 12);
+  // Far more cells than points (binary search over the sorted cells): a sparse diagonal.
+  Cloud line;
+  for (int k = 0; k < 300; ++k) {
+    pcl::PointNormal p;
+    p.x = 0.01f * k;
+    p.y = 0.013f * k + 0.002f * (k % 3);
+    p.z = 0.007f * k;
+    line.push_back(p);
+  }
+  expectRowsMatchBruteForce(line, 0.02f);
+  // A far outlier stretching the frame past 1e6 cells per axis (coarser cells).
+  Cloud far(line);
+  pcl::PointNormal o;
+  o.x = 1.0e5f;
+  o.y = o.z = 0.0f;
+  far.push_back(o);
+  expectRowsMatchBruteForce(far, 0.02f);
 }
