@@ -63,25 +63,33 @@ inline pcl::PointNormal toPoint(const Eigen::Vector3d& y) {
   return q;
 }
 
-/** RMS over the source of the clipped distance to the nearest point of the frame with a
- * compatible normal (in the frame's spacings). */
+/** Squared surface error of a moved point (position y, normal n) against a frame, in spacings^2:
+ * the distance to the nearest point's tangent plane, plus how far beyond 1.5 spacings that point
+ * is; clipped at kClip^2, and kClip^2 when the normals disagree. The tangent-plane distance does
+ * not see the sampling of the two clouds (a point-to-point distance is ~1 spacing for a perfect
+ * fit), so small rigid deviations stand out. */
+inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, const Frame& f,
+                           std::vector<int>& idx, std::vector<float>& d2) {
+  const double clip2 = kClip * kClip;
+  if (f.tree.nearestKSearch(toPoint(y), 1, idx, d2) != 1) return clip2;
+  const auto& t = (*f.cloud)[idx[0]];
+  const Eigen::Vector3d tn(t.normal_x, t.normal_y, t.normal_z);
+  if (n.dot(tn) <= kNormalCos) return clip2;
+  const double inv_s = 1.0 / f.spacing;
+  const double pl = (y - Eigen::Vector3d(t.x, t.y, t.z)).dot(tn) * inv_s;
+  const double far = std::max(0.0, std::sqrt(static_cast<double>(d2[0])) * inv_s - 1.5);
+  return std::min(clip2, pl * pl + far * far);
+}
+
+/** RMS over the source of the surface error (in the frame's spacings). */
 double residual(const Source& src, const Pose& T, const Frame& f) {
   if (src.p.cols() == 0) return 0.0;
   std::vector<int> idx(1);
   std::vector<float> d2(1);
-  const double clip2 = kClip * kClip;
-  const double inv_s2 = 1.0 / (f.spacing * f.spacing);
   double sum = 0.0;
   const Eigen::Matrix3d R = T.linear();
-  for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
-    double e = clip2;
-    if (f.tree.nearestKSearch(toPoint(T * src.p.col(i)), 1, idx, d2) == 1) {
-      const auto& t = (*f.cloud)[idx[0]];
-      const double c = (R * src.n.col(i)).dot(Eigen::Vector3d(t.normal_x, t.normal_y, t.normal_z));
-      if (c > kNormalCos) e = std::min(clip2, d2[0] * inv_s2);
-    }
-    sum += e;
-  }
+  for (Eigen::Index i = 0; i < src.p.cols(); ++i)
+    sum += surfaceError(T * src.p.col(i), R * src.n.col(i), f, idx, d2);
   return std::sqrt(sum / static_cast<double>(src.p.cols()));
 }
 
@@ -144,27 +152,159 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
   return T;
 }
 
-/** Symmetric k-NN graph over a set of 3-D points. */
-std::vector<std::vector<int>> knnGraphOf(const Eigen::Matrix3Xd& pts, int k) {
-  const int n = static_cast<int>(pts.cols());
-  Cloud::Ptr c(new Cloud);
-  c->resize(n);
-  for (int i = 0; i < n; ++i) (*c)[i] = toPoint(pts.col(i));
-  std::vector<std::set<int>> nb(n);
-  if (n > 1) {
-    pcl::KdTreeFLANN<pcl::PointNormal> tree;
-    tree.setInputCloud(c);
+/** Surface graph of a cloud: each point linked to its k nearest points that lie within
+ * `max_dist` and have a compatible normal (symmetric). Unlike a plain k-NN graph it does not
+ * bridge the gap between two limbs that nearly touch (facing sides have opposite normals), so
+ * neighbourhoods and adjacency grown over it stay on one surface sheet. */
+std::vector<std::vector<int>> surfaceGraphOf(const Cloud& cloud,
+                                             const pcl::KdTreeFLANN<pcl::PointNormal>& tree,
+                                             int k, double max_dist) {
+  const int n = static_cast<int>(cloud.size());
+  std::vector<std::vector<int>> g(n);
+  const float max_d2 = static_cast<float>(max_dist * max_dist);
+  const int kk = std::min(k + 1, n);
+#pragma omp parallel
+  {
     std::vector<int> idx;
     std::vector<float> d2;
+#pragma omp for schedule(static)
     for (int i = 0; i < n; ++i) {
-      tree.nearestKSearch((*c)[i], std::min(k + 1, n), idx, d2);
-      for (int j : idx)
-        if (j != i) nb[i].insert(j), nb[j].insert(i);
+      tree.nearestKSearch(cloud[i], kk, idx, d2);
+      const auto& a = cloud[i];
+      for (std::size_t m = 0; m < idx.size(); ++m) {
+        const int j = idx[m];
+        if (j == i || d2[m] > max_d2) continue;
+        const auto& b = cloud[j];
+        if (a.normal_x * b.normal_x + a.normal_y * b.normal_y + a.normal_z * b.normal_z < 0.5f)
+          continue;
+        g[i].push_back(j);
+      }
     }
   }
-  std::vector<std::vector<int>> g(n);
-  for (int i = 0; i < n; ++i) g[i].assign(nb[i].begin(), nb[i].end());
-  return g;
+  // Symmetrise.
+  std::vector<std::vector<int>> sym(g);
+  for (int i = 0; i < n; ++i)
+    for (int j : g[i]) sym[j].push_back(i);
+  for (auto& v : sym) {
+    std::sort(v.begin(), v.end());
+    v.erase(std::unique(v.begin(), v.end()), v.end());
+  }
+  return sym;
+}
+
+/** The `count` points geodesically nearest to `start` over the surface graph (Dijkstra), sorted
+ * by index. Fewer when its component is smaller. */
+std::vector<int> geodesicNeighbourhood(const Cloud& cloud, const std::vector<std::vector<int>>& g,
+                                       int start, int count) {
+  std::vector<int> out;
+  std::map<int, double> dist;
+  using Item = std::pair<double, int>;
+  std::priority_queue<Item, std::vector<Item>, std::greater<Item>> q;
+  std::set<int> done;
+  q.push({0.0, start});
+  dist[start] = 0.0;
+  auto pos = [&](int i) { return Eigen::Vector3d(cloud[i].x, cloud[i].y, cloud[i].z); };
+  while (!q.empty() && static_cast<int>(out.size()) < count) {
+    const auto [d, i] = q.top();
+    q.pop();
+    if (!done.insert(i).second) continue;
+    out.push_back(i);
+    for (int j : g[i]) {
+      if (done.count(j)) continue;
+      const double nd = d + (pos(i) - pos(j)).norm();
+      auto it = dist.find(j);
+      if (it == dist.end() || nd < it->second) {
+        dist[j] = nd;
+        q.push({nd, j});
+      }
+    }
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+/** Geodesic Voronoi cells of the samples over the surface graph (multi-source Dijkstra): the
+ * owning sample of every point (-1 where unreached). */
+std::vector<int> geodesicOwners(const Cloud& cloud, const std::vector<std::vector<int>>& g,
+                                const std::vector<int>& samples) {
+  const int n = static_cast<int>(cloud.size());
+  std::vector<int> owner(n, -1);
+  std::vector<double> dist(n, std::numeric_limits<double>::max());
+  using Item = std::pair<double, std::pair<int, int>>;  // distance, (point, owner)
+  std::priority_queue<Item, std::vector<Item>, std::greater<Item>> q;
+  for (std::size_t s = 0; s < samples.size(); ++s) {
+    dist[samples[s]] = 0.0;
+    q.push({0.0, {samples[s], static_cast<int>(s)}});
+  }
+  auto pos = [&](int i) { return Eigen::Vector3d(cloud[i].x, cloud[i].y, cloud[i].z); };
+  while (!q.empty()) {
+    const auto [d, item] = q.top();
+    q.pop();
+    const auto [i, s] = item;
+    if (owner[i] >= 0) continue;
+    owner[i] = s;
+    for (int j : g[i]) {
+      if (owner[j] >= 0) continue;
+      const double nd = d + (pos(i) - pos(j)).norm();
+      if (nd < dist[j]) {
+        dist[j] = nd;
+        q.push({nd, {j, s}});
+      }
+    }
+  }
+  return owner;
+}
+
+/** Sample adjacency from the Voronoi cells: two samples are neighbours when a surface-graph edge
+ * joins their cells. Components left apart only by a crease or a near contact (their samples
+ * within `join_distance`) are joined at their closest samples; pieces farther apart stay apart
+ * (a part is connected), so the hierarchy ends with one part per separate piece. */
+std::vector<std::vector<int>> cellGraphOf(const std::vector<std::vector<int>>& g,
+                                          const std::vector<int>& owner,
+                                          const Eigen::Matrix3Xd& sample_pos,
+                                          double join_distance) {
+  const int S = static_cast<int>(sample_pos.cols());
+  std::vector<std::set<int>> nb(S);
+  for (std::size_t i = 0; i < g.size(); ++i) {
+    if (owner[i] < 0) continue;
+    for (int j : g[i])
+      if (owner[j] >= 0 && owner[j] != owner[i]) nb[owner[i]].insert(owner[j]);
+  }
+  std::vector<int> comp(S, -1);
+  int nc = 0;
+  for (int s = 0; s < S; ++s) {
+    if (comp[s] >= 0) continue;
+    std::vector<int> stack{s};
+    comp[s] = nc;
+    while (!stack.empty()) {
+      const int x = stack.back();
+      stack.pop_back();
+      for (int y : nb[x])
+        if (comp[y] < 0) comp[y] = nc, stack.push_back(y);
+    }
+    ++nc;
+  }
+  if (nc > 1) {
+    // Closest sample pair of every pair of components.
+    const double lim2 = join_distance * join_distance;
+    std::map<std::pair<int, int>, std::pair<double, std::pair<int, int>>> closest;
+    for (int a = 0; a < S; ++a)
+      for (int b = a + 1; b < S; ++b) {
+        if (comp[a] == comp[b]) continue;
+        const double d = (sample_pos.col(a) - sample_pos.col(b)).squaredNorm();
+        if (d > lim2) continue;
+        const auto key = std::make_pair(std::min(comp[a], comp[b]), std::max(comp[a], comp[b]));
+        auto it = closest.find(key);
+        if (it == closest.end() || d < it->second.first) closest[key] = {d, {a, b}};
+      }
+    for (const auto& [key, v] : closest) {
+      nb[v.second.first].insert(v.second.second);
+      nb[v.second.second].insert(v.second.first);
+    }
+  }
+  std::vector<std::vector<int>> out(S);
+  for (int s = 0; s < S; ++s) out[s].assign(nb[s].begin(), nb[s].end());
+  return out;
 }
 
 }  // namespace
@@ -199,10 +339,10 @@ SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingPar
   if (ref >= T)
     throw Error("motion tracking: reference frame " + std::to_string(ref) +
                 " but the sequence has " + std::to_string(T) + " frames");
-  if (params.neighbourhood < 6 || params.sample_neighbours < 1 || params.icp_iterations < 1)
+  if (params.neighbourhood < 6 || params.point_neighbours < 1 || params.icp_iterations < 1)
     throw Error(
-        "motion tracking: neighbourhood must be >= 6, sample_neighbours and "
-        "icp_iterations >= 1");
+        "motion tracking: neighbourhood must be >= 6, point_neighbours and icp_iterations "
+        ">= 1");
   std::vector<Frame> frames(T);
   for (int t = 0; t < T; ++t) {
     frames[t].cloud = seq.frame(t);
@@ -224,23 +364,22 @@ SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingPar
     const auto& q = rc[tr.sample_points[s]];
     p0.col(s) = Eigen::Vector3d(q.x, q.y, q.z);
   }
-  tr.graph = knnGraphOf(p0, params.sample_neighbours);
-  // Each sample's ICP source: its k nearest reference points (reference geometry: no drift).
+  // Neighbourhoods, cells and adjacency grow over the surface graph, not through space: two
+  // limbs that nearly touch in the reference frame must not share a neighbourhood.
+  tr.surface = surfaceGraphOf(rc, frames[ref].tree, std::max(params.point_neighbours, 6),
+                              3.0 * frames[ref].spacing);
+  tr.owner = geodesicOwners(rc, tr.surface, tr.sample_points);
+  tr.graph = cellGraphOf(tr.surface, tr.owner, p0, 6.0 * frames[ref].spacing);
+  // Each sample's ICP source: its geodesically nearest reference points (reference geometry: no
+  // drift).
   std::vector<Source> src(S);
   tr.neighbourhoods.resize(S);
   {
     const int k = std::min(params.neighbourhood, n0);
-#pragma omp parallel
-    {
-      std::vector<int> idx;
-      std::vector<float> d2;
-#pragma omp for schedule(static)
-      for (int s = 0; s < S; ++s) {
-        frames[ref].tree.nearestKSearch(rc[tr.sample_points[s]], k, idx, d2);
-        std::sort(idx.begin(), idx.end());
-        src[s] = sourceOf(rc, idx, static_cast<std::size_t>(k));
-        tr.neighbourhoods[s] = idx;
-      }
+#pragma omp parallel for schedule(dynamic, 4)
+    for (int s = 0; s < S; ++s) {
+      tr.neighbourhoods[s] = geodesicNeighbourhood(rc, tr.surface, tr.sample_points[s], k);
+      src[s] = sourceOf(rc, tr.neighbourhoods[s], static_cast<std::size_t>(k));
     }
   }
   // A fifth of each neighbourhood scores the candidate starts (a bad start is obvious on few
@@ -362,6 +501,80 @@ std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
   return frames;
 }
 
+/** Squared clipped surface distance of one reference point under a motion, summed over frames
+ * (in spacings^2). */
+double pointCost(const pcl::PointNormal& q, const std::vector<Frame>& frames, int ref,
+                 const std::vector<Pose>& motion) {
+  const Eigen::Vector3d p(q.x, q.y, q.z), n(q.normal_x, q.normal_y, q.normal_z);
+  std::vector<int> idx(1);
+  std::vector<float> d2(1);
+  double sum = 0.0;
+  for (std::size_t t = 0; t < frames.size(); ++t) {
+    if (static_cast<int>(t) == ref) continue;
+    sum += surfaceError(motion[t] * p, motion[t].linear() * n, frames[t], idx, d2);
+  }
+  return sum;
+}
+
+/** Moves reference points between touching parts: a point takes, among the labels present in
+ * its surface neighbourhood, the part whose motion keeps the neighbourhood on the surface best
+ * over all frames (costs averaged over the point and its surface neighbours: one point's residual
+ * is noisy). Labels < 0 and parts without a motion are left alone. Returns the points changed. */
+int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surface,
+                     const std::vector<Frame>& frames, int ref,
+                     const std::vector<std::vector<Pose>>& motion, std::vector<int>& label) {
+  const int n = static_cast<int>(rc.size());
+  std::vector<std::vector<int>> cand(n);
+  std::vector<std::vector<int>> need(n);
+  for (int i = 0; i < n; ++i) {
+    if (label[i] < 0) continue;
+    std::set<int> c{label[i]};
+    for (int j : surface[i])
+      if (label[j] >= 0 && !motion[label[j]].empty()) c.insert(label[j]);
+    if (c.size() < 2) continue;
+    cand[i].assign(c.begin(), c.end());
+    for (int g : cand[i]) {
+      need[i].push_back(g);
+      for (int j : surface[i]) need[j].push_back(g);
+    }
+  }
+  std::vector<std::vector<std::pair<int, double>>> cost(n);
+#pragma omp parallel for schedule(dynamic, 32)
+  for (int j = 0; j < n; ++j) {
+    auto& nd = need[j];
+    if (nd.empty()) continue;
+    std::sort(nd.begin(), nd.end());
+    nd.erase(std::unique(nd.begin(), nd.end()), nd.end());
+    for (int g : nd) cost[j].push_back({g, pointCost(rc[j], frames, ref, motion[g])});
+  }
+  auto costOf = [&](int j, int g) {
+    for (const auto& [h, c] : cost[j])
+      if (h == g) return c;
+    return -1.0;
+  };
+  std::vector<int> out(label);
+  int changed = 0;
+#pragma omp parallel for schedule(dynamic, 64) reduction(+ : changed)
+  for (int i = 0; i < n; ++i) {
+    if (cand[i].empty()) continue;
+    double best = std::numeric_limits<double>::max();
+    int pick = label[i];
+    for (int g : cand[i]) {
+      double sum = costOf(i, g);
+      int cnt = 1;
+      for (int j : surface[i]) {
+        const double c = costOf(j, g);
+        if (c >= 0.0) sum += c, ++cnt;
+      }
+      const double avg = sum / cnt;
+      if (avg < best - 1e-9 || (std::abs(avg - best) <= 1e-9 && g == label[i])) best = avg, pick = g;
+    }
+    if (pick != label[i]) out[i] = pick, ++changed;
+  }
+  label.swap(out);
+  return changed;
+}
+
 }  // namespace
 
 TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const SampleTracks& tr,
@@ -476,11 +689,16 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
     for (int s = 0; s < S; ++s) c += alive[s];
     return c;
   };
-  // Phase 1: merge until the stopping point.
+  // Phase 1: samples merge into an over-segmentation. A sample's pose comes from a small
+  // neighbourhood and is noisy; the decisions near the stopping point are left to phase 2, which
+  // fits whole groups.
+  const int over = params.target_clusters > 0
+                       ? std::max(2 * params.target_clusters, params.target_clusters + 8)
+                       : 0;
   while (!edges.empty()) {
     const auto best = cheapest(any);
-    if (params.target_clusters > 0 ? countAlive() <= params.target_clusters
-                                   : best->second.cost > params.threshold)
+    if (params.target_clusters > 0 ? countAlive() <= over
+                                   : best->second.cost > 0.5 * params.threshold)
       break;
     const auto [a, b] = best->first;
     merge(a, b);
@@ -495,34 +713,201 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
     const auto [a, b] = best->first;
     merge(a, b);
   }
-  // Snapshot: final ids in order of each group's smallest sample.
-  std::vector<int> id(S, -1);
-  out.group.assign(S, -1);
-  for (int s = 0; s < S; ++s) {
-    if (!alive[s]) continue;
-    const int lo = *std::min_element(members[s].begin(), members[s].end());
-    id[s] = lo;  // provisional key
-  }
+
+  // Phase 2: the groups as whole parts. Each group's points are the geodesic cells of its samples
+  // (disjoint), its motion per frame is refit by ICP of the whole group (far better conditioned
+  // than a sample's neighbourhood), and the cost of merging A and B is the worst frame's residual
+  // of the worse side under ONE motion fitted to A u B: "can a single rigid motion explain both".
   std::vector<int> roots;
   for (int s = 0; s < S; ++s)
     if (alive[s]) roots.push_back(s);
-  std::sort(roots.begin(), roots.end(), [&](int x, int y) { return id[x] < id[y]; });
-  std::vector<int> group_min(S, -1);
-  for (std::size_t g = 0; g < roots.size(); ++g) {
-    group_min[roots[g]] = static_cast<int>(g);
-    for (int s : members[roots[g]]) out.group[s] = static_cast<int>(g);
-    out.poses.push_back(pose[roots[g]]);
+  std::sort(roots.begin(), roots.end(), [&](int x, int y) {
+    return *std::min_element(members[x].begin(), members[x].end()) <
+           *std::min_element(members[y].begin(), members[y].end());
+  });
+  const int G = static_cast<int>(roots.size());
+  std::vector<int> gid(S, -1);
+  for (int g = 0; g < G; ++g)
+    for (int s : members[roots[g]]) gid[s] = g;
+  std::vector<std::vector<int>> gpts(G);
+  const int n0 = static_cast<int>(rc.size());
+  if (tr.owner.size() == static_cast<std::size_t>(n0)) {
+    for (int i = 0; i < n0; ++i)
+      if (tr.owner[i] >= 0) gpts[gid[tr.owner[i]]].push_back(i);
   }
-  out.groups = static_cast<int>(roots.size());
-  // Phase 2: the coarser hierarchy.
-  while (!edges.empty()) {
-    const auto best = cheapest(any);
+  for (int g = 0; g < G; ++g)
+    if (gpts[g].empty()) gpts[g] = points[roots[g]];
+  std::vector<std::vector<Pose>> gpose(G);
+  for (int g = 0; g < G; ++g) gpose[g] = pose[roots[g]];
+
+  constexpr std::size_t kPartPoints = 96;
+  constexpr int kPartIcp = 8;
+  // One motion per frame for a point set: from the best of the given starts, ICP, the better of
+  // start and result kept.
+  auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
+                     const std::vector<Pose>* ib) {
+    const Source src = sourceOf(rc, pts, kPartPoints);
+    std::vector<Pose> fit(T, Pose::Identity());
+    // Frames in order away from the reference, so that the fit of the previous frame is a start
+    // too: a part that a sample lost in one frame is found again from its own motion.
+    for (int dir : {+1, -1}) {
+      for (int t = ref + dir; t >= 0 && t < T; t += dir) {
+        std::vector<Pose> starts{ia[t], fit[t - dir]};
+        if (ib) starts.push_back((*ib)[t]);
+        const int tpp = t - 2 * dir;
+        if (tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
+          starts.push_back(fit[t - dir] * fit[tpp].inverse() * fit[t - dir]);
+        Pose init = starts[0];
+        double r0 = std::numeric_limits<double>::max();
+        for (const Pose& st : starts) {
+          const double r = residual(src, st, frames[t]);
+          if (r < r0) r0 = r, init = st;
+        }
+        const Pose cand = icp(src, init, frames[t], kPartIcp, 4.0 * frames[t].spacing);
+        fit[t] = residual(src, cand, frames[t]) <= r0 ? cand : init;
+      }
+    }
+    return fit;
+  };
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int g = 0; g < G; ++g) gpose[g] = fitPart(gpts[g], gpose[g], nullptr);
+  // Groups of phase 1 straddle joints where samples' poses were ambiguous: a few rounds of
+  // moving points to the group whose motion explains them (with the motions refit) put the
+  // borders where the motion changes before any group is scored as a whole.
+  if (tr.surface.size() == static_cast<std::size_t>(n0)) {
+    std::vector<int> plabel(n0, -1);
+    for (int g = 0; g < G; ++g)
+      for (int i : gpts[g]) plabel[i] = g;
+    for (int round = 0; round < 3; ++round) {
+      if (reassignByMotion(rc, tr.surface, frames, ref, gpose, plabel) == 0) break;
+      for (auto& v : gpts) v.clear();
+      for (int i = 0; i < n0; ++i)
+        if (plabel[i] >= 0) gpts[plabel[i]].push_back(i);
+#pragma omp parallel for schedule(dynamic, 1)
+      for (int g = 0; g < G; ++g)
+        if (!gpts[g].empty()) gpose[g] = fitPart(gpts[g], gpose[g], nullptr);
+    }
+  }
+
+  struct PartEdge {
+    double cost = 0.0;
+  };
+  // Cost of merging A and B, per frame: the better of A's and B's own motions, scored by the
+  // worse of the two sides' residuals under it; worst frame. No fit of A u B per edge: only the
+  // merge that happens gets one.
+  auto evaluatePair = [&](int a, int b) {
+    PartEdge e;
+    const Source sa = sourceOf(rc, gpts[a], kPartPoints);
+    const Source sb = sourceOf(rc, gpts[b], kPartPoints);
+    for (int t = 0; t < T; ++t) {
+      if (t == ref) continue;
+      const double ca = std::max(residual(sa, gpose[a][t], frames[t]),
+                                 residual(sb, gpose[a][t], frames[t]));
+      const double cb = std::max(residual(sa, gpose[b][t], frames[t]),
+                                 residual(sb, gpose[b][t], frames[t]));
+      e.cost = std::max(e.cost, std::min(ca, cb));
+    }
+    return e;
+  };
+  std::map<std::pair<int, int>, PartEdge> pedges;
+  {
+    std::set<std::pair<int, int>> pairs;
+    std::vector<int> pl(n0, -1);
+    for (int g = 0; g < G; ++g)
+      for (int i : gpts[g]) pl[i] = g;
+    if (tr.surface.size() == static_cast<std::size_t>(n0)) {
+      for (int i = 0; i < n0; ++i)
+        for (int j : tr.surface[i])
+          if (pl[i] >= 0 && pl[j] >= 0 && pl[i] != pl[j])
+            pairs.insert({std::min(pl[i], pl[j]), std::max(pl[i], pl[j])});
+    }
+    for (int s = 0; s < S; ++s)
+      for (int o : tr.graph[s])
+        if (gid[s] != gid[o] && !gpts[gid[s]].empty() && !gpts[gid[o]].empty())
+          pairs.insert({std::min(gid[s], gid[o]), std::max(gid[s], gid[o])});
+    const std::vector<std::pair<int, int>> list(pairs.begin(), pairs.end());
+    std::vector<PartEdge> c(list.size());
+#pragma omp parallel for schedule(dynamic, 1)
+    for (std::size_t i = 0; i < list.size(); ++i) c[i] = evaluatePair(list[i].first, list[i].second);
+    for (std::size_t i = 0; i < list.size(); ++i) pedges[list[i]] = std::move(c[i]);
+  }
+  std::vector<char> galive(G, 1);
+  for (int g = 0; g < G; ++g) galive[g] = !gpts[g].empty();
+  auto mergeParts = [&](int a, int b) {
+    // The smaller id survives, so ids stay ordered by each group's first sample.
+    if (b < a) std::swap(a, b);
+    std::vector<int> u;
+    std::set_union(gpts[a].begin(), gpts[a].end(), gpts[b].begin(), gpts[b].end(),
+                   std::back_inserter(u));
+    gpose[a] = fitPart(u, gpose[a], &gpose[b]);
+    gpts[a].swap(u);
+    gpts[b].clear();
+    galive[b] = 0;
+    std::set<int> nbrs;
+    for (auto it = pedges.begin(); it != pedges.end();) {
+      const auto [x, y] = it->first;
+      if (x == a || x == b || y == a || y == b) {
+        const int o = (x == a || x == b) ? y : x;
+        if (o != a && o != b) nbrs.insert(o);
+        it = pedges.erase(it);
+      } else {
+        ++it;
+      }
+    }
+    const std::vector<int> nb(nbrs.begin(), nbrs.end());
+    std::vector<PartEdge> c(nb.size());
+#pragma omp parallel for schedule(dynamic, 1)
+    for (std::size_t i = 0; i < nb.size(); ++i) c[i] = evaluatePair(a, nb[i]);
+    for (std::size_t i = 0; i < nb.size(); ++i)
+      pedges[{std::min(a, nb[i]), std::max(a, nb[i])}] = std::move(c[i]);
+    return a;
+  };
+  auto cheapestPart = [&]() {
+    auto best = pedges.end();
+    for (auto it = pedges.begin(); it != pedges.end(); ++it)
+      if (best == pedges.end() || it->second.cost < best->second.cost) best = it;
+    return best;
+  };
+  int alive_parts = static_cast<int>(std::count(galive.begin(), galive.end(), 1));
+  while (!pedges.empty()) {
+    const auto best = cheapestPart();
+    if (params.target_clusters > 0 ? alive_parts <= params.target_clusters
+                                   : best->second.cost > params.threshold)
+      break;
+    const auto [a, b] = best->first;
+    mergeParts(a, b);
+    --alive_parts;
+  }
+  // Snapshot: final ids in order of each group's first sample.
+  std::vector<int> final_id(G, -1);
+  for (int g = 0; g < G; ++g)
+    if (galive[g]) final_id[g] = out.groups++;
+  // Re-derive membership from the point sets: a phase-1 group belongs to the part holding its
+  // points (its cells moved with it).
+  {
+    std::vector<int> part_of_point(n0, -1);
+    for (int g = 0; g < G; ++g)
+      if (galive[g])
+        for (int i : gpts[g]) part_of_point[i] = final_id[g];
+    out.group.assign(S, 0);
+    for (int s = 0; s < S; ++s) {
+      const int p = part_of_point[tr.sample_points[s]];
+      out.group[s] = p >= 0 ? p : 0;
+    }
+    out.point_labels = part_of_point;
+  }
+  for (int g = 0; g < G; ++g)
+    if (galive[g]) out.poses.push_back(gpose[g]);
+  // The coarser hierarchy, in final ids (a merged pair is named by its smaller id).
+  std::vector<int> name(final_id);
+  while (!pedges.empty()) {
+    const auto best = cheapestPart();
     const auto [a, b] = best->first;
     const double c = best->second.cost;
-    out.merges.push_back(
-        {std::min(group_min[a], group_min[b]), std::max(group_min[a], group_min[b]), c});
-    group_min[a] = std::min(group_min[a], group_min[b]);
-    merge(a, b);
+    out.merges.push_back({std::min(name[a], name[b]), std::max(name[a], name[b]), c});
+    const int lo = std::min(name[a], name[b]);
+    const int survivor = mergeParts(a, b);
+    name[survivor] = lo;
   }
   return out;
 }
@@ -543,7 +928,8 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   const int n0 = static_cast<int>(rc.size());
   const int S = static_cast<int>(tr.sample_points.size());
 
-  // Reference labels: the nearest sample's group.
+  // Reference labels: the group of the sample whose geodesic cell holds the point (the nearest
+  // sample where the surface graph did not reach).
   std::vector<int> label(n0, 0);
   {
     Cloud::Ptr sc(new Cloud);
@@ -553,67 +939,102 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     st.setInputCloud(sc);
     std::vector<int> idx;
     std::vector<float> d2;
-    for (int i = 0; i < n0; ++i)
-      if (st.nearestKSearch(rc[i], 1, idx, d2) == 1) label[i] = tc.group[idx[0]];
+    for (int i = 0; i < n0; ++i) {
+      if (tc.point_labels.size() == static_cast<std::size_t>(n0) && tc.point_labels[i] >= 0)
+        label[i] = tc.point_labels[i];
+      else if (tr.owner.size() == static_cast<std::size_t>(n0) && tr.owner[i] >= 0)
+        label[i] = tc.group[tr.owner[i]];
+      else if (st.nearestKSearch(rc[i], 1, idx, d2) == 1)
+        label[i] = tc.group[idx[0]];
+    }
   }
-  // Part motions: the group's pose or the Kabsch fit of its samples, refined by ICP of the part's
-  // reference points (a whole part is far better conditioned than a sample's neighbourhood); the
-  // better kept.
+  // Part motions, tracked along the sequence as an articulated body: the frames in order away
+  // from the reference, the parts of a frame in breadth-first order over the part adjacency from
+  // the largest part, each started from the best of its clustering pose, the Kabsch fit of its
+  // samples, its previous pose, a constant-velocity guess and, for every neighbour already
+  // solved in this frame, the neighbour's motion since the previous frame applied to the part
+  // (a lower leg follows its thigh), then refined by ICP of up to 400 of its reference points.
   std::vector<std::vector<Pose>> motion(nc, std::vector<Pose>(T, Pose::Identity()));
   {
     std::vector<std::vector<int>> pts(nc), smp(nc);
     for (int i = 0; i < n0; ++i) pts[label[i]].push_back(i);
     for (int s = 0; s < S; ++s) smp[tc.group[s]].push_back(s);
-#pragma omp parallel for schedule(dynamic, 1)
-    for (int c = 0; c < nc; ++c) {
-      const Source src = sourceOf(rc, pts[c], 400);
-      const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
-      Eigen::Matrix3Xd a(3, m), b(3, m);
-      for (int t = 0; t < T; ++t) {
-        if (t == ref) continue;
-        for (Eigen::Index k = 0; k < m; ++k)
-          a.col(k) = tr.positions[ref].col(smp[c][k]), b.col(k) = tr.positions[t].col(smp[c][k]);
-        const evaluation::RigidFit fit = evaluation::kabsch(a, b);
-        Pose init = Pose::Identity();
-        init.linear() = fit.rotation;
-        init.translation() = fit.translation;
-        if (residual(src, tc.poses[c][t], frames[t]) < residual(src, init, frames[t]))
-          init = tc.poses[c][t];
-        const Pose cand = icp(src, init, frames[t], 10, 4.0 * frames[t].spacing);
-        motion[c][t] =
-            residual(src, cand, frames[t]) <= residual(src, init, frames[t]) ? cand : init;
+    std::vector<Source> src(nc);
+    for (int c = 0; c < nc; ++c) src[c] = sourceOf(rc, pts[c], 400);
+    std::vector<std::set<int>> adj(nc);
+    if (tr.surface.size() == static_cast<std::size_t>(n0))
+      for (int i = 0; i < n0; ++i)
+        for (int j : tr.surface[i])
+          if (label[i] != label[j]) adj[label[i]].insert(label[j]);
+    std::vector<int> by_size(nc);
+    std::iota(by_size.begin(), by_size.end(), 0);
+    std::stable_sort(by_size.begin(), by_size.end(),
+                     [&](int x, int y) { return pts[x].size() > pts[y].size(); });
+    std::vector<int> level(nc, -1);
+    std::vector<std::vector<int>> levels;
+    for (int start : by_size) {
+      if (level[start] >= 0) continue;
+      std::vector<int> cur{start};
+      level[start] = static_cast<int>(levels.size());
+      while (!cur.empty()) {
+        levels.push_back(cur);
+        std::vector<int> next;
+        for (int c : cur)
+          for (int o : adj[c])
+            if (level[o] < 0) level[o] = static_cast<int>(levels.size()), next.push_back(o);
+        std::sort(next.begin(), next.end());
+        cur.swap(next);
       }
     }
-  }
-  // Every reference point moves to the part (its own or a neighbour's) whose motion keeps it on
-  // the surface best over all frames: the nearest-sample labels are coarse at joints.
-  {
-    const int kk = std::min(params.point_neighbours + 1, n0);
-    std::vector<int> relabel(label);
-#pragma omp parallel
-    {
-      std::vector<int> idx;
-      std::vector<float> d2;
-#pragma omp for schedule(dynamic, 64)
-      for (int i = 0; i < n0; ++i) {
-        frames[ref].tree.nearestKSearch(rc[i], kk, idx, d2);
-        std::set<int> cands;
-        for (int j : idx) cands.insert(label[j]);
-        if (cands.size() < 2) continue;
-        const Source one = sourceOf(rc, std::vector<int>{i}, 1);
-        double best = std::numeric_limits<double>::max();
-        for (int c : cands) {
-          double sum = 0.0;
-          for (int t = 0; t < T; ++t) {
-            const double r = residual(one, motion[c][t], frames[t]);
-            sum += r * r;
+    for (int dir : {+1, -1}) {
+      for (int t = ref + dir; t >= 0 && t < T; t += dir) {
+        const int tp = t - dir, tpp = t - 2 * dir;
+        const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+        for (const std::vector<int>& lv : levels) {
+#pragma omp parallel for schedule(dynamic, 1)
+          for (std::size_t li = 0; li < lv.size(); ++li) {
+            const int c = lv[li];
+            if (pts[c].empty()) continue;
+            std::vector<Pose> starts{tc.poses[c][t], motion[c][tp]};
+            if (has_pp) starts.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
+            const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
+            if (m >= 3) {
+              Eigen::Matrix3Xd a(3, m), b(3, m);
+              for (Eigen::Index k = 0; k < m; ++k)
+                a.col(k) = tr.positions[ref].col(smp[c][k]),
+                b.col(k) = tr.positions[t].col(smp[c][k]);
+              const evaluation::RigidFit fit = evaluation::kabsch(a, b);
+              Pose k = Pose::Identity();
+              k.linear() = fit.rotation;
+              k.translation() = fit.translation;
+              starts.push_back(k);
+            }
+            for (int h : adj[c])
+              if (level[h] < level[c])
+                starts.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
+            std::vector<std::pair<double, int>> score;
+            for (std::size_t k = 0; k < starts.size(); ++k)
+              score.push_back({residual(src[c], starts[k], frames[t]), static_cast<int>(k)});
+            std::stable_sort(score.begin(), score.end());
+            double best = score[0].first;
+            Pose best_pose = starts[score[0].second];
+            for (std::size_t k = 0; k < std::min<std::size_t>(2, score.size()); ++k) {
+              const Pose cand = icp(src[c], starts[score[k].second], frames[t], 10,
+                                    4.0 * frames[t].spacing);
+              const double r = residual(src[c], cand, frames[t]);
+              if (r < best) best = r, best_pose = cand;
+            }
+            motion[c][t] = best_pose;
           }
-          if (sum < best - 1e-9 || (std::abs(sum - best) <= 1e-9 && c == label[i]))
-            best = sum, relabel[i] = c;
         }
       }
     }
-    label.swap(relabel);
+  }
+  // Every reference point moves to the part (its own or a surface neighbour's) whose motion keeps
+  // its neighbourhood on the surface best over all frames: the part motions are final now.
+  if (tr.surface.size() == static_cast<std::size_t>(n0)) {
+    for (int round = 0; round < 2; ++round)
+      if (reassignByMotion(rc, tr.surface, frames, ref, motion, label) == 0) break;
   }
   // Labels of every frame: the nearest reference point moved by its part's motion, with a
   // compatible normal.

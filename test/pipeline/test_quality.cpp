@@ -75,15 +75,17 @@ double envDouble(const char* name, double fallback) {
 
 // The quality goal (>= 10 parts, >= 20 frames, large motion, +-20% point counts, no
 // correspondences) at the hierarchy level with the true part count. The pooled ARI reached is
-// below the 0.90 goal; the bounds are the measured numbers minus a margin, so that a regression
-// shows (see docs/mean_shift_experiments.md).
+// below the 0.90 goal (measured at 2000 points per frame: quadruped 0.84, spider 0.69); the bounds
+// are the measured numbers minus a margin, so that a regression shows (see
+// docs/mean_shift_experiments.md). A lower leg has ~1.5% of the points: with fewer than ~2000
+// points per frame it is too small for its own tracked neighbourhoods.
 TEST(MotionQuality, QuadrupedAndSpiderAtTruePartCount) {
   const struct {
     synth::BodyPlan plan;
     double bound;
-  } cases[] = {{synth::BodyPlan::Quadruped, 0.55}, {synth::BodyPlan::Spider, 0.38}};
+  } cases[] = {{synth::BodyPlan::Quadruped, 0.75}, {synth::BodyPlan::Spider, 0.60}};
   for (const auto& c : cases) {
-    const auto frames = synth::generate(sequenceParams(c.plan, 20, 700, 3));
+    const auto frames = synth::generate(sequenceParams(c.plan, 20, 2000, 3));
     seg::MeanShiftParams p;
     p.target_clusters = synth::partCount(c.plan);
     const RunResult r = runOn(frames, p);
@@ -235,4 +237,38 @@ TEST(MotionQuality, DISABLED_Tracking) {
   std::printf("clustering %.2f s, %d groups, sample ARI vs truth %.3f\n",
               std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(),
               tc.groups, ev::adjustedRandIndex(tc.group, truth0));
+}
+
+// Diagnostics: where the labels at the true part count go wrong (reference frame vs transfer),
+// and which true parts each predicted part covers.
+TEST(MotionQuality, DISABLED_Confusion) {
+  const char* plan_name = std::getenv("PLANS");
+  const auto plan = synth::bodyPlanFromString(plan_name ? plan_name : "quadruped");
+  const auto frames = synth::generate(
+      sequenceParams(plan, envInt("FRAMES", 20), envInt("POINTS", 1500), envInt("SEED", 3)));
+  seg::MeanShiftParams p;
+  p.target_clusters = envInt("TARGET", synth::partCount(plan));
+  p.motion_threshold = envDouble("THRESHOLD", p.motion_threshold);
+  const RunResult r = runOn(frames, p);
+  const auto rep = ev::evaluate(r.result.labels, truthOf(frames));
+  std::printf("pooled ARI %.3f, %d clusters, %.1f s; frame ARI:", r.ari, r.clusters, r.seconds);
+  for (double a : rep.frame_ari) std::printf(" %.2f", a);
+  std::printf("\n merges:");
+  for (std::size_t i = 0; i < std::min<std::size_t>(12, r.result.merges.size()); ++i)
+    std::printf(" %.2f", r.result.merges[i].cost);
+  std::printf("\n");
+  const int P = synth::partCount(plan);
+  const auto names = synth::partNames(plan);
+  std::vector<std::vector<long>> conf(P, std::vector<long>(r.clusters, 0));
+  for (std::size_t t = 0; t < frames.size(); ++t)
+    for (std::size_t i = 0; i < frames[t].labels.size(); ++i)
+      if (r.result.labels[t][i] >= 0) ++conf[frames[t].labels[i]][r.result.labels[t][i]];
+  for (int a = 0; a < P; ++a) {
+    long tot = 0;
+    for (long c : conf[a]) tot += c;
+    std::printf("%-14s %6ld:", names[a].c_str(), tot);
+    for (int c = 0; c < r.clusters; ++c)
+      if (conf[a][c] * 50 > tot) std::printf(" L%d=%.0f%%", c, 100.0 * conf[a][c] / tot);
+    std::printf("\n");
+  }
 }

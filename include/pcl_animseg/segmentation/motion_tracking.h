@@ -2,31 +2,38 @@
 /** \file motion_tracking.h Near-rigid parts of a sequence without correspondences, from tracked
  * surface samples (the motion method of MeanShiftSegmentation; beyond the paper).
  *
- * 1. Samples: farthest-point sampling of the reference frame (about one per 8 points).
- * 2. Tracking: every sample carries its reference-frame neighbourhood (its k nearest reference
- *    points) and a pose per frame, reference -> frame t, found by point-to-plane ICP of that
- *    neighbourhood against frame t. Because the source is always the reference geometry, errors
- *    do not accumulate from frame to frame; only the initialisation is chained. Large joint
- *    motions (a galloping leg turns ~20 degrees per frame) defeat an ICP started from the
- *    previous pose, so the samples of a frame are solved in breadth-first order over the sample
- *    k-NN graph, from the sample that the whole-frame ICP explains best (the torso), and each one
- *    starts from several candidates: the poses already found for its neighbours in THIS frame,
- *    its own previous pose, a constant-velocity prediction and the whole-frame pose; the
- *    lowest-residual fit wins. A rotation is thus discovered progressively down a limb. The ICP
- *    is damped, so a direction the neighbourhood does not constrain (along a capsule) keeps the
- *    neighbour's motion instead of sliding.
- * 3. Clustering: the samples now have a pose (and so a position) in every frame. Groups of
- *    samples are merged agglomeratively over the sample graph; the cost of merging A and B is,
- *    in the worst frame, the better of A's and B's pose scored by the worse of A's and B's
- *    surface residuals under it (point spacings). Surface residuals, unlike sample positions,
- *    do not see a sample slide along a capsule (which its neighbourhood cannot fix); each side
- *    scored on its own keeps a small limb from hiding in a large torso's average; the better of
- *    two poses forgives a sample lost in one frame. Merging stops at a threshold or at a target
- *    count; later merges form the hierarchy.
- * 4. Labels: each reference point takes the label of its nearest sample, then moves to the part
- *    (among those of its neighbours) whose rigid motion keeps it on the surface best over all
- *    frames; every point of every frame takes the label of the nearest reference point moved by
- *    its part's motion (with a compatible normal).
+ * 1. Samples: farthest-point sampling of the reference frame (about one per 8 points), and the
+ *    reference frame's surface graph (k nearest points within 3 spacings with compatible normals:
+ *    unlike plain k-NN it does not bridge two limbs that nearly touch). Each sample owns its
+ *    geodesic Voronoi cell; samples whose cells touch are neighbours.
+ * 2. Tracking: every sample carries its geodesic neighbourhood (its k nearest reference points
+ *    over the surface graph) and a pose per frame, reference -> frame t, found by point-to-plane
+ *    ICP of that neighbourhood against frame t. Because the source is always the reference
+ *    geometry, errors do not accumulate from frame to frame; only the initialisation is chained.
+ *    Large joint motions (a galloping leg turns ~20 degrees per frame) defeat an ICP started from
+ *    the previous pose, so the samples of a frame are solved in breadth-first order over the
+ *    sample graph, from the sample that the whole-frame ICP explains best (the torso), and each
+ *    one starts from several candidates: the poses already found for its neighbours in THIS
+ *    frame, its own previous pose, a constant-velocity prediction and the whole-frame pose; the
+ *    lowest-residual fit wins. The ICP is damped, so a direction the neighbourhood does not
+ *    constrain (along a capsule) keeps the neighbour's motion instead of sliding.
+ * 3. Clustering, in two phases. Residuals are surface errors: the distance to the nearest
+ *    point's tangent plane (blind to the sampling of the two clouds and to a sample sliding along
+ *    a capsule), in point spacings.
+ *    a. Samples merge agglomeratively into an over-segmentation (twice the target count, or half
+ *       the threshold); the cost of merging A and B is, in the worst frame, the better of A's and
+ *       B's pose scored by the worse of A's and B's residuals under it.
+ *    b. The groups become whole parts: points are their samples' cells, moved a few rounds to the
+ *       neighbouring part whose motion explains them best over all frames (costs averaged over
+ *       surface neighbourhoods), with each part's motion refit by ICP of the whole part, tracked
+ *       along the sequence (a part lost in one frame is found again from its own previous and
+ *       constant-velocity poses). Parts then merge while one rigid motion fitted to A u B
+ *       explains both sides (worst frame of the worse side) below the threshold, or down to the
+ *       target count; the later merges form the hierarchy.
+ * 4. Labels: each reference point keeps its part, then moves to the part (among those of its
+ *    surface neighbours) whose rigid motion keeps it on the surface best over all frames; every
+ *    point of every frame takes the label of the nearest reference point moved by its part's
+ *    motion (with a compatible normal).
  */
 #include <pcl_animseg/segmentation/segmentation_result.h>
 #include <pcl_animseg/sequence.h>
@@ -45,8 +52,6 @@ struct MotionTrackingParams {
   int samples = 0;
   /** Reference points in a sample's neighbourhood (the ICP source). */
   int neighbourhood = 60;
-  /** Neighbours of a sample in the sample graph (BFS order, candidate poses, merge adjacency). */
-  int sample_neighbours = 8;
   int icp_iterations = 8;
   /** Merging stops when the cheapest merge costs more than this (point spacings). */
   double threshold = 2.0;
@@ -56,7 +61,8 @@ struct MotionTrackingParams {
   int min_group_samples = 2;
   /** Reference frame (-1: the first). */
   int reference_frame = -1;
-  /** k of the reference-frame k-NN graph used when relabelling points at part borders. */
+  /** k of the reference frame's surface graph (neighbourhoods, sample adjacency, relabelling at
+   * part borders). */
   int point_neighbours = 10;
   unsigned seed = 1;
 };
@@ -70,6 +76,10 @@ struct SampleTracks {
   std::vector<double> residual;                       ///< mean ICP residual per frame (spacings)
   std::vector<std::vector<int>> graph;                ///< sample k-NN graph (symmetric)
   std::vector<std::vector<int>> neighbourhoods;       ///< ICP source of each sample (sorted)
+  /** Surface graph of the reference frame: k nearest points within 3 spacings with compatible
+   * normals (symmetric); neighbourhoods and adjacency grow over it. */
+  std::vector<std::vector<int>> surface;
+  std::vector<int> owner;  ///< sample whose geodesic cell holds each reference point (-1: none)
   double spacing = 1.0;                               ///< reference-frame point spacing
 };
 
@@ -89,6 +99,9 @@ struct TrajectoryClusters {
   int groups = 0;
   std::vector<ClusterMerge> merges;
   std::vector<std::vector<Eigen::Isometry3d>> poses;  ///< poses[g][t]: the group's motion
+  /** Part of every reference-frame point (-1 where the surface graph did not reach), after the
+   * points were moved to the part whose motion explains them. */
+  std::vector<int> point_labels;
 };
 TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const SampleTracks& tracks,
                                        const MotionTrackingParams& params);
