@@ -139,7 +139,8 @@ int main(int argc, char** argv) {
     std::setvbuf(stdout, nullptr, _IONBF, 0);
     const int n = static_cast<int>(argValue(argc, argv, "--points", 800000));
     const int frames = static_cast<int>(argValue(argc, argv, "--frames", 48));
-    const int refine = static_cast<int>(argValue(argc, argv, "--refine", 40));
+    const int refine = static_cast<int>(
+        argValue(argc, argv, "--refine", seg::MeanShiftParams().refine_iterations));
     const int sub1 = static_cast<int>(argValue(argc, argv, "--exact-every1", 80));
     const int sub2 = static_cast<int>(argValue(argc, argv, "--exact-every2", 40));
     const bool run_full = argValue(argc, argv, "--full", 1) != 0;

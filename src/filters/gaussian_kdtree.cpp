@@ -98,6 +98,14 @@ void GaussianKdTree::computeBoxes(int node) {
   box_max_.col(node) = box_max_.col(nd.left).cwiseMax(box_max_.col(nd.right));
 }
 
+int GaussianKdTree::leafContaining(const float* q) const {
+  if (root_ < 0) throw Error("Gaussian kd-tree: build() must be called before a query");
+  int node = root_;
+  while (nodes_[node].leaf < 0)
+    node = q[nodes_[node].dim] <= nodes_[node].cut ? nodes_[node].left : nodes_[node].right;
+  return nodes_[node].leaf;
+}
+
 double GaussianKdTree::samplingFactor() const {
   return samples_.cols() ? static_cast<double>(leaf_of_point_.size()) / samples_.cols() : 0.0;
 }

@@ -552,6 +552,35 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   std::vector<int> active(g);
   std::iota(active.begin(), active.end(), 0);
   const float tol2 = static_cast<float>(params.convergence * params.convergence);
+  // Trajectories that meet go on as one (Carreira-Perpinan's basin acceleration): a group whose
+  // step lands in a cell (a fifth of the merge radius, the cells of groupModes) that another
+  // group's trajectory went through follows that group from then on. Mean shift collapses
+  // trajectories onto few ridges and modes, so most groups stop after a few exact steps.
+  std::vector<int> leader(g);
+  std::iota(leader.begin(), leader.end(), 0);
+  auto root = [&](int r) {
+    while (leader[r] != r) r = leader[r];
+    return r;
+  };
+  const float visit_cell = static_cast<float>(params.merge_radius / 5.0);
+  std::unordered_map<std::string, int> visited;
+  auto claim = [&](int r) {  // true when r now follows another group
+    for (int c = 0; c < dim; ++c) {
+      const int q = static_cast<int>(std::floor(yg(r, c) * space.metric_plain[c] / visit_cell));
+      std::memcpy(&key[sizeof(int) * c], &q, sizeof(int));
+    }
+    key.back() = key_of.empty() ? 0 : key_of[r];
+    const auto [it, fresh] = visited.emplace(key, r);
+    if (fresh) return false;
+    const int other = root(it->second);
+    if (other == r) return false;
+    leader[r] = other;
+    return true;
+  };
+  std::vector<int> start;
+  for (int r : active)
+    if (!claim(r)) start.push_back(r);
+  active.swap(start);
   for (int it = 0; it < params.refine_iterations && !active.empty(); ++it) {
     exact.evaluate(yg, active, key_of, out);
     std::vector<int> still;
@@ -561,10 +590,11 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
       const Eigen::RowVectorXf next = out.row(r).head(dim) / den;
       const float step2 = (next - yg.row(r)).cwiseProduct(space.metric_plain).squaredNorm();
       yg.row(r) = next;
-      if (!(step2 < tol2)) still.push_back(r);
+      if (!(step2 < tol2) && !claim(r)) still.push_back(r);
     }
     active.swap(still);
   }
+  for (int r = 0; r < g; ++r) yg.row(r) = yg.row(root(r)).eval();
   for (Eigen::Index i = 0; i < n; ++i) y.row(i) = yg.row(group_of[i]);
 }
 
@@ -572,17 +602,18 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
  * (its leaves, N/M points each), split by the keypoint flag because a keypoint's query sums with
  * the pair rule of Eq. 5. start_of[i] is the start of point i, y0 the starts (cell means, raw
  * coordinates), start_key their keypoint flag (empty without keypoints). */
-void cellStarts(const JointSpace& space, const MeanShiftParams& params, const JointKernelSum& sums,
-                std::vector<int>& start_of, Eigen::MatrixXf& y0, std::vector<char>& start_key) {
+const filters::GaussianKdTree& cellStarts(const JointSpace& space, const JointKernelSum& sums,
+                                          filters::GaussianKdTree& own, std::vector<int>& start_of,
+                                          std::vector<int>& cell_start, Eigen::MatrixXf& y0,
+                                          std::vector<char>& start_key) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
   // Without the pair rule the sums' own tree is over the points in the plain metric: reuse it.
-  filters::GaussianKdTree own(params.gkdtree);
   const filters::GaussianKdTree* found = sums.cellTree();
   if (!found) own.build((space.z.array().rowwise() * space.metric_plain.array()).matrix());
   const filters::GaussianKdTree& tree = found ? *found : own;
   const bool keys = space.has_keypoints;
-  std::vector<int> cell_start(tree.numSamples() * (keys ? 2 : 1), -1);
+  cell_start.assign(tree.numSamples() * (keys ? 2 : 1), -1);
   start_of.resize(n);
   int m = 0;
   for (Eigen::Index i = 0; i < n; ++i) {
@@ -601,6 +632,7 @@ void cellStarts(const JointSpace& space, const MeanShiftParams& params, const Jo
   start_key.assign(keys ? m : 0, 0);
   if (keys)
     for (Eigen::Index i = 0; i < n; ++i) start_key[start_of[i]] = space.keypoint[i];
+  return tree;
 }
 
 /** The paper method's iteration on the CPU: Eq. 9 until it stops; y the end points (one row per
@@ -619,16 +651,24 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   const JointKernelSum& sums = *sums_out;
   values.resize(0, 0);
   const bool cells = params.backend == MeanShiftBackend::GaussianKdTree;
-  std::vector<int> start_of;
+  std::vector<int> start_of, cell_start;
   std::vector<char> start_key;
   Eigen::MatrixXf ys;  // the iterated rows: points (exact) or cells (Gaussian kd-tree)
+  filters::GaussianKdTree own(params.gkdtree);
+  const filters::GaussianKdTree* tree = nullptr;
   if (cells) {
-    cellStarts(space, params, sums, start_of, ys, start_key);
+    tree = &cellStarts(space, sums, own, start_of, cell_start, ys, start_key);
   } else {
     ys = space.z;
     if (space.has_keypoints) start_key = space.keypoint;
   }
   const Eigen::Index m = ys.rows();
+  std::vector<int> leader(m);
+  std::iota(leader.begin(), leader.end(), 0);
+  auto root = [&](int r) {
+    while (leader[r] != r) r = leader[r];
+    return r;
+  };
   Eigen::MatrixXf out(m, dim + 1);
   Eigen::VectorXf start_density = Eigen::VectorXf::Zero(m);
   std::vector<int> active(m);
@@ -641,6 +681,7 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
     // The density at the points (a cell's points: at their mean), for the saddles.
     if (it == 0) start_density = out.col(dim);
     std::vector<char> done(active.size(), 0);
+    std::vector<int> entered(cells ? active.size() : 0, -1);
 #pragma omp parallel for schedule(static)
     for (std::size_t a = 0; a < active.size(); ++a) {
       const int r = active[a];
@@ -653,15 +694,33 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
       const float step2 = (next - ys.row(r)).cwiseProduct(space.metric_plain).squaredNorm();
       ys.row(r) = next;
       done[a] = step2 < tol2;
+      if (cells && !done[a]) {
+        const Eigen::RowVectorXf scaled = next.cwiseProduct(space.metric_plain);
+        const int leaf = tree->leafContaining(scaled.data());
+        entered[a] = cell_start[static_cast<std::size_t>(leaf) * (space.has_keypoints ? 2 : 1) +
+                                (space.has_keypoints && start_key[r] ? 1 : 0)];
+      }
     }
     std::vector<int> still;
-    for (std::size_t a = 0; a < active.size(); ++a)
-      if (!done[a]) still.push_back(active[a]);
+    for (std::size_t a = 0; a < active.size(); ++a) {
+      if (done[a]) continue;
+      // A trajectory that enters another cell goes on as that cell's (whose points share one
+      // mode already): the filter phase becomes a walk over cells, each taken once.
+      if (cells && entered[a] >= 0) {
+        const int other = root(entered[a]);
+        if (other != active[a]) {
+          leader[active[a]] = other;
+          continue;
+        }
+      }
+      still.push_back(active[a]);
+    }
     active.swap(still);
     if (progress) progress->update(it + 1);
   }
   if (progress) progress->end(std::to_string(active.size()) + (cells ? " cells" : " points") +
                               " not converged");
+  for (Eigen::Index r = 0; r < m; ++r) ys.row(r) = ys.row(root(static_cast<int>(r))).eval();
   if (params.backend == MeanShiftBackend::GaussianKdTree && params.refine_iterations > 0)
     refineEndPoints(space, params, start_key, ys);
   // Density at the end points, to visit them from the highest.

@@ -97,6 +97,17 @@ TEST(GaussianKdTree, DeterministicAndIdenticalPoints) {
   EXPECT_TRUE(oa == ob);
 }
 
+TEST(GaussianKdTree, LeafContainingFindsTheLeafOfEveryDataPoint) {
+  const Eigen::MatrixXf p = makeData(3000, 30, 5);
+  GaussianKdTree tree;
+  tree.build(p);
+  ASSERT_GT(tree.numSamples(), 1u);
+  for (Eigen::Index j = 0; j < p.rows(); ++j) {
+    const Eigen::VectorXf q = p.row(j).transpose();
+    EXPECT_EQ(tree.leafContaining(q.data()), tree.leafOf(j)) << "point " << j;
+  }
+}
+
 TEST(GaussianKdTree, BadInput) {
   GaussianKdTree tree;
   EXPECT_THROW(tree.build(Eigen::MatrixXf(0, 3)), pcl_animseg::Error);

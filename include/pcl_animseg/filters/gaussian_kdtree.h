@@ -106,6 +106,9 @@ class GaussianKdTree {
   const Eigen::MatrixXf& samples() const { return samples_; }
   /** \brief The sample (leaf) holding data point j. */
   int leafOf(std::size_t j) const { return leaf_of_point_[j]; }
+  /** \brief The leaf whose cell holds position q (d values, scaled like the data): the
+   * tree's descent by its cuts. */
+  int leafContaining(const float* q) const;
   /** \brief Bytes held by the tree (for the benchmark's memory report). */
   std::size_t memoryBytes() const;
 

@@ -80,10 +80,10 @@ struct MeanShiftParams {
   /** A trajectory stops when it moves less than this many bandwidths in one step. */
   double convergence = 1e-3;
   /** Gaussian kd-tree backend, paper method: after the approximate iteration, up to this many
-   * exact mean-shift steps from each group of coinciding end points (a hybrid: the filter does
-   * the long walk, exact sums over the data the last steps; see refineEndPoints in the source).
-   * 0: pure filter. */
-  int refine_iterations = 40;
+   * exact mean-shift steps from each group of coinciding end points, trajectories that meet
+   * going on as one (a hybrid: the filter does the long walk, exact sums over the data the last
+   * steps, to convergence; see refineEndPoints in the source). 0: pure filter. */
+  int refine_iterations = 150;
   /** Modes closer than this many bandwidths are one mode. */
   double merge_radius = 0.5;
   /** Clusters with fewer points (whole sequence) are absorbed by a neighbour; 0: 0.2% of the
