@@ -52,7 +52,8 @@ namespace segmentation {
 /** \brief How the kernel sums of Eq. 8 / Eq. 10 are evaluated. */
 enum class MeanShiftBackend {
   Exact,          ///< FLANN kd-tree radius search (3 bandwidths) + exact Gaussian: the reference
-  GaussianKdTree  ///< filters::GaussianKdTree (Adams et al. 2009)
+  GaussianKdTree  ///< filters::GaussianKdTree (Adams et al. 2009); the paper method iterates
+                  ///< the tree's cells (leaf means) and gives every point its cell's mode
 };
 /** \brief Which decomposition. */
 enum class MeanShiftMethod {
