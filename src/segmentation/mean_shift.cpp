@@ -650,7 +650,7 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   sums_out = std::make_unique<JointKernelSum>(space, values, params);
   const JointKernelSum& sums = *sums_out;
   values.resize(0, 0);
-  const bool cells = params.backend == MeanShiftBackend::GaussianKdTree;
+  const bool cells = params.backend == MeanShiftBackend::GaussianKdTree && params.iterate_cells;
   std::vector<int> start_of, cell_start;
   std::vector<char> start_key;
   Eigen::MatrixXf ys;  // the iterated rows: points (exact) or cells (Gaussian kd-tree)

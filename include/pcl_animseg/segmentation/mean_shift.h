@@ -85,6 +85,10 @@ struct MeanShiftParams {
    * going on as one (a hybrid: the filter does the long walk, exact sums over the data the last
    * steps, to convergence; see refineEndPoints in the source). 0: pure filter. */
   int refine_iterations = 150;
+  /** Gaussian kd-tree backend, paper method: iterate the M cells of the filter's tree (each from
+   * the mean of its points; every point takes its cell's end point) instead of the N points.
+   * false: every point is iterated, as the GPU path does (the reference its tests compare with). */
+  bool iterate_cells = true;
   /** Modes closer than this many bandwidths are one mode. */
   double merge_radius = 0.5;
   /** Clusters with fewer points (whole sequence) are absorbed by a neighbour; 0: 0.2% of the
@@ -99,7 +103,7 @@ struct MeanShiftParams {
    * [24, 200]. */
   int patches = 0;
   /** Merging stops when the cheapest merge's motion residual exceeds this (point spacings). */
-  double motion_threshold = 1.5;
+  double motion_threshold = 1.25;
   /** When > 0, merge until exactly this many parts instead (threshold ignored). */
   int target_clusters = 0;
   int icp_iterations = 25;
