@@ -43,11 +43,14 @@ struct RefinementParams {
    * p_c(x|own) exceeds this. Where the two sides' normals are alike (a smooth boundary) the
    * likelihood ratio is noise, and the initial label is the better guess. 0 = the paper's rule. */
   double min_log_ratio = 1.0;
-  /** Optional spatial term (0 = off, the paper's pure normal-space rule): adds
+  /** Spatial term (0 = off, the paper's pure normal-space rule): adds
    * −spatial_weight · (distance to the side's nearest training point, in spacings) to each side's
    * log-likelihood. It keeps a W point from jumping to a side whose band is far away when
-   * normals cannot tell the sides apart. */
-  double spatial_weight = 0.0;
+   * normals cannot tell the sides apart (capsule limbs: both sides of a knee have the same
+   * normals). On generated sequences after the motion method (2000 points per frame, true part
+   * count) the pooled ARI after refinement was, with 0 / 0.5 / 1: quadruped 0.80 / 0.91 / -,
+   * humanoid 0.72 / 0.76 / 0.76, spider 0.73 / 0.76 / 0.76, hand 0.81 / 0.82 / 0.82. */
+  double spatial_weight = 0.5;
   /** Iterate (bands rebuilt from the new labels) until fewer than `min_changed_fraction` of all
    * points change, or `max_iterations`. */
   int max_iterations = 4;
