@@ -575,6 +575,29 @@ int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surfa
   return changed;
 }
 
+/** After b joined a: drops every edge that touches a or b and scores the edges between a and its
+ * former neighbours again (in parallel). */
+template <class Edge, class Evaluate>
+void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evaluate evaluate) {
+  std::set<int> nbrs;
+  for (auto it = edges.begin(); it != edges.end();) {
+    const auto [x, y] = it->first;
+    if (x == a || x == b || y == a || y == b) {
+      const int o = (x == a || x == b) ? y : x;
+      if (o != a && o != b) nbrs.insert(o);
+      it = edges.erase(it);
+    } else {
+      ++it;
+    }
+  }
+  const std::vector<int> nb(nbrs.begin(), nbrs.end());
+  std::vector<Edge> c(nb.size());
+#pragma omp parallel for schedule(dynamic, 1)
+  for (std::size_t i = 0; i < nb.size(); ++i) c[i] = evaluate(a, nb[i]);
+  for (std::size_t i = 0; i < nb.size(); ++i)
+    edges[{std::min(a, nb[i]), std::max(a, nb[i])}] = std::move(c[i]);
+}
+
 }  // namespace
 
 TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const SampleTracks& tr,
@@ -658,23 +681,7 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
     points[b].clear();
     selfResidual(a);
     alive[b] = 0;
-    std::set<int> nbrs;
-    for (auto it = edges.begin(); it != edges.end();) {
-      const auto [x, y] = it->first;
-      if (x == a || x == b || y == a || y == b) {
-        const int o = (x == a || x == b) ? y : x;
-        if (o != a && o != b) nbrs.insert(o);
-        it = edges.erase(it);
-      } else {
-        ++it;
-      }
-    }
-    const std::vector<int> nb(nbrs.begin(), nbrs.end());
-    std::vector<Eval> c(nb.size());
-#pragma omp parallel for schedule(dynamic, 1)
-    for (std::size_t i = 0; i < nb.size(); ++i) c[i] = evaluate(a, nb[i]);
-    for (std::size_t i = 0; i < nb.size(); ++i)
-      edges[{std::min(a, nb[i]), std::max(a, nb[i])}] = std::move(c[i]);
+    rewireEdges(edges, a, b, evaluate);
   };
   auto cheapest = [&](auto pred) {
     auto best = edges.end();
@@ -843,23 +850,7 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
     gpts[a].swap(u);
     gpts[b].clear();
     galive[b] = 0;
-    std::set<int> nbrs;
-    for (auto it = pedges.begin(); it != pedges.end();) {
-      const auto [x, y] = it->first;
-      if (x == a || x == b || y == a || y == b) {
-        const int o = (x == a || x == b) ? y : x;
-        if (o != a && o != b) nbrs.insert(o);
-        it = pedges.erase(it);
-      } else {
-        ++it;
-      }
-    }
-    const std::vector<int> nb(nbrs.begin(), nbrs.end());
-    std::vector<PartEdge> c(nb.size());
-#pragma omp parallel for schedule(dynamic, 1)
-    for (std::size_t i = 0; i < nb.size(); ++i) c[i] = evaluatePair(a, nb[i]);
-    for (std::size_t i = 0; i < nb.size(); ++i)
-      pedges[{std::min(a, nb[i]), std::max(a, nb[i])}] = std::move(c[i]);
+    rewireEdges(pedges, a, b, evaluatePair);
     return a;
   };
   auto cheapestPart = [&]() {
