@@ -152,6 +152,30 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
   return T;
 }
 
+/** Breadth-first levels over a graph (adjacency lists of node ids), started from each node of
+ * `starts` in turn that is not reached yet; level[v] is the index of v's level (-1: unreached). */
+template <class Graph>
+std::vector<std::vector<int>> bfsLevels(const Graph& graph, const std::vector<int>& starts,
+                                        std::vector<int>& level) {
+  level.assign(graph.size(), -1);
+  std::vector<std::vector<int>> levels;
+  for (int start : starts) {
+    if (level[start] >= 0) continue;
+    std::vector<int> cur{start};
+    level[start] = static_cast<int>(levels.size());
+    while (!cur.empty()) {
+      levels.push_back(cur);
+      std::vector<int> next;
+      for (int v : cur)
+        for (int o : graph[v])
+          if (level[o] < 0) level[o] = static_cast<int>(levels.size()), next.push_back(o);
+      std::sort(next.begin(), next.end());
+      cur.swap(next);
+    }
+  }
+  return levels;
+}
+
 /** Surface graph of a cloud: each point linked to its k nearest points that lie within
  * `max_dist` and have a compatible normal (symmetric). Unlike a plain k-NN graph it does not
  * bridge the gap between two limbs that nearly touch (facing sides have opposite normals), so
@@ -421,27 +445,13 @@ SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingPar
       const int root =
           static_cast<int>(std::min_element(groot.begin(), groot.end()) - groot.begin());
       // BFS levels from the root (unreached components start from their own best sample).
-      std::vector<int> level(S, -1);
-      std::vector<std::vector<int>> levels;
       std::vector<int> order(S);
       std::iota(order.begin(), order.end(), 0);
       std::stable_sort(order.begin(), order.end(),
                        [&](int a, int b) { return groot[a] < groot[b]; });
       order.insert(order.begin(), root);
-      for (int start : order) {
-        if (level[start] >= 0) continue;
-        std::vector<int> cur{start};
-        level[start] = static_cast<int>(levels.size());
-        while (!cur.empty()) {
-          levels.push_back(cur);
-          std::vector<int> next;
-          for (int s : cur)
-            for (int o : tr.graph[s])
-              if (level[o] < 0) level[o] = static_cast<int>(levels.size()), next.push_back(o);
-          std::sort(next.begin(), next.end());
-          cur.swap(next);
-        }
-      }
+      std::vector<int> level;
+      const std::vector<std::vector<int>> levels = bfsLevels(tr.graph, order, level);
       std::vector<Pose>& pose = tr.poses[t];
       std::vector<double> res(S, 0.0);
       std::vector<char> solved(S, 0);
@@ -961,22 +971,8 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     std::iota(by_size.begin(), by_size.end(), 0);
     std::stable_sort(by_size.begin(), by_size.end(),
                      [&](int x, int y) { return pts[x].size() > pts[y].size(); });
-    std::vector<int> level(nc, -1);
-    std::vector<std::vector<int>> levels;
-    for (int start : by_size) {
-      if (level[start] >= 0) continue;
-      std::vector<int> cur{start};
-      level[start] = static_cast<int>(levels.size());
-      while (!cur.empty()) {
-        levels.push_back(cur);
-        std::vector<int> next;
-        for (int c : cur)
-          for (int o : adj[c])
-            if (level[o] < 0) level[o] = static_cast<int>(levels.size()), next.push_back(o);
-        std::sort(next.begin(), next.end());
-        cur.swap(next);
-      }
-    }
+    std::vector<int> level;
+    const std::vector<std::vector<int>> levels = bfsLevels(adj, by_size, level);
     for (int dir : {+1, -1}) {
       for (int t = ref + dir; t >= 0 && t < T; t += dir) {
         const int tp = t - dir, tpp = t - 2 * dir;
