@@ -1023,6 +1023,28 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     for (int round = 0; round < 2; ++round)
       if (reassignByMotion(rc, tr.surface, frames, ref, motion, label) == 0) break;
   }
+  // A part left with a handful of reference points (an isolated point whose group was moved away
+  // around it) is a remnant, not a part: its points join the label of their nearest points of
+  // another, real part.
+  {
+    const int min_points = std::max(5, n0 / 500);
+    std::vector<int> count(nc, 0);
+    for (int l : label) ++count[l];
+    const int kk = std::min(16, n0);
+    std::vector<int> next(label);
+    std::vector<int> idx;
+    std::vector<float> d2;
+    for (int i = 0; i < n0; ++i) {
+      if (count[label[i]] >= min_points) continue;
+      frames[ref].tree.nearestKSearch(rc[i], kk, idx, d2);
+      for (int j : idx)
+        if (count[label[j]] >= min_points) {
+          next[i] = label[j];
+          break;
+        }
+    }
+    label.swap(next);
+  }
   // Labels of every frame: the nearest reference point moved by its part's motion, with a
   // compatible normal.
   const auto offsets = seq.offsets();
