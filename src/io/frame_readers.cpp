@@ -16,6 +16,7 @@
 #include <limits>
 #include <mutex>
 #include <sstream>
+#include <set>
 
 namespace pcl_animseg {
 namespace io {
@@ -659,6 +660,7 @@ void checkPCDHeader(const std::string& path) {
   std::string line;
   std::size_t header_bytes = 0;
   const Error not_pcd = fileError(path, "is not a PCD file (bad or missing header)");
+  std::set<std::string> seen;
   while (data.empty()) {
     if (!std::getline(in, line) || header_bytes > (1u << 16)) {
       if (fields.empty()) throw not_pcd;
@@ -671,6 +673,19 @@ void checkPCDHeader(const std::string& path) {
     std::string key;
     if (!(ss >> key) || key[0] == '#') continue;
     std::string tok;
+    // WIDTH, HEIGHT and POINTS must be whole integers, given once: PCL's own reader crashes on a
+    // header such as "WIDTH 4.7" followed by another WIDTH (found by fuzz_pcd).
+    auto readCount = [&](long& out) {
+      std::string v, rest;
+      if (!(ss >> v) || (ss >> rest) || !seen.insert(key).second ||
+          v.find_first_not_of("0123456789-") != std::string::npos)
+        throw fileError(path, "PCD header: bad " + key + " line");
+      try {
+        out = std::stol(v);
+      } catch (const std::exception&) {
+        throw fileError(path, "PCD header: bad " + key + " line");
+      }
+    };
     if (key == "VERSION" || key == "VIEWPOINT") {
     } else if (key == "FIELDS") {
       while (ss >> tok) fields.push_back(tok);
@@ -681,11 +696,11 @@ void checkPCDHeader(const std::string& path) {
     } else if (key == "TYPE") {
       while (ss >> tok) types += tok.size() == 1 ? tok : std::string("?");
     } else if (key == "WIDTH") {
-      ss >> width;
+      readCount(width);
     } else if (key == "HEIGHT") {
-      ss >> height;
+      readCount(height);
     } else if (key == "POINTS") {
-      ss >> points;
+      readCount(points);
     } else if (key == "DATA") {
       ss >> data;
     } else {

@@ -90,3 +90,21 @@ TEST(ReaderRegressions, PcdHeaderProductsOverflow) {
     EXPECT_THROW(io::readPCD(p), pcl_animseg::Error) << rest;
   }
 }
+
+// fuzz_pcd: a non-integer WIDTH given twice made PCL's own reader allocate ~100 TB (ASan abort).
+TEST(ReaderRegressions, PcdHeaderCountsMustBeWholeAndGivenOnce) {
+  TempDir tmp;
+  const std::string head = "VERSION 01\nFIELDS x y z label\nSIZE 8 8 8 4\nTYPE F F F U\n";
+  const std::string data(4 * 28, '\0');
+  for (const std::string& rest :
+       {std::string("WIDTH 4.7\nCOUNT 1 1 1 1\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n"),
+        std::string("WIDTH 2\nHEIGHT 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n"),
+        std::string("WIDTH 4 4\nHEIGHT 1\nDATA binary\n")}) {
+    const std::string p = write(tmp.path, "bad.pcd", head + rest + data);
+    EXPECT_THROW(io::readPCD(p), pcl_animseg::Error) << rest;
+  }
+  // The same header with whole counts given once is read.
+  const std::string p =
+      write(tmp.path, "good.pcd", head + "WIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n" + data);
+  EXPECT_NO_THROW(io::readPCD(p));
+}
