@@ -769,7 +769,13 @@ RawFrame readPCD(const std::string& path) {
   int rc = 0;
   {
     QuietPcl quiet;
-    rc = pcl::io::loadPCDFile(path, cloud);
+    // PCL's parser throws std::out_of_range and friends on some corrupt headers (a line with a
+    // leading blank, found by fuzz_pcd): one clear error, like every other bad file.
+    try {
+      rc = pcl::io::loadPCDFile(path, cloud);
+    } catch (const std::exception&) {
+      rc = -1;
+    }
   }
   if (rc < 0)
     throw fileError(path, "cannot be read as PCD (truncated, corrupt, or not a PCD file)");
