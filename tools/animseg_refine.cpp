@@ -32,6 +32,11 @@ int main(int argc, char** argv) {
       "a point changes side only when log p(other)/p(own) exceeds this (0: the paper's Eq. 11)")(
       "spatial-weight", po::value<double>()->default_value(d.spatial_weight),
       "weight of the optional distance-to-band term (0: normals only)")(
+      "motion-tolerance", po::value<double>()->default_value(d.motion_tolerance),
+      "a point takes the other part only if that part's rigid motion explains its trajectory no "
+      "worse than (1 + this) x its own part's")(
+      "no-motion-check", po::bool_switch(),
+      "the paper's rule: decide by normals alone, without the rigid-motion check")(
       "iterations", po::value<int>()->default_value(d.max_iterations),
       "refinement iterations at most")(
       "per-frame", po::bool_switch(), "refine each frame on its own instead of pooling all frames")(
@@ -47,11 +52,15 @@ int main(int argc, char** argv) {
         params.training_min_distance = ctx.vm["train-distance"].as<double>();
         params.min_log_ratio = ctx.vm["min-log-ratio"].as<double>();
         params.spatial_weight = ctx.vm["spatial-weight"].as<double>();
+        params.motion_tolerance = ctx.vm["motion-tolerance"].as<double>();
+        params.motion_check = !ctx.vm["no-motion-check"].as<bool>();
         params.max_iterations = ctx.vm["iterations"].as<int>();
         params.pool_frames = !ctx.vm["per-frame"].as<bool>();
         params.seed = ctx.vm["seed"].as<unsigned>();
         if (!(params.narrow_band > 0.0) || !(params.outer_band > params.narrow_band))
           throw pcl_animseg::Error("need 0 < --narrow-band < --outer-band");
+        if (!(params.motion_tolerance >= 0.0))
+          throw pcl_animseg::Error("--motion-tolerance must be >= 0");
 
         const std::string label_dir = ctx.vm["labels"].as<std::string>();
         const std::string out_dir = ctx.vm["output"].as<std::string>();

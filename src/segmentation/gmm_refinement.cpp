@@ -68,6 +68,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     throw Error("GMM refinement: need 0 < narrow band L_r < outer band L_R (got " +
                 std::to_string(p.narrow_band) + ", " + std::to_string(p.outer_band) + ")");
   if (p.boundary_k < 2) throw Error("GMM refinement: boundary_k must be >= 2");
+  if (!(p.motion_tolerance >= 0.0) || !(p.motion_cap > 0.0))
+    throw Error("GMM refinement: need motion_tolerance >= 0 and motion_cap > 0 (got " +
+                std::to_string(p.motion_tolerance) + ", " + std::to_string(p.motion_cap) + ")");
   const std::size_t frames = sequence_->size();
   if (input.labels.size() != frames)
     throw Error("GMM refinement: labels for " + std::to_string(input.labels.size()) +
@@ -99,16 +102,51 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // correspondence rejection ignores anyway.
   std::vector<std::vector<RigidTransform>> to_ref(num_labels, std::vector<RigidTransform>(frames));
   const bool pool = p.pool_frames && frames > 1;
-  if (pool) {
+  const bool check_motion = p.motion_check && frames > 1;
+  std::vector<PartMotion> parts;
+  if (pool || check_motion) {
     RigidMotionEstimation motion;
     RigidMotionParams mp;
     mp.max_points = 1500;
     motion.setParams(mp);
     motion.setInputSequence(sequence_);
-    const std::vector<PartMotion> parts = motion.compute(labels, num_labels);
-    for (int l = 0; l < num_labels; ++l)
-      for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
+    parts = motion.compute(labels, num_labels);
+    if (pool)
+      for (int l = 0; l < num_labels; ++l)
+        for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
   }
+  // Motion residual of point j of frame t under part l's rigid motion: the point is carried to
+  // every other frame and scored by its distance to that frame's surface (point-to-plane, blind to
+  // the different sampling of the frames, or what the point-to-point distance exceeds a spacing,
+  // so that sliding off the end of a part counts), in spacings, capped, averaged over frames.
+  // The motions are fixed for the whole refinement, so each (point, part) is scored once.
+  std::vector<std::unordered_map<long long, float>> residual_cache(frames);
+  auto motionResidual = [&](int l, int t, int j) -> double {
+    const long long key = static_cast<long long>(j) * num_labels + l;
+    const auto hit = residual_cache[t].find(key);
+    if (hit != residual_cache[t].end()) return hit->second;
+    const Eigen::Vector3d x0 = parts[l].frames[t].inverse().apply(
+        (*sequence_->frame(t))[j].getVector3fMap().cast<double>());
+    std::vector<int> idx(1);
+    std::vector<float> d2(1);
+    double sum = 0.0;
+    int n = 0;
+    for (std::size_t u = 0; u < frames; ++u) {
+      if (static_cast<int>(u) == t || !parts[l].frames[u].valid) continue;
+      const Eigen::Vector3d y = parts[l].frames[u].apply(x0);
+      pcl::PointNormal q;
+      q.getVector3fMap() = y.cast<float>();
+      if (trees[u].nearestKSearch(q, 1, idx, d2) < 1) continue;
+      const pcl::PointNormal& nearest = (*sequence_->frame(u))[idx[0]];
+      const Eigen::Vector3d d = y - nearest.getVector3fMap().cast<double>();
+      const double plane = std::abs(d.dot(nearest.getNormalVector3fMap().cast<double>()));
+      sum += std::min(std::max(plane, d.norm() - spacing[u]) / spacing[u], p.motion_cap);
+      ++n;
+    }
+    const float r = n > 0 ? static_cast<float>(sum / n) : 0.0f;
+    residual_cache[t].emplace(key, r);
+    return r;
+  };
 
   // After the first pass, only points near the previous boundary can become boundary points: a
   // label changes only inside W, so a new boundary point is a changed point or a neighbour of one.
@@ -344,8 +382,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         }
         if (!ok) continue;
         const int own = bp.side;
-        if (logp[1 - own] - logp[own] > p.min_log_ratio)
-          changes[t].emplace_back(bp.index, own == 0 ? pr.b : pr.a);
+        const int lab[2] = {pr.a, pr.b};
+        if (!(logp[1 - own] - logp[own] > p.min_log_ratio)) continue;
+        if (check_motion && motionResidual(lab[1 - own], t, bp.index) >
+                                (1.0 + p.motion_tolerance) * motionResidual(lab[own], t, bp.index))
+          continue;
+        changes[t].emplace_back(bp.index, lab[1 - own]);
       }
     }
     if (iter == 0) stats_.band_points = band_w;
