@@ -8,10 +8,14 @@
 
 namespace pcl_animseg {
 
+/** \brief Peak resident memory of this process so far, in MiB (0 where the OS cannot say). */
+double peakResidentMiB();
+
 /** \brief Records how long each stage took and reports progress on stderr.
  *
  * On a terminal, counts are shown as an updating bar; otherwise as plain lines (at most one per
- * 10% of the work), so logs stay readable. Nothing is printed when quiet.
+ * 10% of the work), so logs stay readable. Nothing is printed when quiet. With verbose, each
+ * stage's "done" line also gives the process's peak resident memory so far.
  */
 class Progress {
  public:
@@ -33,7 +37,8 @@ class Progress {
 
   bool quiet() const { return quiet_; }
   bool verbose() const { return verbose_; }
-  /** \brief (stage, seconds) in the order the stages ran. */
+  /** \brief (stage, seconds) in the order the stages first ran; a stage run several times
+   * under one name is one record with the sum of its times. */
   const std::vector<std::pair<std::string, double>>& timings() const { return timings_; }
   /** \brief Seconds since this object was made. */
   double elapsed() const;

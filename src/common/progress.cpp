@@ -1,12 +1,20 @@
 #include <pcl_animseg/progress.h>
 
+#include <sys/resource.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <iostream>
 #include <sstream>
 
 namespace pcl_animseg {
+
+double peakResidentMiB() {
+  struct rusage usage;
+  if (getrusage(RUSAGE_SELF, &usage) != 0) return 0.0;
+  return static_cast<double>(usage.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
+}
 
 Progress::Progress(bool quiet, bool verbose)
     : quiet_(quiet),
@@ -58,7 +66,13 @@ double Progress::end(const std::string& detail) {
   const Stage s = open_.back();
   open_.pop_back();
   const double secs = std::chrono::duration<double>(Clock::now() - s.start).count();
-  timings_.emplace_back(s.name, secs);
+  // A stage run again (features in blocks of frames) adds to its first record.
+  auto same = std::find_if(timings_.begin(), timings_.end(),
+                           [&](const auto& rec) { return rec.first == s.name; });
+  if (same != timings_.end())
+    same->second += secs;
+  else
+    timings_.emplace_back(s.name, secs);
   if (!quiet_) {
     if (tty_ && s.total > 0 && s.last_shown >= 0) std::cerr << "\n";
     std::ostringstream os;
@@ -66,6 +80,10 @@ double Progress::end(const std::string& detail) {
     os.precision(3);
     os << "[" << s.name << "] done in " << secs << " s";
     if (!detail.empty()) os << " (" << detail << ")";
+    if (verbose_) {
+      os.precision(0);
+      os << ", peak RSS " << peakResidentMiB() << " MiB";
+    }
     std::cerr << os.str() << std::endl;
   }
   return secs;

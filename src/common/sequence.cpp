@@ -2,7 +2,7 @@
 #include <pcl_animseg/sequence.h>
 
 #include <pcl/common/common.h>
-#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl_animseg/kdtree.h>
 
 #include <algorithm>
 #include <numeric>
@@ -73,7 +73,7 @@ std::vector<int> PointCloudSequence::toInputOrder(std::size_t t, const std::vect
 double meanSpacing(const PointCloudSequence::Cloud& cloud, std::size_t max_samples) {
   if (cloud.size() < 2) throw Error("cannot measure point spacing of fewer than 2 points");
   PointCloudSequence::Cloud::Ptr copy(new PointCloudSequence::Cloud(cloud));
-  pcl::KdTreeFLANN<pcl::PointNormal> tree;
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
   tree.setInputCloud(copy);
   const std::size_t n = cloud.size();
   const std::size_t step = std::max<std::size_t>(1, n / std::max<std::size_t>(1, max_samples));

@@ -2,7 +2,7 @@
 #include <pcl_animseg/features/neighbourhood.h>
 
 #include <pcl/common/common.h>
-#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl_animseg/kdtree.h>
 
 #include <omp.h>
 
@@ -215,7 +215,7 @@ double featureSpacing(const PointCloudSequence::Cloud& cloud, std::size_t max_sa
   // Coincident means closer than float resolution at this extent.
   const float eps2 = static_cast<float>(1e-6 * diag) * static_cast<float>(1e-6 * diag);
   Cloud::ConstPtr ptr(&cloud, [](const Cloud*) {});
-  pcl::KdTreeFLANN<pcl::PointNormal> tree(true);
+  pcl_animseg::KdTree<pcl::PointNormal> tree(true);
   tree.setInputCloud(ptr);
   const std::size_t step = std::max<std::size_t>(1, n / std::max<std::size_t>(1, max_samples));
   std::vector<int> idx;

@@ -1,6 +1,6 @@
 #include <pcl/common/centroid.h>
 #include <pcl/features/normal_3d.h>
-#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/normals.h>
 
@@ -101,7 +101,7 @@ std::vector<int> nearestNeighbours(const PointCloudSequence::Cloud& cloud, int k
   const std::size_t n = cloud.size();
   std::vector<int> knn(n * static_cast<std::size_t>(k), -1);
   PointCloudSequence::Cloud::Ptr copy(new PointCloudSequence::Cloud(cloud));
-  pcl::KdTreeFLANN<pcl::PointNormal> tree;
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
   tree.setInputCloud(copy);
   const int nn = static_cast<int>(n);
 #pragma omp parallel

@@ -23,21 +23,22 @@ namespace {
  * (a single frame from a tool), frames run one after the other, parallel over points inside.
  * Errors name the frame; when several frames fail, the first frame's error is thrown. */
 template <typename Work, typename Detail>
-void forEachFrame(const PointCloudSequence& seq, Progress* progress, const char* stage, Work work,
-                  Detail detail) {
-  const std::size_t T = seq.size();
+void forEachFrame(const PointCloudSequence& seq, std::size_t first, std::size_t last,
+                  Progress* progress, const char* stage, Work work, Detail detail) {
+  const std::size_t T = last - first;
   if (progress) progress->begin(stage, T);
   std::vector<std::string> errors(T);
   std::vector<char> failed(T, 0);
-  auto runOne = [&](std::size_t t) {
+  auto runOne = [&](std::size_t i) {
+    const std::size_t t = first + i;
     try {
       work(t);
     } catch (const Error& e) {
-      errors[t] = "frame '" + seq.name(t) + "': " + e.what();
-      failed[t] = 1;
+      errors[i] = "frame '" + seq.name(t) + "': " + e.what();
+      failed[i] = 1;
     } catch (const std::exception& e) {
-      errors[t] = "frame '" + seq.name(t) + "': " + e.what();
-      failed[t] = 1;
+      errors[i] = "frame '" + seq.name(t) + "': " + e.what();
+      failed[i] = 1;
     }
   };
   const int threads = omp_get_max_threads();
@@ -65,6 +66,10 @@ void forEachFrame(const PointCloudSequence& seq, Progress* progress, const char*
   }
 }
 
+void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t last,
+                  const MultiscaleParams& p, double unit, std::vector<ScaleSpace>& spaces,
+                  std::vector<std::size_t>& kp_count, SequenceFeatures& out, Progress* progress);
+
 }  // namespace
 
 SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const MultiscaleParams& p,
@@ -84,15 +89,35 @@ SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const Mu
   out.keypoint_response.resize(T);
   if (p.keep_smoothed) out.smoothed.resize(T);
 
-  // Stage by stage over all frames, so that Progress records the three stages of DESIGN.md's
-  // summary; the levels above 0 are released as soon as the keypoints are found.
+  // Stage by stage over a block of frames, so that Progress records the three stages of
+  // DESIGN.md's summary (a stage's time is summed over blocks). A frame's scale space (levels and
+  // neighbour lists, ~500 bytes a point) lives only while its block runs, so memory grows with the
+  // block, not with the sequence; the levels above 0 are released as soon as the keypoints are
+  // found.
+  if (p.block_points == 0) throw Error("the feature block size must be at least one point");
   std::vector<ScaleSpace> spaces(T);
   const double unit = sequenceSpacing(seq);
   std::vector<std::size_t> kp_count(T, 0);
+  for (std::size_t first = 0; first < T;) {
+    std::size_t last = first, points = 0;
+    while (last < T && (last == first || points + seq.frame(last)->size() <= p.block_points))
+      points += seq.frame(last++)->size();
+    computeBlock(seq, first, last, p, unit, spaces, kp_count, out, progress);
+    first = last;
+  }
+  return out;
+}
+
+namespace {
+
+void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t last,
+                  const MultiscaleParams& p, double unit, std::vector<ScaleSpace>& spaces,
+                  std::vector<std::size_t>& kp_count, SequenceFeatures& out, Progress* progress) {
+  const bool detect = p.detect_keypoints;
 
   // Stage 1: scale space of every frame.
   forEachFrame(
-      seq, progress, "scale_space",
+      seq, first, last, progress, "scale_space",
       [&](std::size_t t) {
         MLSScaleSpace mls;
         mls.setInputCloud(seq.frame(t));
@@ -107,7 +132,7 @@ SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const Mu
 
   // Stage 2: keypoints.
   forEachFrame(
-      seq, progress, "keypoints",
+      seq, first, last, progress, "keypoints",
       [&](std::size_t t) {
         if (detect) {
           DoGKeypoint dog;
@@ -140,7 +165,7 @@ SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const Mu
 
   // Stage 3: signatures.
   forEachFrame(
-      seq, progress, "signature",
+      seq, first, last, progress, "signature",
       [&](std::size_t t) {
         SignatureEstimation se;
         se.setInputCloud(signatureInput(*seq.frame(t), *spaces[t].levels[0]));
@@ -153,7 +178,8 @@ SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const Mu
         spaces[t] = ScaleSpace();
       },
       [&] { return std::to_string(p.layout.dimension()) + "-D"; });
-  return out;
 }
+
+}  // namespace
 
 }  // namespace pcl_animseg

@@ -62,41 +62,45 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     r.notes.push_back("features disabled: mean shift on position and normal only");
   }
 
-  // 2. All frames clustered jointly (Sect. 3.2-3.3).
+  // 2. All frames clustered jointly (Sect. 3.2-3.3). The segmenter takes the signatures over
+  // and is gone before the refinement, so they do not add to its peak memory.
   segmentation::MeanShiftParams msp = params.mean_shift;
-  segmentation::MeanShiftSegmentation ms;
-  ms.setInputSequence(shared);
-  ms.setParams(msp);
-  if (params.device != "cpu") {
-    // gpu: the GPU or an error; auto: the GPU when one works, else a logged fall-back to the CPU.
-    std::string why;
-#ifdef PCL_ANIMSEG_HAVE_CUDA
-    if (gpu::gpuAvailable(&why)) {
-      ms.setDeviceBackend(gpu::makeMeanShiftBackend(), /*cpu_fallback=*/params.device == "auto");
-      why.clear();
-    }
-#else
-    why = "this build has no CUDA module (nvcc was not found when it was configured)";
-#endif
-    if (!why.empty()) {
-      if (params.device == "gpu") throw Error("--device gpu: no usable GPU: " + why);
-      r.notes.push_back("device auto: the CPU was used: " + why);
-      progress.debug("device auto: the CPU is used: " + why);
-    }
-  }
-  if (params.features) {
-    ms.setSignatures(features.signatures);
-    ms.setKeypoints(features.keypoints);
-  }
-  ms.setProgress(&progress);
   segmentation::SegmentationResult clusters;
-  progress.begin("mean_shift");
-  ms.segment(clusters);
-  progress.end(std::to_string(clusters.num_clusters) + " clusters");
-  r.device_used = ms.deviceUsed();
-  if (!ms.fallbackReason().empty()) {
-    r.notes.push_back("the GPU failed, the CPU was used: " + ms.fallbackReason());
-    progress.info("warning: the GPU failed, the CPU was used: " + ms.fallbackReason());
+  {
+    segmentation::MeanShiftSegmentation ms;
+    ms.setInputSequence(shared);
+    ms.setParams(msp);
+    if (params.device != "cpu") {
+      // gpu: the GPU or an error; auto: the GPU when one works, else a logged fall-back to the CPU.
+      std::string why;
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+      if (gpu::gpuAvailable(&why)) {
+        ms.setDeviceBackend(gpu::makeMeanShiftBackend(), /*cpu_fallback=*/params.device == "auto");
+        why.clear();
+      }
+#else
+      why = "this build has no CUDA module (nvcc was not found when it was configured)";
+#endif
+      if (!why.empty()) {
+        if (params.device == "gpu") throw Error("--device gpu: no usable GPU: " + why);
+        r.notes.push_back("device auto: the CPU was used: " + why);
+        progress.debug("device auto: the CPU is used: " + why);
+      }
+    }
+    if (params.features) {
+      ms.setSignatures(std::move(features.signatures));
+      ms.setKeypoints(features.keypoints);
+      features = SequenceFeatures();
+    }
+    ms.setProgress(&progress);
+    progress.begin("mean_shift");
+    ms.segment(clusters);
+    progress.end(std::to_string(clusters.num_clusters) + " clusters");
+    r.device_used = ms.deviceUsed();
+    if (!ms.fallbackReason().empty()) {
+      r.notes.push_back("the GPU failed, the CPU was used: " + ms.fallbackReason());
+      progress.info("warning: the GPU failed, the CPU was used: " + ms.fallbackReason());
+    }
   }
 
   // 3. Boundary refinement (Sect. 4), built over all frames jointly.

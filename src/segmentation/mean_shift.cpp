@@ -1,6 +1,6 @@
 #include "mean_shift_internal.h"
 
-#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/progress.h>
 
@@ -278,7 +278,7 @@ std::vector<int> knnGraph(const PointCloudSequence& seq, int k) {
   for (std::size_t t = 0; t < seq.size(); ++t) {
     const auto& cloud = seq.frame(t);
     if (cloud->size() < 2) continue;
-    pcl::KdTreeFLANN<pcl::PointNormal> tree;
+    pcl_animseg::KdTree<pcl::PointNormal> tree;
     tree.setInputCloud(cloud);
     const int kk = std::min<int>(k + 1, static_cast<int>(cloud->size()));
     const int n = static_cast<int>(cloud->size());
@@ -858,9 +858,7 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
 void MeanShiftSegmentation::segment(SegmentationResult& result) {
   validate();
   const PointCloudSequence& seq = *sequence_;
-  const JointSpace space = detail::buildJointSpace(seq, signatures_, keypoints_, params_);
   const int k = params_.neighbours;
-  const std::vector<int> graph = detail::knnGraph(seq, k);
   std::vector<int> flat;
   int num_clusters = 0;
   result = SegmentationResult();
@@ -883,6 +881,8 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     }
   };
   if (params_.method == MeanShiftMethod::Paper) {
+    const JointSpace space = detail::buildJointSpace(seq, signatures_, keypoints_, params_);
+    const std::vector<int> graph = detail::knnGraph(seq, k);
     // The CPU iteration leaves its kernel sums and the density at the points for the densities
     // of the result (no second filter over the data).
     std::unique_ptr<detail::JointKernelSum> sums;
@@ -903,6 +903,10 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     });
   } else {
     detail::runMotion(seq, params_, flat, num_clusters, result.merges, progress_);
+    // Built after the tracking, so that the joint space (N x d floats) and the k-NN graph do not
+    // add to the tracking's peak memory.
+    const JointSpace space = detail::buildJointSpace(seq, signatures_, keypoints_, params_);
+    const std::vector<int> graph = detail::knnGraph(seq, k);
     guarded([&](MeanShiftDeviceBackend* d) {
       detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, false, result, d);
     });

@@ -1,5 +1,5 @@
 // Tracked samples + trajectory clustering (see motion_tracking.h).
-#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/progress.h>
@@ -32,7 +32,7 @@ constexpr double kClip = 4.0;
 
 struct Frame {
   Cloud::Ptr cloud;
-  pcl::KdTreeFLANN<pcl::PointNormal> tree;
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
   double spacing = 1.0;
 };
 
@@ -181,7 +181,7 @@ std::vector<std::vector<int>> bfsLevels(const Graph& graph, const std::vector<in
  * bridge the gap between two limbs that nearly touch (facing sides have opposite normals), so
  * neighbourhoods and adjacency grown over it stay on one surface sheet. */
 std::vector<std::vector<int>> surfaceGraphOf(const Cloud& cloud,
-                                             const pcl::KdTreeFLANN<pcl::PointNormal>& tree,
+                                             const pcl_animseg::KdTree<pcl::PointNormal>& tree,
                                              int k, double max_dist) {
   const int n = static_cast<int>(cloud.size());
   std::vector<std::vector<int>> g(n);
@@ -936,7 +936,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     Cloud::Ptr sc(new Cloud);
     sc->resize(S);
     for (int s = 0; s < S; ++s) (*sc)[s] = rc[tr.sample_points[s]];
-    pcl::KdTreeFLANN<pcl::PointNormal> st;
+    pcl_animseg::KdTree<pcl::PointNormal> st;
     st.setInputCloud(sc);
     std::vector<int> idx;
     std::vector<float> d2;
@@ -1064,7 +1064,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
       q.normal_y = static_cast<float>(nn.y());
       q.normal_z = static_cast<float>(nn.z());
     }
-    pcl::KdTreeFLANN<pcl::PointNormal> mt;
+    pcl_animseg::KdTree<pcl::PointNormal> mt;
     mt.setInputCloud(moved);
     const int n = static_cast<int>(fc.size());
     const int kq = std::min(8, n0);

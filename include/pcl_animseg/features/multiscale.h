@@ -33,6 +33,11 @@ struct MultiscaleParams {
   SignatureLayout layout;
   /** Keep level 0 of each frame in SequenceFeatures::smoothed. */
   bool keep_smoothed = false;
+  /** Frames are processed in consecutive blocks of at most this many points (at least one
+   * frame each): a frame's scale space (~500 bytes a point) exists only while its block runs,
+   * so the features' working memory is bounded by the block, not the sequence. The result does
+   * not depend on it. */
+  std::size_t block_points = 1000000;
 };
 
 /** \brief The length unit of the features of a sequence: the mean spacing (featureSpacing) the

@@ -43,6 +43,7 @@
 
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace pcl_animseg {
@@ -162,6 +163,10 @@ class MeanShiftSegmentation {
   PointCloudSequence::ConstPtr getInputSequence() const { return sequence_; }
   /** \brief Per-frame signatures sigma (N_t x D), optional. */
   void setSignatures(const std::vector<Eigen::MatrixXf>& signatures) { signatures_ = signatures; }
+  /** \brief As above, taking the matrices over (no copy of N x D floats). */
+  void setSignatures(std::vector<Eigen::MatrixXf>&& signatures) {
+    signatures_ = std::move(signatures);
+  }
   /** \brief Per-frame keypoint indices (into the frame's points), optional (Eq. 5 vs 6). */
   void setKeypoints(const std::vector<std::vector<int>>& keypoints) { keypoints_ = keypoints; }
 
