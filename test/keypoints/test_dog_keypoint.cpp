@@ -113,21 +113,22 @@ TEST_P(DoGRepeatability, RepeatableUnderRigidMotionAndResampling) {
   EXPECT_GE(r.kb, 8u);
   EXPECT_LE(r.ka, 15u);
   EXPECT_LE(r.kb, 15u);
-  // Issue 3 asks for >= 80%; not reached. Over 30 seeds: mean 0.61 (0.50 before the median
-  // contrast, the top level, the localisation on D_{i+1} and the suppression of near
-  // duplicates), single seeds 0.27-0.82 with ~10 keypoints each. What is left is the sub-sample
-  // position: sampling noise in D puts ~40% of the matched pairs 1-2 spacings apart (at 4x the
-  // density the median error drops from 0.4 to 0.1 spacing). A floor per seed here, the pooled
-  // value in PooledOverSeeds.
-  EXPECT_GE(r.a_in_b, 0.40);
-  EXPECT_GE(r.b_in_a, 0.40);
+  // Issue 3 asks for >= 80%. Over 30 seeds (21, 31, ..., 311): mean 0.95, single seeds
+  // 0.82-1.00 with ~12 keypoints each (mean 0.61, seeds 0.27-0.82, ~10.5 keypoints before the
+  // area-weighted refit of the position, the extrema taken per level and the two-ring border
+  // test; 0.50 before the median contrast). Of the 37 in 707 keypoints without a counterpart
+  // within one spacing, 15 are features found in one sampling only and 22 lie 1-3 spacings
+  // from theirs (median distance to the bump's apex 0.22 spacing, 0.40 before). A floor per
+  // seed here, the pooled value in PooledOverSeeds.
+  EXPECT_GE(r.a_in_b, 0.70);
+  EXPECT_GE(r.b_in_a, 0.70);
 }
 
 INSTANTIATE_TEST_SUITE_P(Seeds, DoGRepeatability, ::testing::Values(21u, 31u, 41u));
 
 TEST(DoGRepeatability, PooledOverSeeds) {
-  // Pooled over 6 seeds (both directions): 0.61 for these; 0.57-0.65 for other blocks of 6
-  // seeds (0.42-0.53 before).
+  // Pooled over 6 seeds (both directions): 0.95 for these (0.61 before the refit of the
+  // position, 0.42-0.53 before the median contrast); the 30-seed mean is 0.95.
   double sum = 0.0;
   int count = 0;
   for (unsigned seed : {21u, 31u, 41u, 51u, 61u, 71u}) {
@@ -137,7 +138,7 @@ TEST(DoGRepeatability, PooledOverSeeds) {
   }
   const double pooled = sum / count;
   RecordProperty("pooled_repeatability", std::to_string(pooled));
-  EXPECT_GE(pooled, 0.55);
+  EXPECT_GE(pooled, 0.88);
 }
 
 TEST(DoGKeypoint, InvariantToUniformScaling) {
