@@ -4,6 +4,7 @@
 
 #include <flann/flann.hpp>
 #include <pcl/point_cloud.h>
+#include <pcl/search/kdtree.h>
 
 #include <cmath>
 #include <memory>
@@ -123,6 +124,54 @@ class KdTree {
   std::vector<int> map_;     ///< tree row -> index in the cloud
   std::unique_ptr<Index> index_;
   flann::SearchParams params_{-1, 0.0f, true};
+};
+
+/** \brief A pcl::search::KdTree whose point queries go through KdTree above, for PCL
+ * algorithms that take a search object (registration's correspondence estimation:
+ * `icp.setSearchMethodTarget(tree, true)`). Only whole clouds: with an index subset it falls back to
+ * PCL's own tree. */
+template <typename PointT>
+class SearchKdTree : public pcl::search::KdTree<PointT> {
+ public:
+  using Base = pcl::search::KdTree<PointT>;
+  using typename Base::IndicesConstPtr;
+  using typename Base::PointCloudConstPtr;
+  using Ptr = std::shared_ptr<SearchKdTree<PointT>>;
+  using Base::nearestKSearch;
+  using Base::radiusSearch;
+
+  SearchKdTree() : Base(true) {}
+
+  void setInputCloud(const PointCloudConstPtr& cloud,
+                     const IndicesConstPtr& indices = IndicesConstPtr()) override {
+    own_ = !indices;
+    if (!own_) return Base::setInputCloud(cloud, indices);
+    this->input_ = cloud;
+    this->indices_ = indices;
+    fast_.setInputCloud(cloud);
+  }
+
+  int nearestKSearch(const PointT& point, int k, pcl::Indices& k_indices,
+                     std::vector<float>& k_sqr_distances) const override {
+    if (!own_) return Base::nearestKSearch(point, k, k_indices, k_sqr_distances);
+    std::vector<int> idx;
+    const int n = fast_.nearestKSearch(point, k, idx, k_sqr_distances);
+    k_indices.assign(idx.begin(), idx.end());
+    return n;
+  }
+
+  int radiusSearch(const PointT& point, double radius, pcl::Indices& k_indices,
+                   std::vector<float>& k_sqr_distances, unsigned int max_nn = 0) const override {
+    if (!own_) return Base::radiusSearch(point, radius, k_indices, k_sqr_distances, max_nn);
+    std::vector<int> idx;
+    const int n = fast_.radiusSearch(point, radius, idx, k_sqr_distances, max_nn);
+    k_indices.assign(idx.begin(), idx.end());
+    return n;
+  }
+
+ private:
+  KdTree<PointT> fast_;
+  bool own_ = true;
 };
 
 }  // namespace pcl_animseg

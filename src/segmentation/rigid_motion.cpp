@@ -3,6 +3,7 @@
 #include <pcl/registration/icp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
 #include <Eigen/Eigenvalues>
@@ -149,9 +150,14 @@ std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::ve
       const double passes[2] = {coarse, std::max(fine, coarse / 6.0)};
       Eigen::Matrix4f m = toMatrix(guess);
       Cloud aligned;
+      // One tree of the target for every pass (PCL would build one per ICP object), queried
+      // without pcl::KdTreeFLANN's per-query overhead (see kdtree.h).
+      auto tree = std::make_shared<SearchKdTree<pcl::PointNormal>>();
+      tree->setInputCloud(target);
       pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> p2p;
       p2p.setInputSource(source);
       p2p.setInputTarget(target);
+      p2p.setSearchMethodTarget(tree, true);
       // Converged when an iteration moves the part by less than a hundredth of a spacing (PCL
       // compares the squared translation) or the mean squared error stops improving.
       p2p.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing[t], 2));
@@ -172,6 +178,7 @@ std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::ve
       pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
       icp.setInputSource(source);
       icp.setInputTarget(target);
+      icp.setSearchMethodTarget(tree, true);
       icp.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing[t], 2));
       icp.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
       icp.setMaxCorrespondenceDistance(fine);

@@ -24,3 +24,19 @@ TEST(Progress, RecordsStagesAndNestedSubStages) {
   EXPECT_EQ(p.end(), 0.0);  // nothing open: a no-op
   EXPECT_GE(p.elapsed(), t[3].second);
 }
+
+TEST(Progress, AStageRunAgainAddsToItsRecord) {
+  pcl_animseg::Progress p(/*quiet=*/true);
+  for (int block = 0; block < 3; ++block) {
+    p.begin("scale_space");
+    p.end();
+    p.begin("keypoints");
+    p.end();
+  }
+  const auto& t = p.timings();
+  ASSERT_EQ(t.size(), 2u);
+  EXPECT_EQ(t[0].first, "scale_space");
+  EXPECT_EQ(t[1].first, "keypoints");
+  EXPECT_GE(t[0].second, 0.0);
+  EXPECT_GT(pcl_animseg::peakResidentMiB(), 1.0);  // a running test binary uses a few MiB
+}

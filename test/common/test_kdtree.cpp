@@ -1,0 +1,120 @@
+// pcl_animseg::KdTree answers exactly as pcl::KdTreeFLANN (same FLANN index), NaN points left
+// out, queries from several threads; SearchKdTree inside PCL's ICP.
+#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl/point_types.h>
+#include <pcl/registration/icp.h>
+#include <pcl_animseg/kdtree.h>
+
+#include <gtest/gtest.h>
+
+#include <limits>
+#include <random>
+
+namespace {
+
+using Cloud = pcl::PointCloud<pcl::PointNormal>;
+
+Cloud::Ptr randomCloud(std::size_t n, unsigned seed, bool with_nan) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> g(0.0f, 1.0f);
+  Cloud::Ptr c(new Cloud);
+  for (std::size_t i = 0; i < n; ++i) {
+    pcl::PointNormal p;
+    p.x = g(rng);
+    p.y = g(rng);
+    p.z = 0.3f * g(rng);
+    p.normal_x = p.normal_y = 0.0f;
+    p.normal_z = 1.0f;
+    if (with_nan && i % 97 == 5) p.y = std::numeric_limits<float>::quiet_NaN();
+    c->push_back(p);
+  }
+  return c;
+}
+
+}  // namespace
+
+TEST(KdTree, SameAnswersAsPclKdTreeFlann) {
+  const Cloud::Ptr cloud = randomCloud(5000, 1, true);
+  const Cloud::Ptr queries = randomCloud(500, 2, false);
+  pcl::KdTreeFLANN<pcl::PointNormal> ref;
+  ref.setInputCloud(cloud);
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
+  tree.setInputCloud(cloud);
+  EXPECT_LT(tree.size(), cloud->size());  // the NaN points are not in the tree
+  std::vector<int> ia, ib;
+  std::vector<float> da, db;
+  for (const auto& q : queries->points) {
+    for (int k : {1, 8, 40}) {
+      ASSERT_EQ(ref.nearestKSearch(q, k, ia, da), tree.nearestKSearch(q, k, ib, db));
+      EXPECT_EQ(ia, ib);
+      EXPECT_EQ(da, db);
+    }
+    ASSERT_EQ(ref.radiusSearch(q, 0.2, ia, da), tree.radiusSearch(q, 0.2, ib, db));
+    EXPECT_EQ(ia, ib);
+    EXPECT_EQ(da, db);
+    ASSERT_EQ(ref.radiusSearch(q, 0.3, ia, da, 5), tree.radiusSearch(q, 0.3, ib, db, 5));
+    EXPECT_EQ(ia, ib);
+  }
+  for (int i : ib) EXPECT_TRUE(std::isfinite((*cloud)[i].y));
+}
+
+TEST(KdTree, EdgeCases) {
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
+  std::vector<int> idx;
+  std::vector<float> d2;
+  pcl::PointNormal q;
+  q.x = q.y = q.z = 0.0f;
+  EXPECT_EQ(tree.nearestKSearch(q, 3, idx, d2), 0);  // no cloud yet
+  const Cloud::Ptr cloud = randomCloud(4, 3, false);
+  tree.setInputCloud(cloud);
+  EXPECT_EQ(tree.nearestKSearch(q, 10, idx, d2), 4);  // k larger than the cloud
+  EXPECT_TRUE(std::is_sorted(d2.begin(), d2.end()));
+  q.x = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_EQ(tree.nearestKSearch(q, 1, idx, d2), 0);
+  EXPECT_EQ(tree.radiusSearch(q, 1.0, idx, d2), 0);
+  Cloud::Ptr all_nan(new Cloud(*cloud));
+  for (auto& p : all_nan->points) p.z = std::numeric_limits<float>::quiet_NaN();
+  tree.setInputCloud(all_nan);
+  q.x = 0.0f;
+  EXPECT_EQ(tree.size(), 0u);
+  EXPECT_EQ(tree.nearestKSearch(q, 1, idx, d2), 0);
+}
+
+TEST(KdTree, ThreadSafeQueries) {
+  const Cloud::Ptr cloud = randomCloud(20000, 4, false);
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
+  tree.setInputCloud(cloud);
+  std::vector<int> nearest(cloud->size(), -1);
+#pragma omp parallel for
+  for (int i = 0; i < static_cast<int>(cloud->size()); ++i) {
+    std::vector<int> idx;
+    std::vector<float> d2;
+    tree.nearestKSearch((*cloud)[i], 1, idx, d2);
+    nearest[i] = idx.empty() ? -1 : idx[0];
+  }
+  for (int i = 0; i < static_cast<int>(cloud->size()); ++i) EXPECT_EQ(nearest[i], i);
+}
+
+TEST(SearchKdTree, IcpFindsTheSameMotionAsWithPclsTree) {
+  const Cloud::Ptr source = randomCloud(3000, 5, false);
+  Eigen::Affine3f motion = Eigen::Affine3f::Identity();
+  motion.translate(Eigen::Vector3f(0.05f, -0.03f, 0.02f));
+  motion.rotate(Eigen::AngleAxisf(0.05f, Eigen::Vector3f::UnitZ()));
+  Cloud::Ptr target(new Cloud);
+  pcl::transformPointCloudWithNormals(*source, *target, motion);
+  Cloud out;
+  pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> a, b;
+  for (auto* icp : {&a, &b}) {
+    icp->setInputSource(source);
+    icp->setInputTarget(target);
+    icp->setMaximumIterations(50);
+  }
+  auto tree = std::make_shared<pcl_animseg::SearchKdTree<pcl::PointNormal>>();
+  tree->setInputCloud(target);
+  b.setSearchMethodTarget(tree, true);
+  a.align(out);
+  b.align(out);
+  EXPECT_TRUE(a.getFinalTransformation().isApprox(b.getFinalTransformation(), 1e-6f));
+  EXPECT_TRUE(b.getFinalTransformation().isApprox(motion.matrix(), 1e-3f));
+  EXPECT_NEAR(a.getFitnessScore(), b.getFitnessScore(), 1e-9);
+}
