@@ -1,5 +1,6 @@
-#include <pcl/kdtree/kdtree_flann.h>
+#include <pcl/point_types.h>
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/math/gmm.h>
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
@@ -42,7 +43,7 @@ struct SideModel {
   std::vector<char> patch_ok;
   math::GaussianMixture whole;
   bool whole_ok = false;
-  pcl::KdTreeFLANN<pcl::PointXYZ> seed_tree, train_tree;
+  pcl_animseg::KdTree<pcl::PointXYZ> seed_tree, train_tree;
   XYZCloud::Ptr train_cloud{new XYZCloud};
 };
 
@@ -89,7 +90,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   std::size_t total_points = sequence_->totalPoints();
 
   std::vector<double> spacing(frames);
-  std::vector<pcl::KdTreeFLANN<pcl::PointNormal>> trees(frames);
+  std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees(frames);
   for (std::size_t t = 0; t < frames; ++t) {
     spacing[t] = meanSpacing(*sequence_->frame(t));
     trees[t].setInputCloud(sequence_->frame(t));
@@ -213,9 +214,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         all->push_back(cloud[j]);
       }
       if (all->empty()) continue;
-      pcl::KdTreeFLANN<pcl::PointNormal> all_tree;
+      pcl_animseg::KdTree<pcl::PointNormal> all_tree;
       all_tree.setInputCloud(all);
-      std::vector<pcl::KdTreeFLANN<pcl::PointNormal>> btree(num_pairs);
+      std::vector<pcl_animseg::KdTree<pcl::PointNormal>> btree(num_pairs);
       for (int q = 0; q < num_pairs; ++q)
         if (bcloud[q]) btree[q].setInputCloud(bcloud[q]);
       const double reach = p.outer_band * s;
