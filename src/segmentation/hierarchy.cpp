@@ -83,6 +83,32 @@ void PersistenceHierarchy::compute(const SegmentationResult& input, HierarchyRes
   out.num_parts.push_back(k);
   out.thresholds.push_back(0.0);
 
+  // The motion method records its own coarser merges (cheapest first, cost = rigid-motion
+  // residual of the union): those replace the saddles. A merge's persistence is its cost over the
+  // largest cost (in [0, 1] like Eq. 12's RP) and a level applies the recorded merges, in their
+  // order, while the next one is below the level's threshold, so the levels stay nested and
+  // follow the motion method's own decisions (density saddles in the joint space say little about
+  // whether two pieces move together: on a 48-frame humanoid the 15-part level had a pooled ARI of
+  // 0.67 by saddles, against 0.90 at the 29 parts below it).
+  std::vector<double> merge_rp;
+  for (const ClusterMerge& m : input.merges) {
+    if (m.a < 0 || m.b < 0 || m.a >= k || m.b >= k)
+      throw Error("hierarchy: merge of unknown clusters " + std::to_string(m.a) + " and " +
+                  std::to_string(m.b));
+    merge_rp.push_back(m.cost);
+  }
+  const bool by_merges = !merge_rp.empty();
+  if (by_merges) {
+    const double top = *std::max_element(merge_rp.begin(), merge_rp.end());
+    double mean = 0.0;
+    for (double& c : merge_rp) {
+      c = top > 0.0 ? std::max(0.0, c) / top : 0.0;
+      mean += c / static_cast<double>(merge_rp.size());
+    }
+    mean_rp = mean;
+  }
+  std::size_t next_merge = 0;
+
   UnionFind uf(k);
   std::vector<int> prev_level_label(k);  // level label of each input cluster at the last level
   std::iota(prev_level_label.begin(), prev_level_label.end(), 0);
@@ -90,9 +116,17 @@ void PersistenceHierarchy::compute(const SegmentationResult& input, HierarchyRes
   double threshold = params_.initial_factor * mean_rp;
   int guard = 0;
   while (regions > 1 && static_cast<int>(out.labels.size()) <= params_.max_levels &&
-         !saddle.empty() && guard++ < 100000) {
+         (by_merges ? next_merge < merge_rp.size() : !saddle.empty()) && guard++ < 100000) {
     int merges = 0;
-    for (;;) {
+    while (by_merges && next_merge < merge_rp.size() && merge_rp[next_merge] < threshold) {
+      const ClusterMerge& m = input.merges[next_merge++];
+      const int ra = uf.find(m.a), rb = uf.find(m.b);
+      if (ra == rb) continue;
+      uf.parent[std::max(ra, rb)] = std::min(ra, rb);
+      --regions;
+      ++merges;
+    }
+    for (; !by_merges;) {
       // The weakest remaining pair (ties broken by cluster ids: deterministic).
       auto weakest = saddle.end();
       double weakest_rp = std::numeric_limits<double>::infinity();

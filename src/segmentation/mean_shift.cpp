@@ -150,7 +150,7 @@ class ExactBackend : public JointKernelSum::Backend {
  public:
   ExactBackend(const Eigen::MatrixXf& x, const Eigen::MatrixXf& values)
       : x_(x), values_(values.transpose()) {
-    index_ = std::make_unique<flann::Index<flann::L2<float>>>(
+    index_ = std::make_unique<flann::KDTreeSingleIndex<flann::L2<float>>>(
         flann::Matrix<float>(x_.data(), x_.rows(), x_.cols()),
         flann::KDTreeSingleIndexParams(15));
     index_->buildIndex();
@@ -162,22 +162,25 @@ class ExactBackend : public JointKernelSum::Backend {
     const float r2 = 9.0f;
 #pragma omp parallel
     {
-      std::vector<std::vector<int>> idx(1);
-      std::vector<std::vector<float>> dst(1);
+      std::vector<std::size_t> idx;
+      std::vector<float> dst;
       std::vector<float> qb(q.cols());
       Eigen::VectorXd acc(v);
       flann::SearchParams sp(flann::FLANN_CHECKS_UNLIMITED);
-      sp.cores = 1;
       sp.sorted = false;
 #pragma omp for schedule(dynamic, 64)
       for (int r = 0; r < nr; ++r) {
         for (Eigen::Index k = 0; k < q.cols(); ++k) qb[k] = q(rows[r], k);
-        flann::Matrix<float> qm(qb.data(), 1, qb.size());
-        // FLANN's L2 is the squared distance, so the radius is squared too.
-        index_->radiusSearch(qm, idx, dst, r2, sp);
+        // FLANN's L2 is the squared distance, so the radius is squared too. findNeighbors
+        // directly: flann::Index::radiusSearch opens an OpenMP region per call (see kdtree.h).
+        flann::RadiusResultSet<float> found(r2);
+        index_->findNeighbors(found, qb.data(), sp);
+        idx.resize(found.size());
+        dst.resize(found.size());
+        if (!idx.empty()) found.copy(idx.data(), dst.data(), idx.size(), false);
         acc.setZero();
-        for (std::size_t m = 0; m < idx[0].size(); ++m)
-          acc += std::exp(-0.5 * dst[0][m]) * values_.col(idx[0][m]).cast<double>();
+        for (std::size_t m = 0; m < idx.size(); ++m)
+          acc += std::exp(-0.5 * dst[m]) * values_.col(idx[m]).cast<double>();
         for (int c = 0; c < v; ++c) out(rows[r], c) += static_cast<float>(acc[c]);
       }
     }
@@ -186,7 +189,7 @@ class ExactBackend : public JointKernelSum::Backend {
  private:
   Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> x_;
   Eigen::MatrixXf values_;  // v x n
-  std::unique_ptr<flann::Index<flann::L2<float>>> index_;
+  std::unique_ptr<flann::KDTreeSingleIndex<flann::L2<float>>> index_;
 };
 
 class GkdBackend : public JointKernelSum::Backend {
@@ -464,26 +467,30 @@ void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain
   std::vector<int> group_mode(ng, -1);
   const float r2 = static_cast<float>(merge_radius * merge_radius);
   if (ng > 1) {
-    flann::Index<flann::L2<float>> index(flann::Matrix<float>(reps.data(), ng, dim),
-                                         flann::KDTreeSingleIndexParams(15));
+    flann::KDTreeSingleIndex<flann::L2<float>> index(flann::Matrix<float>(reps.data(), ng, dim),
+                                                     flann::KDTreeSingleIndexParams(15));
     index.buildIndex();
     // Radius searches in parallel (read-only), then the sequential greedy pass over the lists.
     std::vector<std::vector<int>> near(ng);
 #pragma omp parallel
     {
-      std::vector<std::vector<int>> idx(1);
-      std::vector<std::vector<float>> dst(1);
+      std::vector<std::size_t> idx;
+      std::vector<float> dst;
       flann::SearchParams sp(flann::FLANN_CHECKS_UNLIMITED);
-      sp.cores = 1;
       sp.sorted = false;
 #pragma omp for schedule(dynamic, 64)
       for (int g = 0; g < ng; ++g) {
-        flann::Matrix<float> qm(reps.data() + static_cast<std::size_t>(g) * dim, 1, dim);
         // FLANN keeps squared distances below the radius; a hair more, then the exact test below
         // (the same float expression as the old all-pairs scan) decides.
-        index.radiusSearch(qm, idx, dst, r2 * 1.001f, sp);
-        for (int j : idx[0])
+        flann::RadiusResultSet<float> found(r2 * 1.001f);
+        index.findNeighbors(found, reps.data() + static_cast<std::size_t>(g) * dim, sp);
+        idx.resize(found.size());
+        dst.resize(found.size());
+        if (!idx.empty()) found.copy(idx.data(), dst.data(), idx.size(), false);
+        for (std::size_t jj : idx) {
+          const int j = static_cast<int>(jj);
           if (j != g && (reps.row(j) - reps.row(g)).squaredNorm() < r2) near[g].push_back(j);
+        }
       }
     }
     for (int g : order) {

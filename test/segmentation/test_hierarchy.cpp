@@ -126,6 +126,39 @@ TEST(Hierarchy, ThresholdsFollowEq12) {
   EXPECT_GT(out.thresholds.back(), 1.0);
 }
 
+TEST(Hierarchy, RecordedMotionMergesReplaceTheSaddles) {
+  // The motion method's recorded merges, cheapest first (a merged pair is named by its smaller
+  // id): {2,3} at 1.0, {0,1} at 1.2, {0,2} at 4.0. The saddles say the opposite ({0,1} deepest):
+  // with merges present they are not used.
+  SegmentationResult r;
+  r.num_clusters = 4;
+  r.mode_density = {1.0, 0.9, 0.8, 0.5};
+  r.saddles = {{0, 1, 0.1}, {1, 2, 0.89}, {2, 3, 0.49}};
+  r.merges = {{2, 3, 1.0}, {0, 1, 1.2}, {0, 2, 4.0}};
+  r.labels = {{0, 1, 2, 3}, {3, 2, 1, 0, -1}};
+  HierarchyParams p;
+  p.initial_factor = 1.0;  // first threshold = mean(0.25, 0.3, 1.0) = 0.517
+  p.step = 0.1;
+  PersistenceHierarchy h;
+  h.setParams(p);
+  HierarchyResult out;
+  h.compute(r, out);
+  expectNested(out);
+  ASSERT_EQ(out.levels(), 3);
+  EXPECT_EQ(out.num_parts[1], 2);
+  EXPECT_EQ(out.labels[1][0], (std::vector<int>{0, 0, 1, 1}));
+  EXPECT_EQ(out.labels[1][1], (std::vector<int>{1, 1, 0, 0, -1}));
+  EXPECT_NEAR(out.thresholds[1], (0.25 + 0.3 + 1.0) / 3.0, 1e-12);
+  EXPECT_EQ(out.num_parts[2], 1);
+  // The merges are applied in their order: a cheap merge after an expensive one waits for it.
+  r.merges = {{2, 3, 1.0}, {0, 2, 4.0}, {0, 1, 1.2}};
+  h.compute(r, out);
+  expectNested(out);
+  EXPECT_EQ(out.num_parts[1], 3);
+  r.merges = {{0, 7, 1.0}};
+  EXPECT_THROW(h.compute(r, out), pcl_animseg::Error);
+}
+
 TEST(Hierarchy, RegionsWithoutSaddleNeverMergeAndBadInputThrows) {
   SegmentationResult r;
   r.num_clusters = 4;

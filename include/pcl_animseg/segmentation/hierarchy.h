@@ -58,7 +58,10 @@ class PersistenceHierarchy {
   const HierarchyParams& getParams() const { return params_; }
 
   /** \brief Builds the hierarchy from `input` (labels, num_clusters, mode_density, saddles).
-   * Throws pcl_animseg::Error on inconsistent input (a saddle naming an unknown cluster, ...). */
+   * When `input.merges` is not empty (the motion method's recorded coarser merges), the levels
+   * apply those merges in their order instead, with the merge cost over the largest cost in
+   * place of RP (same thresholds: initial_factor · mean, raised by step). Throws
+   * pcl_animseg::Error on inconsistent input (a saddle or merge naming an unknown cluster, ...). */
   void compute(const SegmentationResult& input, HierarchyResult& output) const;
 
  private:
