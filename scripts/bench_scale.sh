@@ -3,6 +3,7 @@
 # 50 x 100000 = 5 M points) and runs animseg on it under /usr/bin/time -v; prints wall time and peak
 # RSS (goal: <= 4 GB for 5 M points). Uses the tools of $BUILD (default build).
 #   FRAMES=50 POINTS=100000 TIMEOUT=3600 bash scripts/bench_scale.sh [extra animseg options]
+# The 800k-point pipeline benchmark (stage shares) is FRAMES=48 POINTS=16667.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BUILD=${BUILD:-build}
@@ -25,6 +26,8 @@ rc=0
   "$@" 2>"$WORK/animseg.err" || rc=$?
 grep -vE "^\s" "$WORK/animseg.err" | tail -n 30 || true
 grep -E "Elapsed \(wall|Maximum resident|User time|System time|Exit status" "$WORK/animseg.err" || true
+# Stage timings (refine + hierarchy against the total: issue goal <= 20% at 800k points).
+[ -f "$WORK/out/summary.json" ] && grep -o '"timings_s": {[^}]*}' "$WORK/out/summary.json" || true
 rss_kb=$(awk -F: '/Maximum resident/ {gsub(/ /, "", $2); print $2}' "$WORK/animseg.err")
 [ -n "$rss_kb" ] && echo "bench_scale: peak RSS $((rss_kb / 1024)) MB (goal <= 4096 MB), exit $rc"
 [ "$rc" -eq 124 ] && echo "bench_scale: animseg stopped by the ${TIMEOUT}s timeout"
