@@ -17,32 +17,13 @@
 #include <string>
 #include <vector>
 
+#include "temp_dir.h"
+
 namespace fixtures {
 
 namespace fs = std::filesystem;
 
-/** A fresh directory under the system temp dir, removed with its content at scope exit. */
-class TempDir {
- public:
-  TempDir() {
-    std::string templ = (fs::temp_directory_path() / "animseg_io_XXXXXX").string();
-    std::vector<char> buf(templ.begin(), templ.end());
-    buf.push_back('\0');
-    if (!mkdtemp(buf.data())) std::abort();
-    path_ = buf.data();
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
-  }
-  TempDir(const TempDir&) = delete;
-  TempDir& operator=(const TempDir&) = delete;
-  const std::string& path() const { return path_; }
-  std::string operator/(const std::string& name) const { return (fs::path(path_) / name).string(); }
-
- private:
-  std::string path_;
-};
+using animseg_test::TempDir;
 
 struct Shape {
   std::vector<Eigen::Vector3f> points;

@@ -12,22 +12,14 @@
 #include <fstream>
 #include <string>
 
+#include "temp_dir.h"
+
 namespace fs = std::filesystem;
 namespace io = pcl_animseg::io;
 
 namespace {
 
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    std::string tmpl = (fs::temp_directory_path() / "animseg_regr_XXXXXX").string();
-    path = mkdtemp(tmpl.data());
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-};
+using animseg_test::TempDir;
 
 std::string write(const fs::path& dir, const std::string& name, const std::string& bytes) {
   const fs::path p = dir / name;
@@ -43,31 +35,31 @@ std::string write(const fs::path& dir, const std::string& name, const std::strin
 TEST(AtomicWrite, RemovesStaleTemporariesOfDeadProcesses) {
   TempDir tmp;
   // PIDs are at most 2^22 on Linux, so 999999999 is never a live process.
-  const std::string dead = write(tmp.path, ".f0.labels.tmp.999999999", "1\n2\n");
+  const std::string dead = write(tmp.dir(), ".f0.labels.tmp.999999999", "1\n2\n");
   const std::string mine =
-      write(tmp.path, ".f1.labels.tmp." + std::to_string(::getpid()), "partial");
-  const std::string other = write(tmp.path, ".notes.tmp.txt", "not ours");
-  io::writeTextAtomically((tmp.path / "summary.json").string(), "{}\n");
+      write(tmp.dir(), ".f1.labels.tmp." + std::to_string(::getpid()), "partial");
+  const std::string other = write(tmp.dir(), ".notes.tmp.txt", "not ours");
+  io::writeTextAtomically((tmp.dir() / "summary.json").string(), "{}\n");
   EXPECT_FALSE(fs::exists(dead));
   EXPECT_TRUE(fs::exists(mine));
   EXPECT_TRUE(fs::exists(other));
-  EXPECT_TRUE(fs::exists(tmp.path / "summary.json"));
+  EXPECT_TRUE(fs::exists(tmp.dir() / "summary.json"));
 }
 
 // fuzz_off: a vertex count beyond size_t was cast before being compared with the file length
 // (undefined behaviour; UBSan float-cast-overflow).
 TEST(ReaderRegressions, OffCountTooLargeForSizeT) {
   TempDir tmp;
-  const std::string p = write(tmp.path, "big.off", "OFF\n1e300 0 0\n");
+  const std::string p = write(tmp.dir(), "big.off", "OFF\n1e300 0 0\n");
   EXPECT_THROW(io::readOFF(p), pcl_animseg::Error);
-  const std::string q = write(tmp.path, "faces.off", "OFF\n3 1e300 0\n0 0 0\n1 0 0\n0 1 0\n");
+  const std::string q = write(tmp.dir(), "faces.off", "OFF\n3 1e300 0\n0 0 0\n1 0 0\n0 1 0\n");
   EXPECT_THROW(io::readOFF(q), pcl_animseg::Error);
 }
 
 // fuzz_ply: an element with no properties and a huge count made the reader loop for ever.
 TEST(ReaderRegressions, PlyElementWithoutPropertiesAndHugeCount) {
   TempDir tmp;
-  const std::string p = write(tmp.path, "loop.ply",
+  const std::string p = write(tmp.dir(), "loop.ply",
                               "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
                               "property float y\nproperty float z\n"
                               "element junk 1000000000000000\nend_header\n1 2 3\n");
@@ -86,7 +78,7 @@ TEST(ReaderRegressions, PcdHeaderProductsOverflow) {
         std::string("WIDTH 9223372036854775807\nHEIGHT 2\nDATA binary\n"),
         std::string("COUNT 1 1 4611686018427387904\nWIDTH 1\nHEIGHT 1\nDATA binary\n"),
         std::string("WIDTH 4294967295\nHEIGHT 4294967295\nDATA ascii\n1 2 3\n")}) {
-    const std::string p = write(tmp.path, "bad.pcd", head + rest);
+    const std::string p = write(tmp.dir(), "bad.pcd", head + rest);
     EXPECT_THROW(io::readPCD(p), pcl_animseg::Error) << rest;
   }
 }
@@ -100,11 +92,11 @@ TEST(ReaderRegressions, PcdHeaderCountsMustBeWholeAndGivenOnce) {
        {std::string("WIDTH 4.7\nCOUNT 1 1 1 1\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n"),
         std::string("WIDTH 2\nHEIGHT 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n"),
         std::string("WIDTH 4 4\nHEIGHT 1\nDATA binary\n")}) {
-    const std::string p = write(tmp.path, "bad.pcd", head + rest + data);
+    const std::string p = write(tmp.dir(), "bad.pcd", head + rest + data);
     EXPECT_THROW(io::readPCD(p), pcl_animseg::Error) << rest;
   }
   // The same header with whole counts given once is read.
   const std::string p =
-      write(tmp.path, "good.pcd", head + "WIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n" + data);
+      write(tmp.dir(), "good.pcd", head + "WIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n" + data);
   EXPECT_NO_THROW(io::readPCD(p));
 }

@@ -8,21 +8,13 @@
 #include <cstdlib>
 #include <filesystem>
 
+#include "temp_dir.h"
+
 namespace sy = pcl_animseg::synth;
 namespace fs = std::filesystem;
 
 namespace {
-struct TempDir {
-  fs::path path;
-  TempDir() {
-    std::string tmpl = (fs::temp_directory_path() / "animseg_synth_XXXXXX").string();
-    path = mkdtemp(tmpl.data());
-  }
-  ~TempDir() {
-    std::error_code ec;
-    fs::remove_all(path, ec);
-  }
-};
+using animseg_test::TempDir;
 }  // namespace
 
 TEST(WriteSequence, PointFramesRoundTrip) {
@@ -32,7 +24,7 @@ TEST(WriteSequence, PointFramesRoundTrip) {
   p.points = 800;
   const auto frames = sy::generate(p);
   TempDir tmp;
-  const std::string dir = (tmp.path / "seq").string();
+  const std::string dir = (tmp.dir() / "seq").string();
   sy::writeSequence(dir, frames);
 
   const auto paths = pcl_animseg::io::listSequence(dir);
@@ -102,10 +94,10 @@ TEST(WriteSequence, MeshFramesKeepVertexOrderAndFaces) {
   p.mesh_resolution = 8;
   const auto frames = sy::generate(p);
   TempDir tmp;
-  sy::writeSequence(tmp.path.string(), frames);
+  sy::writeSequence(tmp.dir().string(), frames);
   for (std::size_t t = 0; t < frames.size(); ++t) {
     const auto raw =
-        pcl_animseg::io::readRawFrame((tmp.path / (sy::frameName(t, 2) + ".ply")).string());
+        pcl_animseg::io::readRawFrame((tmp.dir() / (sy::frameName(t, 2) + ".ply")).string());
     ASSERT_EQ(raw.points.size(), frames[t].cloud->size());
     ASSERT_EQ(raw.faces.size(), frames[t].faces.size());
     for (std::size_t i = 0; i < raw.points.size(); i += 11)

@@ -13,6 +13,8 @@
 #include <string>
 #include <vector>
 
+#include "temp_dir.h"
+
 namespace cli_test {
 
 struct RunResult {
@@ -41,19 +43,7 @@ inline RunResult run(const std::string& command, const std::filesystem::path& di
   return r;
 }
 
-/** A fresh temporary directory, removed by the destructor. */
-struct TempDir {
-  std::filesystem::path path;
-  TempDir() {
-    std::string tmpl = (std::filesystem::temp_directory_path() / "animseg_test_XXXXXX").string();
-    path = mkdtemp(tmpl.data());
-  }
-  ~TempDir() {
-    std::error_code ec;
-    std::filesystem::remove_all(path, ec);
-  }
-  std::string str() const { return path.string(); }
-};
+using animseg_test::TempDir;
 
 /** Writes an XYZ point frame: a unit sphere at `cx` with `n` random points and outward normals;
  * `nan_every` > 0 turns every nan_every-th point into NaN coordinates. */

@@ -20,12 +20,12 @@ void makeSequence(const fs::path& dir, int nan_every = 0) {
 
 TEST(AnimsegCli, WritesEveryOutputInInputOrder) {
   TempDir tmp;
-  makeSequence(tmp.path / "in", 50);
+  makeSequence(tmp.dir() / "in", 50);
   const RunResult r = run(tool("animseg") + " --input " + tmp.str() + "/in --output " + tmp.str() + "/out",
-                    tmp.path);
+                    tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   for (const char* name : {"f0", "f5", "f10"}) {
-    const fs::path base = tmp.path / "out" / name;
+    const fs::path base = tmp.dir() / "out" / name;
     ASSERT_TRUE(fs::exists(base.string() + ".pcd")) << name;
     ASSERT_TRUE(fs::exists(base.string() + ".ply")) << name;
     const std::string labels = slurp(base.string() + ".labels");
@@ -35,37 +35,39 @@ TEST(AnimsegCli, WritesEveryOutputInInputOrder) {
     std::istringstream ls(labels);
     std::string line;
     for (int i = 0; std::getline(ls, line); ++i)
-      if (i % 50 == 49) EXPECT_EQ(line.substr(0, 2), "-1") << name << " line " << i;
+      if (i % 50 == 49) {
+        EXPECT_EQ(line.substr(0, 2), "-1") << name << " line " << i;
+      }
   }
-  const std::string summary = slurp((tmp.path / "out" / "summary.json").string());
+  const std::string summary = slurp((tmp.dir() / "out" / "summary.json").string());
   for (const char* key : {"\"timings_s\"", "\"load\"", "\"total\"", "\"points_per_frame\": [300, 340, 380]",
                           "\"parts_per_level\"", "\"device\"", "\"parameters\""})
     EXPECT_NE(summary.find(key), std::string::npos) << key << " in " << summary;
-  EXPECT_TRUE(fs::exists(tmp.path / "out" / "transforms.json"));
+  EXPECT_TRUE(fs::exists(tmp.dir() / "out" / "transforms.json"));
   // No temporary files are left behind.
-  for (const auto& e : fs::directory_iterator(tmp.path / "out"))
+  for (const auto& e : fs::directory_iterator(tmp.dir() / "out"))
     EXPECT_EQ(e.path().filename().string().find(".tmp"), std::string::npos) << e.path();
 }
 
 TEST(AnimsegCli, QuietPrintsNothing) {
   TempDir tmp;
-  makeSequence(tmp.path / "in");
+  makeSequence(tmp.dir() / "in");
   const RunResult r = run(tool("animseg") + " --quiet --input " + tmp.str() + "/in --output " + tmp.str() +
                         "/out",
-                    tmp.path);
+                    tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(r.err.empty()) << r.err;
 }
 
 TEST(AnimsegCli, ConfigFileValuesAreUsedAndCommandLineWins) {
   TempDir tmp;
-  makeSequence(tmp.path / "in");
-  std::ofstream(tmp.path / "cfg.json") << "{\"bandwidth\": 0.25, \"weights\": [0.5, 0.8, 2, 1], \"seed\": 9}";
+  makeSequence(tmp.dir() / "in");
+  std::ofstream(tmp.dir() / "cfg.json") << "{\"bandwidth\": 0.25, \"weights\": [0.5, 0.8, 2, 1], \"seed\": 9}";
   const RunResult r = run(tool("animseg") + " --quiet --config " + tmp.str() + "/cfg.json --seed 3 --input " +
                         tmp.str() + "/in --output " + tmp.str() + "/out",
-                    tmp.path);
+                    tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
-  const std::string summary = slurp((tmp.path / "out" / "summary.json").string());
+  const std::string summary = slurp((tmp.dir() / "out" / "summary.json").string());
   EXPECT_NE(summary.find("\"bandwidth\": 0.25"), std::string::npos) << summary;
   EXPECT_NE(summary.find("\"weights\": \"0.5,0.8,2,1\""), std::string::npos) << summary;
   EXPECT_NE(summary.find("\"seed\": 3"), std::string::npos) << summary;
@@ -80,15 +82,15 @@ class AnimsegBadInput : public ::testing::TestWithParam<BadCase> {};
 
 TEST_P(AnimsegBadInput, OneErrorLineNonZeroExitNoOutput) {
   TempDir tmp;
-  makeSequence(tmp.path / "in");
-  fs::create_directories(tmp.path / "empty");
-  fs::create_directories(tmp.path / "tiny");
+  makeSequence(tmp.dir() / "in");
+  fs::create_directories(tmp.dir() / "empty");
+  fs::create_directories(tmp.dir() / "tiny");
   {
-    std::ofstream f(tmp.path / "tiny" / "a.xyz");
+    std::ofstream f(tmp.dir() / "tiny" / "a.xyz");
     f << "0 0 0\n1 0 0\n0 1 0\n";
   }
-  std::ofstream(tmp.path / "badcfg.json") << "{\"no_such_option\": 1}";
-  std::ofstream(tmp.path / "brokencfg.json") << "{\"bandwidth\": ";
+  std::ofstream(tmp.dir() / "badcfg.json") << "{\"no_such_option\": 1}";
+  std::ofstream(tmp.dir() / "brokencfg.json") << "{\"bandwidth\": ";
   std::string args = GetParam().args;
   auto replace = [&](const std::string& key, const std::string& value) {
     for (std::size_t p; (p = args.find(key)) != std::string::npos;) args.replace(p, key.size(), value);
@@ -96,10 +98,10 @@ TEST_P(AnimsegBadInput, OneErrorLineNonZeroExitNoOutput) {
   replace("{tmp}", tmp.str());
   replace("{in}", tmp.str() + "/in");
   replace("{out}", tmp.str() + "/out");
-  const RunResult r = run(tool("animseg") + " " + args, tmp.path);
+  const RunResult r = run(tool("animseg") + " " + args, tmp.dir());
   EXPECT_EQ(r.code, 1) << GetParam().name;
   EXPECT_TRUE(isOneErrorLine(r.err)) << GetParam().name << ": '" << r.err << "'";
-  EXPECT_FALSE(fs::exists(tmp.path / "out" / "summary.json")) << GetParam().name;
+  EXPECT_FALSE(fs::exists(tmp.dir() / "out" / "summary.json")) << GetParam().name;
 }
 
 INSTANTIATE_TEST_SUITE_P(
@@ -123,14 +125,14 @@ TEST(AnimsegCli, DeterministicAcrossThreadCounts) {
   TempDir tmp;
   const std::string in = tmp.str() + "/in";
   const RunResult g = run(tool("animseg_synth") + " --quiet --plan humanoid --frames 5 --points 700 "
-                              "--seed 4 --output " + in, tmp.path);
+                              "--seed 4 --output " + in, tmp.dir());
   ASSERT_EQ(g.code, 0) << g.err;
   std::vector<std::string> outs;
   for (const char* threads : {"1", "2"}) {
     const std::string out = tmp.str() + "/out" + threads;
     const RunResult r = run(std::string("OMP_NUM_THREADS=") + threads + " " + tool("animseg") +
                                 " --quiet --seed 5 --input " + in + " --output " + out,
-                            tmp.path);
+                            tmp.dir());
     ASSERT_EQ(r.code, 0) << r.err;
     outs.push_back(out);
   }

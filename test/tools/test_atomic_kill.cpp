@@ -138,13 +138,13 @@ int checkComplete(const fs::path& out, const std::map<std::string, std::size_t>&
 
 TEST(AtomicKill, KilledRunsLeaveOnlyCompleteFiles) {
   TempDir tmp;
-  const fs::path in = tmp.path / "in";
+  const fs::path in = tmp.dir() / "in";
   const RunResult g = run(tool("animseg_synth") + " --quiet --plan humanoid --frames 4 --points 800 "
-                              "--seed 11 --output " + in.string(), tmp.path);
+                              "--seed 11 --output " + in.string(), tmp.dir());
   ASSERT_EQ(g.code, 0) << g.err;
   const auto sizes = inputSizes(in);
   ASSERT_EQ(sizes.size(), 4u);
-  const fs::path out = tmp.path / "out";
+  const fs::path out = tmp.dir() / "out";
   const std::vector<std::string> args = {tool("animseg"), "--quiet", "--seed", "3", "--input",
                                          in.string(), "--output", out.string()};
   using std::chrono::milliseconds;
@@ -164,7 +164,9 @@ TEST(AtomicKill, KilledRunsLeaveOnlyCompleteFiles) {
     // run's leftovers is what a user does.
     if (!m.on_first_output) fs::remove_all(out);
     const KillResult k = runAndKill(args, out, m.delay, m.on_first_output);
-    if (k.finished) EXPECT_EQ(k.exit_code, 0);
+    if (k.finished) {
+      EXPECT_EQ(k.exit_code, 0);
+    }
     if (m.on_first_output && !k.finished) ++killed_while_writing;
     checkComplete(out, sizes);
   }
@@ -172,7 +174,7 @@ TEST(AtomicKill, KilledRunsLeaveOnlyCompleteFiles) {
 
   // A complete run into the same OUT: every output present and complete, no temporaries left.
   const RunResult r = run(tool("animseg") + " --quiet --seed 3 --input " + in.string() +
-                              " --output " + out.string(), tmp.path);
+                              " --output " + out.string(), tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_GE(checkComplete(out, sizes), 4 * 3 + 2);  // NAME.labels/.pcd/.ply, summary, transforms
   for (const auto& e : fs::directory_iterator(out))

@@ -23,13 +23,13 @@ void makeSequence(const fs::path& dir) {
 
 TEST(MeanShiftCli, WritesLabelsPcdAndSegmentationInfo) {
   TempDir tmp;
-  makeSequence(tmp.path / "in");
+  makeSequence(tmp.dir() / "in");
   for (const char* method : {"paper", "motion"}) {
     const std::string out = tmp.str() + "/out_" + method;
     const RunResult r = run(tool("animseg_meanshift") + " --quiet --no-features --input " +
                                 tmp.str() + "/in --output " + out + " --method " + method +
                                 " --bandwidth 0.2",
-                            tmp.path);
+                            tmp.dir());
     ASSERT_EQ(r.code, 0) << r.err;
     EXPECT_TRUE(r.err.empty()) << r.err;  // --quiet
     for (int t = 0; t < 3; ++t) {
@@ -56,24 +56,24 @@ TEST(MeanShiftCli, WritesLabelsPcdAndSegmentationInfo) {
 
 TEST(MeanShiftCli, BadInputIsOneErrorLine) {
   TempDir tmp;
-  makeSequence(tmp.path / "in");
+  makeSequence(tmp.dir() / "in");
   const std::string base = tool("animseg_meanshift") + " --no-features --input " + tmp.str() +
                            "/in --output " + tmp.str() + "/out";
   for (const std::string extra :
        {" --bandwidth 0", " --bandwidth -1", " --weights 1,2,3", " --weights 1,-1,1,1",
         " --method magic", " --backend magic", " --parts -2", " --no-such-option"}) {
-    const RunResult r = run(base + extra, tmp.path);
+    const RunResult r = run(base + extra, tmp.dir());
     EXPECT_EQ(r.code, 1) << extra;
     EXPECT_TRUE(isOneErrorLine(r.err)) << extra << ": " << r.err;
   }
   const RunResult missing =
       run(tool("animseg_meanshift") + " --input " + tmp.str() + "/nope --output " + tmp.str() +
               "/out",
-          tmp.path);
+          tmp.dir());
   EXPECT_EQ(missing.code, 1);
   EXPECT_TRUE(isOneErrorLine(missing.err)) << missing.err;
-  EXPECT_FALSE(fs::exists(tmp.path / "out"));
-  const RunResult help = run(tool("animseg_meanshift") + " --help", tmp.path);
+  EXPECT_FALSE(fs::exists(tmp.dir() / "out"));
+  const RunResult help = run(tool("animseg_meanshift") + " --help", tmp.dir());
   EXPECT_EQ(help.code, 0);
   EXPECT_NE(help.out.find("--backend"), std::string::npos);
 }

@@ -39,15 +39,15 @@ TEST(SynthEvalCli, PointSequencePerfectAndMergedPredictions) {
   const std::string seq = tmp.str() + "/seq";
   auto r = run(tool("animseg_synth") + " --output " + seq +
                    " --plan quadruped --frames 4 --points 600 --seed 5 --quiet",
-               tmp.path);
+               tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(r.err.empty());
   for (const char* f : {"f000.ply", "f000.gt", "f003.ply", "f003.gt", "synth.json"})
     EXPECT_TRUE(fs::exists(fs::path(seq) / f)) << f;
   EXPECT_FALSE(fs::exists(fs::path(seq) / "f004.ply"));
 
-  predictFromTruth(seq, tmp.path / "perfect", [](int l) { return 100 + l; });
-  r = run(tool("animseg_eval") + " --pred " + tmp.str() + "/perfect --truth " + seq, tmp.path);
+  predictFromTruth(seq, tmp.dir() / "perfect", [](int l) { return 100 + l; });
+  r = run(tool("animseg_eval") + " --pred " + tmp.str() + "/perfect --truth " + seq, tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("pooled ARI          1.0000"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("n/a"), std::string::npos) << "point frames have no rigidity error";
@@ -58,7 +58,7 @@ TEST(SynthEvalCli, PointSequencePerfectAndMergedPredictions) {
   // Level 1 is all zeros: one predicted part.
   r = run(tool("animseg_eval") + " --pred " + tmp.str() + "/perfect --truth " + seq +
               " --level 1 --quiet --json " + tmp.str() + "/l1.json",
-          tmp.path);
+          tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(r.err.empty());
   EXPECT_NE(cli_test::slurp(tmp.str() + "/l1.json").find("\"predicted_parts\": 1,"),
@@ -70,17 +70,17 @@ TEST(SynthEvalCli, MeshSequenceReportsRigidity) {
   const std::string seq = tmp.str() + "/mesh";
   auto r = run(tool("animseg_synth") + " --output " + seq +
                    " --plan snake --frames 3 --mesh --resolution 8 --quiet",
-               tmp.path);
+               tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
-  predictFromTruth(seq, tmp.path / "p", [](int l) { return l; });
+  predictFromTruth(seq, tmp.dir() / "p", [](int l) { return l; });
   r = run(tool("animseg_eval") + " --pred " + tmp.str() + "/p --truth " + seq + " --quiet",
-          tmp.path);
+          tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_NE(r.out.find("rigidity error      0.00000"), std::string::npos) << r.out;
   // Two true parts merged: not rigid any more.
-  predictFromTruth(seq, tmp.path / "m", [](int l) { return l < 2 ? 0 : l; });
+  predictFromTruth(seq, tmp.dir() / "m", [](int l) { return l < 2 ? 0 : l; });
   r = run(tool("animseg_eval") + " --pred " + tmp.str() + "/m --truth " + seq + " --quiet",
-          tmp.path);
+          tmp.dir());
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(r.out.find("rigidity error      0.00000"), std::string::npos) << r.out;
   EXPECT_EQ(cli_test::slurp(tmp.str() + "/m/eval.json").find("\"rigidity_error\": null"),
@@ -91,15 +91,15 @@ TEST(SynthEvalCli, ErrorsAreOneLine) {
   TempDir tmp;
   const std::string seq = tmp.str() + "/seq";
   ASSERT_EQ(
-      run(tool("animseg_synth") + " --output " + seq + " --frames 2 --points 100 --quiet", tmp.path)
+      run(tool("animseg_synth") + " --output " + seq + " --frames 2 --points 100 --quiet", tmp.dir())
           .code,
       0);
   // A non-empty output directory is refused unless --force; --force replaces stale frames.
-  auto r = run(tool("animseg_synth") + " --output " + seq + " --frames 1 --points 100", tmp.path);
+  auto r = run(tool("animseg_synth") + " --output " + seq + " --frames 1 --points 100", tmp.dir());
   EXPECT_EQ(r.code, 1);
   EXPECT_TRUE(cli_test::isOneErrorLine(r.err)) << r.err;
   r = run(tool("animseg_synth") + " --output " + seq + " --frames 1 --points 100 --force --quiet",
-          tmp.path);
+          tmp.dir());
   EXPECT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(fs::exists(fs::path(seq) / "f000.ply"));
   EXPECT_FALSE(fs::exists(fs::path(seq) / "f001.ply"));
@@ -107,30 +107,30 @@ TEST(SynthEvalCli, ErrorsAreOneLine) {
   for (const std::string& args :
        {" --output " + tmp.str() + "/x --plan octopus", " --output " + tmp.str() + "/x --frames 0",
         " --output " + tmp.str() + "/x --bogus", std::string(" --plan hand")}) {
-    r = run(tool("animseg_synth") + args, tmp.path);
+    r = run(tool("animseg_synth") + args, tmp.dir());
     EXPECT_EQ(r.code, 1) << args;
     EXPECT_TRUE(cli_test::isOneErrorLine(r.err)) << args << ": " << r.err;
-    EXPECT_FALSE(fs::exists(tmp.path / "x")) << args;
+    EXPECT_FALSE(fs::exists(tmp.dir() / "x")) << args;
   }
 
   const std::string pred = tmp.str() + "/pred";
   fs::create_directories(pred);
-  r = run(tool("animseg_eval") + " --pred " + pred + " --truth " + seq, tmp.path);
+  r = run(tool("animseg_eval") + " --pred " + pred + " --truth " + seq, tmp.dir());
   EXPECT_EQ(r.code, 1);
   EXPECT_TRUE(endsWithOneErrorLine(r.err)) << r.err;
   EXPECT_NE(r.err.find("f000.labels"), std::string::npos) << r.err;
   {
     std::ofstream(pred + "/f000.labels") << "0\n1\n";  // too short
   }
-  r = run(tool("animseg_eval") + " --pred " + pred + " --truth " + seq + " --quiet", tmp.path);
+  r = run(tool("animseg_eval") + " --pred " + pred + " --truth " + seq + " --quiet", tmp.dir());
   EXPECT_EQ(r.code, 1);
   EXPECT_TRUE(cli_test::isOneErrorLine(r.err)) << r.err;
   EXPECT_NE(r.err.find("2 predicted labels"), std::string::npos) << r.err;
   r = run(tool("animseg_eval") + " --pred " + pred + " --truth " + seq + " --level 3 --quiet",
-          tmp.path);
+          tmp.dir());
   EXPECT_EQ(r.code, 1);
   EXPECT_TRUE(cli_test::isOneErrorLine(r.err)) << r.err;
-  r = run(tool("animseg_eval") + " --pred " + pred + " --truth " + seq + " --nope", tmp.path);
+  r = run(tool("animseg_eval") + " --pred " + pred + " --truth " + seq + " --nope", tmp.dir());
   EXPECT_EQ(r.code, 1);
   EXPECT_TRUE(cli_test::isOneErrorLine(r.err)) << r.err;
 }
