@@ -36,6 +36,21 @@ struct Frame {
   double spacing = 1.0;
 };
 
+/** Every frame with its kd-tree and spacing; built once per segmentation and shared by the
+ * steps. */
+std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
+  const int T = static_cast<int>(seq.size());
+  std::vector<Frame> frames(T);
+  for (int t = 0; t < T; ++t) {
+    frames[t].cloud = seq.frame(t);
+    if (frames[t].cloud->empty())
+      throw Error("motion tracking: frame " + std::to_string(t) + " has no points");
+    frames[t].tree.setInputCloud(frames[t].cloud);
+    frames[t].spacing = std::max(meanSpacing(*frames[t].cloud), 1e-9);
+  }
+  return frames;
+}
+
 struct Source {
   Eigen::Matrix3Xd p;
   Eigen::Matrix3Xd n;
@@ -355,8 +370,10 @@ std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned se
   return out;
 }
 
-SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingParams& params,
-                          Progress* progress) {
+namespace {
+
+SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Frame>& frames,
+                            const MotionTrackingParams& params, Progress* progress) {
   const int T = static_cast<int>(seq.size());
   if (T == 0) throw Error("motion tracking: the sequence has no frames");
   const int ref = params.reference_frame < 0 ? 0 : params.reference_frame;
@@ -367,14 +384,6 @@ SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingPar
     throw Error(
         "motion tracking: neighbourhood must be >= 6, point_neighbours and icp_iterations "
         ">= 1");
-  std::vector<Frame> frames(T);
-  for (int t = 0; t < T; ++t) {
-    frames[t].cloud = seq.frame(t);
-    if (frames[t].cloud->empty())
-      throw Error("motion tracking: frame " + std::to_string(t) + " has no points");
-    frames[t].tree.setInputCloud(frames[t].cloud);
-    frames[t].spacing = std::max(meanSpacing(*frames[t].cloud), 1e-9);
-  }
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
   const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, 1000);
@@ -496,20 +505,6 @@ SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingPar
   return tr;
 }
 
-namespace {
-
-std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
-  const int T = static_cast<int>(seq.size());
-  std::vector<Frame> frames(T);
-  for (int t = 0; t < T; ++t) {
-    frames[t].cloud = seq.frame(t);
-    if (frames[t].cloud->empty())
-      throw Error("motion tracking: frame " + std::to_string(t) + " has no points");
-    frames[t].tree.setInputCloud(frames[t].cloud);
-    frames[t].spacing = std::max(meanSpacing(*frames[t].cloud), 1e-9);
-  }
-  return frames;
-}
 
 /** Squared clipped surface distance of one reference point under a motion, summed over frames
  * (in spacings^2). */
@@ -608,16 +603,13 @@ void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evalu
     edges[{std::min(a, nb[i]), std::max(a, nb[i])}] = std::move(c[i]);
 }
 
-}  // namespace
-
-TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const SampleTracks& tr,
-                                       const MotionTrackingParams& params) {
+TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const SampleTracks& tr,
+                                         const MotionTrackingParams& params) {
   const int S = static_cast<int>(tr.sample_points.size());
   const int T = static_cast<int>(tr.poses.size());
   const int ref = tr.reference_frame;
   TrajectoryClusters out;
   if (S == 0) return out;
-  const std::vector<Frame> frames = makeFrames(seq);
   const Cloud& rc = *frames[ref].cloud;
   std::vector<std::vector<int>> members(S);
   std::vector<std::vector<int>> points(S);  // reference points of the group (sorted)
@@ -913,18 +905,32 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
   return out;
 }
 
+}  // namespace
+
+SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingParams& params,
+                          Progress* progress) {
+  return trackSamplesOn(seq, makeFrames(seq), params, progress);
+}
+
+TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const SampleTracks& tr,
+                                       const MotionTrackingParams& params) {
+  if (tr.sample_points.empty()) return TrajectoryClusters();
+  return clusterTrajectoriesOn(makeFrames(seq), tr, params);
+}
+
 void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams& params,
                        std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
                        Progress* progress) {
-  const SampleTracks tr = trackSamples(seq, params, progress);
+  // The frames (kd-tree and spacing of each) are built once for the three steps.
+  const std::vector<Frame> frames = makeFrames(seq);
+  const SampleTracks tr = trackSamplesOn(seq, frames, params, progress);
   if (progress) progress->begin("clustering trajectories", 0);
-  const TrajectoryClusters tc = clusterTrajectories(seq, tr, params);
+  const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);
   if (progress) progress->end(std::to_string(tc.groups) + " parts");
   if (progress) progress->begin("part motions and labels", 0);
   const int T = static_cast<int>(seq.size());
   const int ref = tr.reference_frame;
   const int nc = tc.groups;
-  const std::vector<Frame> frames = makeFrames(seq);
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
   const int S = static_cast<int>(tr.sample_points.size());
