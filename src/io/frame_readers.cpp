@@ -644,9 +644,18 @@ RawFrame readPLY(const std::string& path) {
 
 namespace {
 
+/** What checkPCDHeader learnt from a PCD header. */
+struct PcdHeader {
+  std::vector<std::string> fields;
+  std::vector<long> sizes, counts;
+  std::string types, data;
+  long width = 0, height = 0;
+  std::size_t data_offset = 0;  ///< bytes before the data (after the DATA line)
+};
+
 /** PCL's PCD reader trusts the header (and crashes on garbage), so the header is checked here
  * first: known keys, consistent counts, and, for binary data, that the file is long enough. */
-void checkPCDHeader(const std::string& path) {
+PcdHeader checkPCDHeader(const std::string& path) {
   std::error_code ec;
   if (!std::filesystem::exists(path, ec)) throw fileError(path, "file does not exist");
   if (std::filesystem::is_directory(path, ec)) throw fileError(path, "is a directory, not a file");
@@ -759,15 +768,68 @@ void checkPCDHeader(const std::string& path) {
   } else {
     throw fileError(path, "PCD header: unknown DATA encoding '" + data + "'");
   }
+  PcdHeader h;
+  h.fields = fields;
+  h.sizes = sizes;
+  h.counts = counts.empty() ? std::vector<long>(nf, 1) : counts;
+  h.types = types;
+  h.data = data;
+  h.width = width;
+  h.height = height;
+  h.data_offset = header_bytes;
+  return h;
+}
+
+/** Uncompressed binary PCD data, read by us: the header is already checked (sizes, counts, file
+ * long enough), and the data is a plain array of `point_step`-byte records. PCL's reader crashed
+ * (SIGSEGV inside pcl::PCDReader::read) on such a file whose header and length are valid and
+ * whose data bytes are arbitrary (found by fuzz_pcd); there is nothing in these bytes that needs
+ * PCL's parser. */
+pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
+  pcl::PCLPointCloud2 cloud;
+  std::uint32_t offset = 0;
+  for (std::size_t i = 0; i < h.fields.size(); ++i) {
+    pcl::PCLPointField f;
+    f.name = h.fields[i];
+    f.offset = offset;
+    f.count = static_cast<std::uint32_t>(h.counts[i]);
+    const char t = h.types[i];
+    const long sz = h.sizes[i];
+    using PF = pcl::PCLPointField;
+    if (t == 'F')
+      f.datatype = sz == 8 ? PF::FLOAT64 : PF::FLOAT32;
+    else if (t == 'I')
+      f.datatype = sz == 1 ? PF::INT8 : sz == 2 ? PF::INT16 : sz == 4 ? PF::INT32 : PF::INT64;
+    else
+      f.datatype = sz == 1 ? PF::UINT8 : sz == 2 ? PF::UINT16 : sz == 4 ? PF::UINT32 : PF::UINT64;
+    if (t == 'F' && sz != 4 && sz != 8)
+      throw fileError(path, "PCD header: a float field of " + std::to_string(sz) + " bytes");
+    cloud.fields.push_back(f);
+    offset += static_cast<std::uint32_t>(sz * h.counts[i]);
+  }
+  cloud.width = static_cast<std::uint32_t>(h.width);
+  cloud.height = static_cast<std::uint32_t>(h.height);
+  cloud.point_step = offset;
+  cloud.row_step = offset * cloud.width;
+  cloud.is_dense = false;
+  cloud.data.resize(static_cast<std::size_t>(cloud.row_step) * cloud.height);
+  std::ifstream in(path, std::ios::binary);
+  in.seekg(static_cast<std::streamoff>(h.data_offset));
+  in.read(reinterpret_cast<char*>(cloud.data.data()),
+          static_cast<std::streamsize>(cloud.data.size()));
+  if (!in) throw fileError(path, "truncated: cannot read the PCD data");
+  return cloud;
 }
 
 }  // namespace
 
 RawFrame readPCD(const std::string& path) {
-  checkPCDHeader(path);
+  const PcdHeader header = checkPCDHeader(path);
   pcl::PCLPointCloud2 cloud;
   int rc = 0;
-  {
+  if (header.data == "binary") {
+    cloud = readBinaryPCD(path, header);
+  } else {
     QuietPcl quiet;
     // PCL's parser throws std::out_of_range and friends on some corrupt headers (a line with a
     // leading blank, found by fuzz_pcd): one clear error, like every other bad file.

@@ -100,3 +100,33 @@ TEST(ReaderRegressions, PcdHeaderCountsMustBeWholeAndGivenOnce) {
       write(tmp.dir(), "good.pcd", head + "WIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n" + data);
   EXPECT_NO_THROW(io::readPCD(p));
 }
+
+// A binary PCD whose header and length are valid and whose data bytes are arbitrary (found by
+// fuzz_pcd): PCL's reader crashed (SIGSEGV) on it; binary data is now read by us. The points are
+// read as they are (a few finite ones, the rest NaN or huge), and the values round-trip.
+TEST(ReaderRegressions, BinaryPcdDataIsReadWithoutPcl) {
+  const std::string crash =
+      std::string(PCL_ANIMSEG_SOURCE_DIR) + "/fuzz/corpus/pcd/regression-binary-data.pcd";
+  EXPECT_NO_THROW(io::readPCD(crash));
+  // x y z as doubles, a uint label, 2 x 2 points: the values come back exactly.
+  TempDir tmp;
+  std::string data;
+  auto put = [&](const void* v, std::size_t n) { data.append(static_cast<const char*>(v), n); };
+  for (int i = 0; i < 4; ++i) {
+    const double xyz[3] = {0.5 * i, -1.25 * i, 3.0 + i};
+    const std::uint32_t label = 7u + static_cast<std::uint32_t>(i);
+    put(xyz, sizeof(xyz));
+    put(&label, sizeof(label));
+  }
+  const std::string p = write(tmp.dir(), "doubles.pcd",
+                              "VERSION 0.7\nFIELDS x y z label\nSIZE 8 8 8 4\nTYPE F F F U\n"
+                              "COUNT 1 1 1 1\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n" +
+                                  data);
+  const io::RawFrame raw = io::readPCD(p);
+  ASSERT_EQ(raw.points.size(), 4u);
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_FLOAT_EQ(raw.points[i].x(), 0.5f * i);
+    EXPECT_FLOAT_EQ(raw.points[i].y(), -1.25f * i);
+    EXPECT_FLOAT_EQ(raw.points[i].z(), 3.0f + i);
+  }
+}
