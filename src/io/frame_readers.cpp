@@ -724,9 +724,10 @@ PcdHeader checkPCDHeader(const std::string& path) {
   for (std::size_t i = 0; i < nf; ++i) {
     const long c = counts.empty() ? 1 : counts[i];
     // COUNT is bounded so that the sums below cannot overflow (found by fuzz_pcd).
+    // A float is 4 or 8 bytes: PCL's reader segfaulted on a 1-byte F field (found by fuzz_pcd).
     if ((sizes[i] != 1 && sizes[i] != 2 && sizes[i] != 4 && sizes[i] != 8) || c < 1 ||
-        c > (1L << 24) ||
-        std::string("IUF").find(types[i]) == std::string::npos)
+        c > (1L << 24) || std::string("IUF").find(types[i]) == std::string::npos ||
+        (types[i] == 'F' && sizes[i] != 4 && sizes[i] != 8))
       throw fileError(path, "PCD header: bad SIZE/TYPE/COUNT for field '" + fields[i] + "'");
     point_size += sizes[i] * c;
   }
@@ -802,8 +803,6 @@ pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
       f.datatype = sz == 1 ? PF::INT8 : sz == 2 ? PF::INT16 : sz == 4 ? PF::INT32 : PF::INT64;
     else
       f.datatype = sz == 1 ? PF::UINT8 : sz == 2 ? PF::UINT16 : sz == 4 ? PF::UINT32 : PF::UINT64;
-    if (t == 'F' && sz != 4 && sz != 8)
-      throw fileError(path, "PCD header: a float field of " + std::to_string(sz) + " bytes");
     cloud.fields.push_back(f);
     offset += static_cast<std::uint32_t>(sz * h.counts[i]);
   }

@@ -124,6 +124,11 @@ TEST(ReaderRegressions, BinaryPcdDataIsReadWithoutPcl) {
                                   data);
   const io::RawFrame raw = io::readPCD(p);
   ASSERT_EQ(raw.points.size(), 4u);
+  // A 1-byte float field (found by fuzz_pcd: PCL's reader segfaulted on it) is a header error.
+  const std::string tiny = write(tmp.dir(), "tiny_float.pcd",
+                                 "VERSION 0.7\nFIELDS x y z\nSIZE 1 4 4\nTYPE F F F\n"
+                                 "WIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n0 0 0\n");
+  EXPECT_THROW(io::readPCD(tiny), pcl_animseg::Error);
   for (int i = 0; i < 4; ++i) {
     EXPECT_FLOAT_EQ(raw.points[i].x(), 0.5f * i);
     EXPECT_FLOAT_EQ(raw.points[i].y(), -1.25f * i);
