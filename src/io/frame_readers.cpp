@@ -766,6 +766,33 @@ PcdHeader checkPCDHeader(const std::string& path) {
       throw fileError(path, "truncated: the PCD header announces " +
                                 std::to_string(width * height) +
                                 " points but the file is too short to hold them");
+    // Every point a line of exactly `values` numbers: PCL's ASCII reader went out of bounds on a
+    // data line with other tokens (found by fuzz_pcd), so it only ever sees well-formed lines.
+    const long expected = width * height;
+    long lines = 0;
+    while (std::getline(in, line)) {
+      if (!line.empty() && line.back() == '\r') line.pop_back();
+      std::istringstream ls(line);
+      std::string tok;
+      long n = 0;
+      while (ls >> tok) {
+        char* end = nullptr;
+        std::strtod(tok.c_str(), &end);
+        if (end == tok.c_str() || *end != '\0')
+          throw fileError(path, "PCD data line " + std::to_string(lines + 1) + ": '" + tok +
+                                    "' is not a number");
+        ++n;
+      }
+      if (n == 0) continue;
+      if (n != values || ++lines > expected)
+        throw fileError(path, "PCD data line " + std::to_string(lines + 1) + " has " +
+                                  std::to_string(n) + " values, expected " +
+                                  std::to_string(values) + " per point and " +
+                                  std::to_string(expected) + " points");
+    }
+    if (lines != expected)
+      throw fileError(path, "truncated: the PCD header announces " + std::to_string(expected) +
+                                " points but the data has " + std::to_string(lines));
   } else {
     throw fileError(path, "PCD header: unknown DATA encoding '" + data + "'");
   }

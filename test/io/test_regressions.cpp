@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <filesystem>
+#include <cmath>
 #include <fstream>
 #include <string>
 
@@ -134,4 +135,28 @@ TEST(ReaderRegressions, BinaryPcdDataIsReadWithoutPcl) {
     EXPECT_FLOAT_EQ(raw.points[i].y(), -1.25f * i);
     EXPECT_FLOAT_EQ(raw.points[i].z(), 3.0f + i);
   }
+}
+
+// ASCII PCD data lines are checked before PCL parses them (found by fuzz_pcd: PCL's ASCII reader
+// went out of bounds on data lines holding other tokens): each point one line of exactly the
+// header's number of values, every value a number.
+TEST(ReaderRegressions, AsciiPcdDataLinesAreChecked) {
+  TempDir tmp;
+  const std::string head =
+      "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+      "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n";
+  for (const std::string& body : {std::string("VERSION 0.7\nFIELDS\n0 0 0\n1 1 1\n"),
+                                  std::string("0 0 0\n1 1\n"), std::string("0 0 0 0\n1 1 1\n"),
+                                  std::string("0 0 0\n"), std::string("0 0 0\n1 1 1\n2 2 2\n")}) {
+    const std::string p = write(tmp.dir(), "bad.pcd", head + body);
+    EXPECT_THROW(io::readPCD(p), pcl_animseg::Error) << body;
+  }
+  const io::RawFrame raw =
+      io::readPCD(write(tmp.dir(), "good.pcd", head + "0 0 0\n1 nan 2.5\n"));
+  ASSERT_EQ(raw.points.size(), 2u);
+  EXPECT_FLOAT_EQ(raw.points[1].z(), 2.5f);
+  EXPECT_TRUE(std::isnan(raw.points[1].y()));
+  EXPECT_THROW(io::readPCD(std::string(PCL_ANIMSEG_SOURCE_DIR) +
+                           "/fuzz/corpus/pcd/regression-ascii-bad-lines.pcd"),
+               pcl_animseg::Error);
 }
