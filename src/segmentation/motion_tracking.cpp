@@ -801,9 +801,18 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   struct PartEdge {
     double cost = 0.0;
   };
+  // Which part holds each reference point (kept current by the merges below).
+  std::vector<int> part_of(n0, -1);
+  for (int g = 0; g < G; ++g)
+    for (int i : gpts[g]) part_of[i] = g;
+  const bool has_surface = tr.surface.size() == static_cast<std::size_t>(n0);
   // Cost of merging A and B, per frame: the better of A's and B's own motions, scored by the
   // worse of the two sides' residuals under it; worst frame. No fit of A u B per edge: only the
-  // merge that happens gets one.
+  // merge that happens gets one. Two parts that meet only across a sharp crease (no edge of the
+  // surface graph joins them: their normals turn by more than 60 degrees within 3 spacings) cost
+  // at least `crease_cost`: parts of a body meet at such creases (the minima rule of part
+  // perception), and a small relative motion there (a pelvis under a torso) must not merge
+  // before the pieces of one part do.
   auto evaluatePair = [&](int a, int b) {
     PartEdge e;
     const Source sa = sourceOf(rc, gpts[a], kPartPoints);
@@ -815,6 +824,18 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       const double cb = std::max(residual(sa, gpose[b][t], frames[t]),
                                  residual(sb, gpose[b][t], frames[t]));
       e.cost = std::max(e.cost, std::min(ca, cb));
+    }
+    if (has_surface && params.crease_cost > 0.0 && e.cost < params.crease_cost) {
+      const int small = gpts[a].size() <= gpts[b].size() ? a : b;
+      const int other = small == a ? b : a;
+      bool joined = false;
+      for (std::size_t k = 0; k < gpts[small].size() && !joined; ++k)
+        for (int j : tr.surface[gpts[small][k]])
+          if (part_of[j] == other) {
+            joined = true;
+            break;
+          }
+      if (!joined) e.cost = params.crease_cost;
     }
     return e;
   };
@@ -850,6 +871,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
                    std::back_inserter(u));
     gpose[a] = fitPart(u, gpose[a], &gpose[b]);
     gpts[a].swap(u);
+    for (int i : gpts[b]) part_of[i] = a;
     gpts[b].clear();
     galive[b] = 0;
     rewireEdges(pedges, a, b, evaluatePair);
