@@ -377,9 +377,11 @@ Body spider() {
       const double ph = ((i + side) % 2) * 0.5;
       const std::string tag = std::string(side == 0 ? "l" : "r") + std::to_string(i + 1);
       const V knee = 0.32 * dir + V(0, 0, 0.18);
+      // Neighbouring legs are 37 degrees apart and swing in opposite phases: +-16 degrees each
+      // keeps them apart (at +-25 they passed through each other).
       const int upper = addPart(
           b, "leg_" + tag + "_upper", body, V(0.22 * dir.x(), 0.15 * dir.y(), 0.02),
-          capsule(V::Zero(), knee, 0.035), {dof(kZ, 25 * s, ph), dof(tangent, -15, ph + 0.25)});
+          capsule(V::Zero(), knee, 0.035), {dof(kZ, 16 * s, ph), dof(tangent, -15, ph + 0.25)});
       addPart(b, "leg_" + tag + "_lower", upper, knee,
               capsule(V::Zero(), 0.14 * dir + V(0, 0, -0.42), 0.028),
               {dof(tangent, 20, ph + 0.25)});
