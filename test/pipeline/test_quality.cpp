@@ -76,7 +76,8 @@ double envDouble(const char* name, double fallback) {
 
 // The quality goal (>= 10 parts, >= 20 frames, large motion, +-20% point counts, no
 // correspondences) at the hierarchy level with the true part count. The pooled ARI reached is
-// below the 0.90 goal (measured at 2000 points per frame: quadruped 0.84, spider 0.69); the bounds
+// below the 0.90 goal at 2000 points per frame (measured: quadruped 0.84, spider 0.84; the spider
+// had 0.69 while the generator let its legs pass through each other); the bounds
 // are the measured numbers minus a margin, so that a regression shows (see
 // docs/mean_shift_experiments.md). A lower leg has ~1.5% of the points: with fewer than ~2000
 // points per frame it is too small for its own tracked neighbourhoods.
@@ -84,7 +85,7 @@ TEST(MotionQuality, QuadrupedAndSpiderAtTruePartCount) {
   const struct {
     synth::BodyPlan plan;
     double bound;
-  } cases[] = {{synth::BodyPlan::Quadruped, 0.75}, {synth::BodyPlan::Spider, 0.60}};
+  } cases[] = {{synth::BodyPlan::Quadruped, 0.75}, {synth::BodyPlan::Spider, 0.75}};
   for (const auto& c : cases) {
     const auto frames = synth::generate(sequenceParams(c.plan, 20, 2000, 3));
     seg::MeanShiftParams p;
