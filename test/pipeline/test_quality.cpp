@@ -72,6 +72,18 @@ double envDouble(const char* name, double fallback) {
   return v ? std::atof(v) : fallback;
 }
 
+/** The body plan and sequence of the diagnostics below: PLANS (one plan name), FRAMES, POINTS and
+ * SEED from the environment. */
+synth::BodyPlan diagnosticPlan() {
+  const char* plan_name = std::getenv("PLANS");
+  return synth::bodyPlanFromString(plan_name ? plan_name : "quadruped");
+}
+
+std::vector<synth::SynthFrame> diagnosticFrames(synth::BodyPlan plan) {
+  return synth::generate(
+      sequenceParams(plan, envInt("FRAMES", 20), envInt("POINTS", 1500), envInt("SEED", 3)));
+}
+
 }  // namespace
 
 // The quality goal (>= 10 parts, >= 20 frames, large motion, +-20% point counts, no
@@ -229,10 +241,8 @@ TEST(MotionQuality, DISABLED_Table) {
 
 // Diagnostics: how many tracked samples stay on their true part, per frame.
 TEST(MotionQuality, DISABLED_Tracking) {
-  const char* plan_name = std::getenv("PLANS");
-  const auto plan = synth::bodyPlanFromString(plan_name ? plan_name : "quadruped");
-  const auto frames = synth::generate(
-      sequenceParams(plan, envInt("FRAMES", 20), envInt("POINTS", 1500), envInt("SEED", 3)));
+  const auto plan = diagnosticPlan();
+  const auto frames = diagnosticFrames(plan);
   const auto seq = synth::toSequence(frames);
   seg::MotionTrackingParams mp;
   mp.samples = envInt("SAMPLES", 0);
@@ -292,10 +302,8 @@ TEST(MotionQuality, DISABLED_Tracking) {
 // Diagnostics: where the labels at the true part count go wrong (reference frame vs transfer),
 // and which true parts each predicted part covers.
 TEST(MotionQuality, DISABLED_Confusion) {
-  const char* plan_name = std::getenv("PLANS");
-  const auto plan = synth::bodyPlanFromString(plan_name ? plan_name : "quadruped");
-  const auto frames = synth::generate(
-      sequenceParams(plan, envInt("FRAMES", 20), envInt("POINTS", 1500), envInt("SEED", 3)));
+  const auto plan = diagnosticPlan();
+  const auto frames = diagnosticFrames(plan);
   seg::MeanShiftParams p;
   p.target_clusters = envInt("TARGET", synth::partCount(plan));
   p.motion_threshold = envDouble("THRESHOLD", p.motion_threshold);
@@ -326,10 +334,8 @@ TEST(MotionQuality, DISABLED_Confusion) {
 // Diagnostics: purity of the sample groups at several part counts (TARGETS, comma-separated):
 // whether a count's errors come from groups that straddle true parts or from merges.
 TEST(MotionQuality, DISABLED_Purity) {
-  const char* plan_name = std::getenv("PLANS");
-  const auto plan = synth::bodyPlanFromString(plan_name ? plan_name : "quadruped");
-  const auto frames = synth::generate(
-      sequenceParams(plan, envInt("FRAMES", 20), envInt("POINTS", 1500), envInt("SEED", 3)));
+  const auto plan = diagnosticPlan();
+  const auto frames = diagnosticFrames(plan);
   const auto seq = synth::toSequence(frames);
   seg::MotionTrackingParams mp;
   const seg::SampleTracks tr = seg::trackSamples(seq, mp);
