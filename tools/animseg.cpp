@@ -8,6 +8,8 @@
 #include <pcl_animseg/tool_common.h>
 #include <pcl_animseg/visualization/contact_sheet.h>
 
+#include "scale_space_options.h"
+
 #include <iomanip>
 #include <iostream>
 #include <sstream>
@@ -92,13 +94,9 @@ int main(int argc, char** argv) {
     ("patches", po::value<int>()->default_value(msd.patches),
      "motion method: patches of the over-segmentation (0: automatic)")
     ("motion-threshold", po::value<double>()->default_value(msd.motion_threshold),
-     "motion method: stop merging above this rigid-motion residual (point spacings)")
-    ("scale-h", po::value<double>()->default_value(defaults.multiscale.h),
-     "smallest scale h of the scale space (Eq. 1), in point spacings")
-    ("scale-k", po::value<double>()->default_value(defaults.multiscale.k),
-     "factor k between adjacent scales (Eq. 1)")
-    ("scale-levels", po::value<int>()->default_value(defaults.multiscale.levels),
-     "levels of the scale space")
+     "motion method: stop merging above this rigid-motion residual (point spacings)");
+  tools::addScaleSpaceOptions(od, defaults.multiscale);
+  od.add_options()
     ("signature-h", po::value<double>()->default_value(defaults.multiscale.signature_h),
      "scale h of the signature (Eq. 2), in point spacings")
     ("narrow-band", po::value<double>()->default_value(defaults.refinement.narrow_band),
@@ -139,9 +137,7 @@ int main(int argc, char** argv) {
         ms.patches = vm["patches"].as<int>();
         ms.motion_threshold = vm["motion-threshold"].as<double>();
         ms.seed = vm["seed"].as<unsigned>();
-        params.multiscale.h = vm["scale-h"].as<double>();
-        params.multiscale.k = vm["scale-k"].as<double>();
-        params.multiscale.levels = vm["scale-levels"].as<int>();
+        tools::readScaleSpaceOptions(vm, params.multiscale);
         params.multiscale.signature_h = vm["signature-h"].as<double>();
         params.refinement.narrow_band = vm["narrow-band"].as<double>();
         params.refinement.outer_band = vm["outer-band"].as<double>();

@@ -9,6 +9,8 @@
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/tool_common.h>
 
+#include "scale_space_options.h"
+
 #include <pcl/io/pcd_io.h>
 
 namespace po = boost::program_options;
@@ -19,10 +21,9 @@ int main(int argc, char** argv) {
   po::options_description od("Options");
   od.add_options()
     ("input,i", po::value<std::string>()->required(), "sequence (directory or list file)")
-    ("output,o", po::value<std::string>()->required(), "output directory")
-    ("scale-h", po::value<double>()->default_value(d.h), "smallest scale h (Eq. 1), spacings")
-    ("scale-k", po::value<double>()->default_value(d.k), "factor k between scales (Eq. 1)")
-    ("scale-levels", po::value<int>()->default_value(d.levels), "number of levels (>= 4)")
+    ("output,o", po::value<std::string>()->required(), "output directory");
+  tools::addScaleSpaceOptions(od, d);
+  od.add_options()
     ("min-response", po::value<double>()->default_value(d.min_response),
      "minimum |D| of a keypoint (contrast threshold)")
     ("edge-ratio", po::value<double>()->default_value(d.edge_ratio),
@@ -44,11 +45,7 @@ int main(int argc, char** argv) {
           DoGKeypoint::KeypointCloud kp;
           try {
             MLSScaleSpace mls;
-            mls.setInputCloud(seq.frame(t));
-            mls.setScale(ctx.vm["scale-h"].as<double>());
-            mls.setScaleFactor(ctx.vm["scale-k"].as<double>());
-            mls.setNumberOfLevels(ctx.vm["scale-levels"].as<int>());
-            mls.setSpacing(unit);
+            tools::setUpScaleSpace(ctx.vm, seq.frame(t), unit, mls);
             ScaleSpace ss;
             mls.compute(ss);
             DoGKeypoint dog;

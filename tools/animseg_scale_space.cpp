@@ -7,6 +7,8 @@
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/tool_common.h>
 
+#include "scale_space_options.h"
+
 #include <pcl/io/pcd_io.h>
 
 namespace po = boost::program_options;
@@ -17,10 +19,8 @@ int main(int argc, char** argv) {
   po::options_description od("Options");
   od.add_options()
     ("input,i", po::value<std::string>()->required(), "sequence (directory or list file)")
-    ("output,o", po::value<std::string>()->required(), "output directory")
-    ("scale-h", po::value<double>()->default_value(d.h), "smallest scale h (Eq. 1), spacings")
-    ("scale-k", po::value<double>()->default_value(d.k), "factor k between scales (Eq. 1)")
-    ("scale-levels", po::value<int>()->default_value(d.levels), "number of levels");
+    ("output,o", po::value<std::string>()->required(), "output directory");
+  tools::addScaleSpaceOptions(od, d);
   return tools::runTool(
       argc, argv, "animseg_scale_space",
       "animseg_scale_space --input SEQ --output DIR [--scale-h H] [--scale-k K] [--scale-levels L]\n"
@@ -35,11 +35,7 @@ int main(int argc, char** argv) {
         progress.begin("scale_space", seq.size());
         for (std::size_t t = 0; t < seq.size(); ++t) {
           MLSScaleSpace mls;
-          mls.setInputCloud(seq.frame(t));
-          mls.setScale(ctx.vm["scale-h"].as<double>());
-          mls.setScaleFactor(ctx.vm["scale-k"].as<double>());
-          mls.setNumberOfLevels(ctx.vm["scale-levels"].as<int>());
-          mls.setSpacing(unit);
+          tools::setUpScaleSpace(ctx.vm, seq.frame(t), unit, mls);
           ScaleSpace ss;
           try {
             mls.compute(ss);

@@ -7,6 +7,8 @@
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/tool_common.h>
 
+#include "scale_space_options.h"
+
 #include <pcl/io/pcd_io.h>
 
 namespace po = boost::program_options;
@@ -17,10 +19,9 @@ int main(int argc, char** argv) {
   po::options_description od("Options");
   od.add_options()
     ("input,i", po::value<std::string>()->required(), "sequence (directory or list file)")
-    ("output,o", po::value<std::string>()->required(), "output directory")
-    ("scale-h", po::value<double>()->default_value(d.h), "smallest scale h (Eq. 1), spacings")
-    ("scale-k", po::value<double>()->default_value(d.k), "factor k between scales (Eq. 1)")
-    ("scale-levels", po::value<int>()->default_value(d.levels), "number of levels (>= 4)")
+    ("output,o", po::value<std::string>()->required(), "output directory");
+  tools::addScaleSpaceOptions(od, d);
+  od.add_options()
     ("signature-h", po::value<double>()->default_value(d.signature_h),
      "scale h of the signature (disc radius 2h, Eq. 2), spacings")
     ("layout", po::value<std::string>()->default_value("32,8,6,4"), "R,S,R',S' (Eq. 2-3)");
@@ -32,9 +33,7 @@ int main(int argc, char** argv) {
         Progress progress(ctx.quiet, ctx.verbose);
         const std::string out = ctx.vm["output"].as<std::string>();
         MultiscaleParams p;
-        p.h = ctx.vm["scale-h"].as<double>();
-        p.k = ctx.vm["scale-k"].as<double>();
-        p.levels = ctx.vm["scale-levels"].as<int>();
+        tools::readScaleSpaceOptions(ctx.vm, p);
         p.signature_h = ctx.vm["signature-h"].as<double>();
         const auto l = tools::parseNumberList(ctx.vm["layout"].as<std::string>(), 4, "--layout");
         for (double v : l)
