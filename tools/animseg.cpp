@@ -39,14 +39,12 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   os << "  \"keypoints\": " << r.keypoints << ",\n  \"parts_per_level\": [";
   for (std::size_t l = 0; l < r.parts_per_level.size(); ++l)
     os << (l ? ", " : "") << r.parts_per_level[l];
-  os << "],\n  \"missing_stages\": [";
-  for (std::size_t i = 0; i < r.missing.size(); ++i)
-    os << (i ? ", " : "") << "\"" << r.missing[i] << "\"";
   os << "],\n  \"notes\": [";
   for (std::size_t i = 0; i < r.notes.size(); ++i)
     os << (i ? ", " : "") << "\"" << jsonEscape(r.notes[i]) << "\"";
   os << "],\n  \"timings_s\": {";
-  // Every stage of DESIGN.md is listed; a missing one is null, never a made-up number.
+  // Every stage of DESIGN.md is listed; one that did not run (--no-refine, ...) is null, never a
+  // made-up number.
   const char* stages[] = {"load", "scale_space", "keypoints", "signature", "mean_shift",
                           "refine", "hierarchy", "rigid_motion", "write"};
   bool first = true;

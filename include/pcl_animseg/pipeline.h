@@ -36,9 +36,8 @@ struct PipelineResult {
   /** levels[l][t][j]: part of point j of frame t at hierarchy level l (0 = finest). */
   std::vector<std::vector<std::vector<int>>> levels;
   std::vector<int> parts_per_level;
-  /** Stage name -> seconds; stages that do not exist in this build are listed in `missing`. */
+  /** Stage name -> seconds, for the stages this run went through (a skipped stage is absent). */
   std::vector<std::pair<std::string, double>> timings;
-  std::vector<std::string> missing;
   std::string device_used = "cpu";
   std::size_t keypoints = 0;
   std::vector<std::size_t> keypoints_per_frame;
