@@ -809,10 +809,12 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   // Cost of merging A and B, per frame: the better of A's and B's own motions, scored by the
   // worse of the two sides' residuals under it; worst frame. No fit of A u B per edge: only the
   // merge that happens gets one. Two parts that meet only across a sharp crease (no edge of the
-  // surface graph joins them: their normals turn by more than 60 degrees within 3 spacings) cost
-  // at least `crease_cost`: parts of a body meet at such creases (the minima rule of part
-  // perception), and a small relative motion there (a pelvis under a torso) must not merge
-  // before the pieces of one part do.
+  // surface graph joins them: their normals turn by more than 60 degrees within 3 spacings) and
+  // whose motions differ (cost at least half the threshold) cost at least `crease_cost`: parts of
+  // a body meet at such creases (the minima rule of part perception), and a small relative motion
+  // there (a pelvis under a torso) must not merge before the pieces of one part do. A part
+  // rigidly attached across a crease (a hat on a head) merges as usual.
+  const double crease_min = 0.5 * params.threshold;
   auto evaluatePair = [&](int a, int b) {
     PartEdge e;
     const Source sa = sourceOf(rc, gpts[a], kPartPoints);
@@ -825,7 +827,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
                                  residual(sb, gpose[b][t], frames[t]));
       e.cost = std::max(e.cost, std::min(ca, cb));
     }
-    if (has_surface && params.crease_cost > 0.0 && e.cost < params.crease_cost) {
+    if (has_surface && params.crease_cost > 0.0 && e.cost < params.crease_cost &&
+        e.cost >= crease_min) {
       const int small = gpts[a].size() <= gpts[b].size() ? a : b;
       const int other = small == a ? b : a;
       bool joined = false;

@@ -152,6 +152,18 @@ TEST(MotionQuality, HumanoidTrunkPartsStaySeparate) {
   EXPECT_NE(pelvis, head);
 }
 
+// The crease rule must not split what moves rigidly: a body whose joints do not move (motion 0)
+// is one part, creases or not (the humanoid gave 2 parts when every crease pair cost at least
+// crease_cost, whatever its motion).
+TEST(MotionQuality, RigidBodyWithCreasesIsOnePart) {
+  for (auto plan : {synth::BodyPlan::Humanoid, synth::BodyPlan::Quadruped}) {
+    auto sp = sequenceParams(plan, 10, 2000, 3);
+    sp.motion = 0.0;
+    const RunResult r = runOn(synth::generate(sp), seg::MeanShiftParams());
+    EXPECT_EQ(r.clusters, 1) << synth::toString(plan);
+  }
+}
+
 // The shipped demo sequence (12 frames of ~1500 points) once left a part of one point per frame
 // (an isolated point whose group had moved away around it): every part must be a real one.
 TEST(MotionQuality, NoRemnantPartsOnTheShippedQuadruped) {

@@ -30,9 +30,9 @@
  *       constant-velocity poses). Parts then merge while the better of A's and B's motions
  *       explains both sides (worst frame of the worse side) below the threshold, or down to the
  *       target count; the later merges form the hierarchy. Two parts that meet only across a
- *       sharp crease (no surface-graph edge joins them) cost at least `crease_cost`: parts of a
- *       body meet at creases, and a pelvis turning little under its torso must not merge before
- *       the pieces of one leg do.
+ *       sharp crease (no surface-graph edge joins them) and move differently cost at least
+ *       `crease_cost`: parts of a body meet at creases, and a pelvis turning little under its
+ *       torso must not merge before the pieces of one leg do.
  * 4. Labels: each reference point keeps its part, then moves to the part (among those of its
  *    surface neighbours) whose rigid motion keeps it on the surface best over all frames; every
  *    point of every frame takes the label of the nearest reference point moved by its part's
@@ -58,8 +58,9 @@ struct MotionTrackingParams {
   int icp_iterations = 8;
   /** Merging stops when the cheapest merge costs more than this (point spacings). */
   double threshold = 2.0;
-  /** Parts that meet only across a sharp crease (no edge of the surface graph between them)
-   * cost at least this much to merge (point spacings; 0: no such rule). */
+  /** Parts that meet only across a sharp crease (no edge of the surface graph between them) and
+   * whose motions differ (merge cost at least half the threshold) cost at least this much to
+   * merge (point spacings; 0: no such rule). */
   double crease_cost = 3.25;
   /** When > 0, merge until this many parts instead (threshold ignored). */
   int target_clusters = 0;
