@@ -92,7 +92,10 @@ int main(int argc, char** argv) {
     ("patches", po::value<int>()->default_value(msd.patches),
      "motion method: patches of the over-segmentation (0: automatic)")
     ("motion-threshold", po::value<double>()->default_value(msd.motion_threshold),
-     "motion method: stop merging above this rigid-motion residual (point spacings)");
+     "motion method: stop merging above this rigid-motion residual (point spacings)")
+    ("crease-cost", po::value<double>()->default_value(msd.crease_cost),
+     "motion method: least cost of merging two parts that meet at a sharp crease and move "
+     "differently (0: off)");
   tools::addScaleSpaceOptions(od, defaults.multiscale);
   od.add_options()
     ("signature-h", po::value<double>()->default_value(defaults.multiscale.signature_h),
@@ -134,6 +137,7 @@ int main(int argc, char** argv) {
         ms.target_clusters = vm["parts"].as<int>();
         ms.patches = vm["patches"].as<int>();
         ms.motion_threshold = vm["motion-threshold"].as<double>();
+        ms.crease_cost = vm["crease-cost"].as<double>();
         ms.seed = vm["seed"].as<unsigned>();
         tools::readScaleSpaceOptions(vm, params.multiscale);
         params.multiscale.signature_h = vm["signature-h"].as<double>();

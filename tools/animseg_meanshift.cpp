@@ -30,13 +30,19 @@ int main(int argc, char** argv) {
       "kernel sums: exact (kd-tree + exact Gaussian) or gkdtree (Gaussian kd-tree filter)")(
       "parts", po::value<int>()->default_value(0),
       "motion method: merge until exactly N parts (0: stop at the motion threshold)")(
+      "motion-threshold", po::value<double>()->default_value(d.motion_threshold),
+      "motion method: stop merging above this rigid-motion residual (point spacings)")(
+      "crease-cost", po::value<double>()->default_value(d.crease_cost),
+      "motion method: least cost of merging two parts that meet at a sharp crease and move "
+      "differently (0: off)")(
       "no-features", po::bool_switch(),
       "cluster on position and normal only (skip scale space, keypoints and signatures)")(
       "seed", po::value<unsigned>()->default_value(d.seed), "random seed");
   return pcl_animseg::tools::runTool(
       argc, argv, "animseg_meanshift",
       "animseg_meanshift --input SEQ --output DIR [--bandwidth w] [--weights w1,w2,w3,w4] "
-      "[--method motion|paper] [--backend exact|gkdtree] [--parts N] [--no-features] [--seed S]",
+      "[--method motion|paper] [--backend exact|gkdtree] [--parts N] [--motion-threshold T] "
+      "[--crease-cost C] [--no-features] [--seed S]",
       od, [&](const pcl_animseg::tools::ToolContext& ctx) {
         pcl_animseg::Progress progress(ctx.quiet, ctx.verbose);
         seg::MeanShiftParams params;
@@ -51,6 +57,11 @@ int main(int argc, char** argv) {
         params.backend = seg::meanShiftBackendFromString(ctx.vm["backend"].as<std::string>());
         params.target_clusters = ctx.vm["parts"].as<int>();
         if (params.target_clusters < 0) throw pcl_animseg::Error("--parts must be >= 0");
+        params.motion_threshold = ctx.vm["motion-threshold"].as<double>();
+        params.crease_cost = ctx.vm["crease-cost"].as<double>();
+        if (!(params.motion_threshold > 0.0))
+          throw pcl_animseg::Error("--motion-threshold must be positive");
+        if (!(params.crease_cost >= 0.0)) throw pcl_animseg::Error("--crease-cost must be >= 0");
         params.seed = ctx.vm["seed"].as<unsigned>();
         const std::string out_dir = ctx.vm["output"].as<std::string>();
         // Parameters are checked before the (slow) feature computation.

@@ -65,6 +65,8 @@ void MeanShiftSegmentation::validate() const {
   if (p.min_cluster_size < 0 || p.neighbours < 1 || p.patches < 0 || p.target_clusters < 0)
     throw Error("mean shift: cluster size, neighbours, patches and target must be >= 0 (k >= 1)");
   if (!(p.motion_threshold > 0.0)) throw Error("mean shift: motion threshold must be positive");
+  if (!(p.crease_cost >= 0.0) || !std::isfinite(p.crease_cost))
+    throw Error("mean shift: crease cost must be a number >= 0");
   if (!signatures_.empty()) {
     if (signatures_.size() != sequence_->size())
       throw Error("mean shift: " + std::to_string(signatures_.size()) + " signature matrices for " +

@@ -18,6 +18,7 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
   // large for the same fit (quadruped: merges inside a part cost < 1.5, across a joint > 2.5), so
   // the old default of 1.5 maps onto 3.
   mp.threshold = 2.0 * params.motion_threshold;
+  mp.crease_cost = params.crease_cost;
   mp.target_clusters = params.target_clusters;
   mp.reference_frame = params.reference_frame;
   mp.point_neighbours = params.neighbours;

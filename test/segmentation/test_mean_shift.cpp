@@ -102,6 +102,9 @@ TEST(MeanShift, BadInput) {
   p = seg::MeanShiftParams();
   p.w2 = -0.5;
   EXPECT_THROW(run(seq, p), pcl_animseg::Error);
+  p = seg::MeanShiftParams();
+  p.crease_cost = -1.0;
+  EXPECT_THROW(run(seq, p), pcl_animseg::Error);
   EXPECT_THROW(run(std::make_shared<PointCloudSequence>(), seg::MeanShiftParams()),
                pcl_animseg::Error);
   seg::MeanShiftSegmentation ms;

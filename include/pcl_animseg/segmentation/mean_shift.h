@@ -105,6 +105,10 @@ struct MeanShiftParams {
   int patches = 0;
   /** Merging stops when the cheapest merge's motion residual exceeds this (point spacings). */
   double motion_threshold = 1.25;
+  /** Two parts that meet only across a sharp crease and move differently cost at least this
+   * much to merge (point spacings of the tracking cost, MotionTrackingParams::crease_cost);
+   * 0: no crease rule (motion alone). */
+  double crease_cost = 3.25;
   /** When > 0, merge until exactly this many parts instead (threshold ignored). */
   int target_clusters = 0;
   int icp_iterations = 25;
