@@ -23,6 +23,15 @@ namespace io {
 
 namespace {
 
+/** A whole number read as a double, for an error message: digits when it fits a long long,
+ * otherwise as printf's %g (a cast of 9e34 to an integer is undefined; found by fuzz_ply). */
+std::string integerText(double v) {
+  if (std::isfinite(v) && std::abs(v) < 9.0e18) return integerText(v);
+  char buf[32];
+  std::snprintf(buf, sizeof(buf), "%g", v);
+  return buf;
+}
+
 const float kNaN = std::numeric_limits<float>::quiet_NaN();
 
 Error fileError(const std::string& path, const std::string& what) {
@@ -577,9 +586,9 @@ RawFrame readPLY(const std::string& path) {
     const double have = static_cast<double>(text.size() - body);
     if (have < need)
       throw fileError(path, "truncated: the PLY header announces " + what + " (at least " +
-                                std::to_string(static_cast<long long>(need)) +
+                                integerText(need) +
                                 " bytes) but the file has only " +
-                                std::to_string(static_cast<long long>(have)) + " bytes of data");
+                                integerText(have) + " bytes of data");
   }
 
   RawFrame raw;
@@ -622,7 +631,7 @@ RawFrame readPLY(const std::string& path) {
           if (!keep) continue;
           if (v < 0 || v >= static_cast<double>(vertex->count) || v != std::floor(v))
             throw fileError(path, "face " + std::to_string(k) + " refers to vertex " +
-                                      std::to_string(static_cast<long long>(v)) +
+                                      integerText(v) +
                                       " but the file has " + std::to_string(vertex->count));
           poly.push_back(static_cast<int>(v));
         }

@@ -69,6 +69,24 @@ TEST(ReaderRegressions, PlyElementWithoutPropertiesAndHugeCount) {
   EXPECT_FLOAT_EQ(raw.points[0].z(), 3.0f);
 }
 
+// fuzz_ply (UBSan): a face index of 8.9e34 was cast to long long for the error message, which is
+// undefined; the message now shows the number as read.
+TEST(ReaderRegressions, PlyHugeFaceIndexIsReportedAsRead) {
+  TempDir tmp;
+  const std::string p = write(tmp.dir(), "face.ply",
+                              "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                              "property float y\nproperty float z\nelement face 1\n"
+                              "property list uchar int vertex_indices\nend_header\n"
+                              "0 0 0\n1 0 0\n0 1 0\n3 0 1 88888888888888888888888888888888882\n");
+  try {
+    io::readPLY(p);
+    FAIL() << "no error";
+  } catch (const pcl_animseg::Error& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("refers to vertex 8.88889e+34"), std::string::npos) << what;
+  }
+}
+
 // fuzz_pcd: WIDTH x HEIGHT and SIZE x COUNT overflowed `long` in the header check (UBSan
 // signed-integer-overflow), and a wrapped size would have let PCL trust the header.
 TEST(ReaderRegressions, PcdHeaderProductsOverflow) {
