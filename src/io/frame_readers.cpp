@@ -26,7 +26,7 @@ namespace {
 /** A whole number read as a double, for an error message: digits when it fits a long long,
  * otherwise as printf's %g (a cast of 9e34 to an integer is undefined; found by fuzz_ply). */
 std::string integerText(double v) {
-  if (std::isfinite(v) && std::abs(v) < 9.0e18) return integerText(v);
+  if (std::isfinite(v) && std::abs(v) < 9.0e18) return std::to_string(static_cast<long long>(v));
   char buf[32];
   std::snprintf(buf, sizeof(buf), "%g", v);
   return buf;
