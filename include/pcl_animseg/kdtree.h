@@ -12,6 +12,20 @@
 
 namespace pcl_animseg {
 
+/** \brief One query of a FLANN kd-tree through findNeighbors (not flann::Index's search calls,
+ * which open an OpenMP region per call: see KdTree below), its result copied into `indices` and
+ * `sqr_distances` (closest first when `sorted`). */
+template <typename FlannIndex, typename ResultSet>
+void flannFindNeighbors(const FlannIndex& index, ResultSet& result, const float* query,
+                        const flann::SearchParams& params, std::vector<std::size_t>& indices,
+                        std::vector<float>& sqr_distances, bool sorted) {
+  index.findNeighbors(result, query, params);
+  const std::size_t n = result.size();
+  indices.resize(n);
+  sqr_distances.resize(n);
+  if (n) result.copy(indices.data(), sqr_distances.data(), n, sorted);
+}
+
 /** \brief FLANN's single kd-tree over the xyz of a cloud, with the query interface of
  * pcl::KdTreeFLANN (same index, same leaf size 15, same sorted results), minus its overhead.
  *
@@ -74,14 +88,12 @@ class KdTree {
       return 0;
     const std::size_t kk = std::min<std::size_t>(static_cast<std::size_t>(k), map_.size());
     const float q[3] = {x, y, z};
-    std::vector<std::size_t> idx(kk);
-    sqr_distances.resize(kk);
+    std::vector<std::size_t> idx;
     flann::KNNSimpleResultSet<float> result(kk);
-    index_->findNeighbors(result, q, params_);
-    result.copy(idx.data(), sqr_distances.data(), kk, true);
-    indices.resize(kk);
-    for (std::size_t i = 0; i < kk; ++i) indices[i] = map_[idx[i]];
-    return static_cast<int>(kk);
+    flannFindNeighbors(*index_, result, q, params_, idx, sqr_distances, true);
+    indices.resize(idx.size());
+    for (std::size_t i = 0; i < idx.size(); ++i) indices[i] = map_[idx[i]];
+    return static_cast<int>(indices.size());
   }
 
   /** \brief All points within `radius` (at most `max_nn` of the closest when max_nn > 0),
@@ -99,18 +111,10 @@ class KdTree {
     if (max_nn > 0) {
       const std::size_t cap = std::min<std::size_t>(max_nn, map_.size());
       flann::KNNRadiusResultSet<float> result(r2, cap);
-      index_->findNeighbors(result, q, params_);
-      const std::size_t n = result.size();
-      idx.resize(n);
-      sqr_distances.resize(n);
-      if (n) result.copy(idx.data(), sqr_distances.data(), n, true);
+      flannFindNeighbors(*index_, result, q, params_, idx, sqr_distances, true);
     } else {
       flann::RadiusResultSet<float> result(r2);
-      index_->findNeighbors(result, q, params_);
-      const std::size_t n = result.size();
-      idx.resize(n);
-      sqr_distances.resize(n);
-      if (n) result.copy(idx.data(), sqr_distances.data(), n, true);
+      flannFindNeighbors(*index_, result, q, params_, idx, sqr_distances, true);
     }
     indices.resize(idx.size());
     for (std::size_t i = 0; i < idx.size(); ++i) indices[i] = map_[idx[i]];

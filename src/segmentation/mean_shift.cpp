@@ -173,13 +173,9 @@ class ExactBackend : public JointKernelSum::Backend {
 #pragma omp for schedule(dynamic, 64)
       for (int r = 0; r < nr; ++r) {
         for (Eigen::Index k = 0; k < q.cols(); ++k) qb[k] = q(rows[r], k);
-        // FLANN's L2 is the squared distance, so the radius is squared too. findNeighbors
-        // directly: flann::Index::radiusSearch opens an OpenMP region per call (see kdtree.h).
+        // FLANN's L2 is the squared distance, so the radius is squared too.
         flann::RadiusResultSet<float> found(r2);
-        index_->findNeighbors(found, qb.data(), sp);
-        idx.resize(found.size());
-        dst.resize(found.size());
-        if (!idx.empty()) found.copy(idx.data(), dst.data(), idx.size(), false);
+        flannFindNeighbors(*index_, found, qb.data(), sp, idx, dst, false);
         acc.setZero();
         for (std::size_t m = 0; m < idx.size(); ++m)
           acc += std::exp(-0.5 * dst[m]) * values_.col(idx[m]).cast<double>();
@@ -485,10 +481,8 @@ void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain
         // FLANN keeps squared distances below the radius; a hair more, then the exact test below
         // (the same float expression as the old all-pairs scan) decides.
         flann::RadiusResultSet<float> found(r2 * 1.001f);
-        index.findNeighbors(found, reps.data() + static_cast<std::size_t>(g) * dim, sp);
-        idx.resize(found.size());
-        dst.resize(found.size());
-        if (!idx.empty()) found.copy(idx.data(), dst.data(), idx.size(), false);
+        flannFindNeighbors(index, found, reps.data() + static_cast<std::size_t>(g) * dim, sp, idx,
+                           dst, false);
         for (std::size_t jj : idx) {
           const int j = static_cast<int>(jj);
           if (j != g && (reps.row(j) - reps.row(g)).squaredNorm() < r2) near[g].push_back(j);
