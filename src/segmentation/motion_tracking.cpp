@@ -845,14 +845,12 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   std::map<std::pair<int, int>, PartEdge> pedges;
   {
     std::set<std::pair<int, int>> pairs;
-    std::vector<int> pl(n0, -1);
-    for (int g = 0; g < G; ++g)
-      for (int i : gpts[g]) pl[i] = g;
-    if (tr.surface.size() == static_cast<std::size_t>(n0)) {
+    if (has_surface) {
       for (int i = 0; i < n0; ++i)
-        for (int j : tr.surface[i])
-          if (pl[i] >= 0 && pl[j] >= 0 && pl[i] != pl[j])
-            pairs.insert({std::min(pl[i], pl[j]), std::max(pl[i], pl[j])});
+        for (int j : tr.surface[i]) {
+          const int gi = part_of[i], gj = part_of[j];
+          if (gi >= 0 && gj >= 0 && gi != gj) pairs.insert({std::min(gi, gj), std::max(gi, gj)});
+        }
     }
     for (int s = 0; s < S; ++s)
       for (int o : tr.graph[s])
