@@ -95,7 +95,10 @@ int main(int argc, char** argv) {
      "motion method: stop merging above this rigid-motion residual (point spacings)")
     ("crease-cost", po::value<double>()->default_value(msd.crease_cost),
      "motion method: least cost of merging two parts that meet at a sharp crease and move "
-     "differently (0: off)");
+     "differently (0: off)")
+    ("border-smoothness", po::value<double>()->default_value(msd.border_smoothness),
+     "motion method: cost of a part border across a smooth surface, against the motion fit "
+     "(borders prefer inward folds; 0: per-point borders)");
   tools::addScaleSpaceOptions(od, defaults.multiscale);
   od.add_options()
     ("signature-h", po::value<double>()->default_value(defaults.multiscale.signature_h),
@@ -138,6 +141,7 @@ int main(int argc, char** argv) {
         ms.patches = vm["patches"].as<int>();
         ms.motion_threshold = vm["motion-threshold"].as<double>();
         ms.crease_cost = vm["crease-cost"].as<double>();
+        ms.border_smoothness = vm["border-smoothness"].as<double>();
         ms.seed = vm["seed"].as<unsigned>();
         tools::readScaleSpaceOptions(vm, params.multiscale);
         params.multiscale.signature_h = vm["signature-h"].as<double>();

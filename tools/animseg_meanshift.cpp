@@ -35,6 +35,9 @@ int main(int argc, char** argv) {
       "crease-cost", po::value<double>()->default_value(d.crease_cost),
       "motion method: least cost of merging two parts that meet at a sharp crease and move "
       "differently (0: off)")(
+      "border-smoothness", po::value<double>()->default_value(d.border_smoothness),
+      "motion method: cost of a part border across a smooth surface, against the motion fit "
+      "(borders prefer inward folds; 0: per-point borders)")(
       "no-features", po::bool_switch(),
       "cluster on position and normal only (skip scale space, keypoints and signatures)")(
       "seed", po::value<unsigned>()->default_value(d.seed), "random seed");
@@ -42,7 +45,7 @@ int main(int argc, char** argv) {
       argc, argv, "animseg_meanshift",
       "animseg_meanshift --input SEQ --output DIR [--bandwidth w] [--weights w1,w2,w3,w4] "
       "[--method motion|paper] [--backend exact|gkdtree] [--parts N] [--motion-threshold T] "
-      "[--crease-cost C] [--no-features] [--seed S]",
+      "[--crease-cost C] [--border-smoothness S] [--no-features] [--seed S]",
       od, [&](const pcl_animseg::tools::ToolContext& ctx) {
         pcl_animseg::Progress progress(ctx.quiet, ctx.verbose);
         seg::MeanShiftParams params;
@@ -62,6 +65,9 @@ int main(int argc, char** argv) {
         if (!(params.motion_threshold > 0.0))
           throw pcl_animseg::Error("--motion-threshold must be positive");
         if (!(params.crease_cost >= 0.0)) throw pcl_animseg::Error("--crease-cost must be >= 0");
+        params.border_smoothness = ctx.vm["border-smoothness"].as<double>();
+        if (!(params.border_smoothness >= 0.0))
+          throw pcl_animseg::Error("--border-smoothness must be >= 0");
         params.seed = ctx.vm["seed"].as<unsigned>();
         const std::string out_dir = ctx.vm["output"].as<std::string>();
         // Parameters are checked before the (slow) feature computation.

@@ -67,6 +67,8 @@ void MeanShiftSegmentation::validate() const {
   if (!(p.motion_threshold > 0.0)) throw Error("mean shift: motion threshold must be positive");
   if (!(p.crease_cost >= 0.0) || !std::isfinite(p.crease_cost))
     throw Error("mean shift: crease cost must be a number >= 0");
+  if (!(p.border_smoothness >= 0.0) || !std::isfinite(p.border_smoothness))
+    throw Error("mean shift: border smoothness must be a number >= 0");
   if (!signatures_.empty()) {
     if (signatures_.size() != sequence_->size())
       throw Error("mean shift: " + std::to_string(signatures_.size()) + " signature matrices for " +

@@ -19,6 +19,7 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
   // the old default of 1.5 maps onto 3.
   mp.threshold = 2.0 * params.motion_threshold;
   mp.crease_cost = params.crease_cost;
+  mp.border_smoothness = params.border_smoothness;
   mp.target_clusters = params.target_clusters;
   mp.reference_frame = params.reference_frame;
   mp.point_neighbours = params.neighbours;

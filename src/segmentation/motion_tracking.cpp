@@ -5,6 +5,8 @@
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 
+#include <pcl/segmentation/grabcut_segmentation.h>
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
@@ -14,6 +16,7 @@
 #include <queue>
 #include <set>
 #include <string>
+
 
 namespace pcl_animseg {
 namespace segmentation {
@@ -26,6 +29,9 @@ using Pose = Eigen::Isometry3d;
 // Points whose normals disagree by more than this (cosine) are not matched: on thin parts
 // (fingers, legs) the nearest point may lie on the opposite side.
 constexpr double kNormalCos = 0.3;
+// Graph-cut borders: a surface-graph edge whose normals converge (a concave fold) costs
+// exp(-(angle / kConcaveAngle)^2) of a flat edge to cut, so a 20-degree fold is almost free.
+constexpr double kConcaveAngle = 10.0 * 3.14159265358979323846 / 180.0;
 // Residual distances are clipped at this many point spacings, so that one lost point does not
 // dominate a fit's score.
 constexpr double kClip = 4.0;
@@ -384,6 +390,9 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     throw Error(
         "motion tracking: neighbourhood must be >= 6, point_neighbours and icp_iterations "
         ">= 1");
+  if (!(params.border_smoothness >= 0.0) || !std::isfinite(params.border_smoothness) ||
+      params.border_hops < 1)
+    throw Error("motion tracking: border smoothness must be a number >= 0 and border hops >= 1");
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
   const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, 1000);
@@ -577,6 +586,137 @@ int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surfa
     if (pick != label[i]) out[i] = pick, ++changed;
   }
   label.swap(out);
+  return changed;
+}
+
+/** Places the borders between parts by alpha-expansion (Boykov, Veksler, Zabih 2001) on the
+ * reference frame's surface graph. Energy: per point, the mean over frames of its squared surface
+ * error under its part's motion (pointCost / (T - 1), spacings^2); per surface-graph edge whose
+ * ends take different parts, `smooth` times a weight that is 1 on flat or convex edges and
+ * exp(-(angle / kConcaveAngle)^2) on concave ones (normals converging along the edge). Where the
+ * motions tell the parts apart the data term decides; where they cannot (a joint's cap, a sphere
+ * about the joint, fits both bones' motions; the pieces of a capsule fit any motion that slides
+ * along it) the border takes the cheapest place, which is the concave fold where one part leaves
+ * the other (the minima rule of part perception), not a seam across a smooth surface. Candidate
+ * parts of a point: those within `hops` edges; a point with one candidate keeps its part. Each
+ * expansion is one s-t minimum cut (PCL's Boykov-Kolmogorov max-flow); three sweeps over the
+ * parts at most. Returns the points that changed part. */
+int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& surface,
+                       const std::vector<Frame>& frames, int ref,
+                       const std::vector<std::vector<Pose>>& motion, std::vector<int>& label,
+                       double smooth, int hops) {
+  const int n = static_cast<int>(rc.size());
+  const int T = static_cast<int>(frames.size());
+  if (T < 2 || n == 0) return 0;
+  // Candidates: the parts within `hops` edges.
+  std::vector<std::vector<int>> cand(n);
+  for (int i = 0; i < n; ++i)
+    if (label[i] >= 0 && !motion[label[i]].empty()) cand[i] = {label[i]};
+  for (int h = 0; h < hops; ++h) {
+    std::vector<std::vector<int>> next(cand);
+    for (int i = 0; i < n; ++i) {
+      if (cand[i].empty()) continue;
+      for (int j : surface[i])
+        for (int l : cand[j]) next[i].push_back(l);
+      std::sort(next[i].begin(), next[i].end());
+      next[i].erase(std::unique(next[i].begin(), next[i].end()), next[i].end());
+    }
+    cand.swap(next);
+  }
+  // Unary costs of the candidates.
+  std::vector<std::vector<double>> unary(n);
+  const double inv_frames = 1.0 / (T - 1);
+#pragma omp parallel for schedule(dynamic, 32)
+  for (int i = 0; i < n; ++i) {
+    if (cand[i].size() < 2) continue;
+    unary[i].resize(cand[i].size());
+    for (std::size_t k = 0; k < cand[i].size(); ++k)
+      unary[i][k] = inv_frames * pointCost(rc[i], frames, ref, motion[cand[i][k]]);
+  }
+  auto unaryOf = [&](int i, int l) {
+    const auto it = std::lower_bound(cand[i].begin(), cand[i].end(), l);
+    return unary[i][it - cand[i].begin()];
+  };
+  // Edge weights (each undirected edge once, i < j).
+  std::vector<std::vector<std::pair<int, double>>> edges(n);
+  const double a0 = kConcaveAngle;
+  for (int i = 0; i < n; ++i)
+    for (int j : surface[i]) {
+      if (j <= i) continue;
+      const Eigen::Vector3f pi = rc[i].getVector3fMap(), pj = rc[j].getVector3fMap();
+      const Eigen::Vector3f ni = rc[i].getNormalVector3fMap(), nj = rc[j].getNormalVector3fMap();
+      double w = 1.0;
+      // Concave: the normals converge along the edge.
+      if ((ni - nj).dot(pi - pj) < 0.0f) {
+        const double ang = std::acos(std::clamp(static_cast<double>(ni.dot(nj)), -1.0, 1.0));
+        w = std::exp(-(ang / a0) * (ang / a0));
+      }
+      edges[i].push_back({j, smooth * w});
+    }
+  std::vector<int> labels_present;
+  for (int i = 0; i < n; ++i)
+    if (cand[i].size() >= 2) labels_present.insert(labels_present.end(), cand[i].begin(), cand[i].end());
+  std::sort(labels_present.begin(), labels_present.end());
+  labels_present.erase(std::unique(labels_present.begin(), labels_present.end()),
+                       labels_present.end());
+  const std::vector<int> before(label);
+  std::vector<int> node(n, -1);
+  for (int cycle = 0; cycle < 3; ++cycle) {
+    bool any_change = false;
+    for (int alpha : labels_present) {
+      // Nodes: points that may take alpha and do not hold it.
+      std::vector<int> members;
+      for (int i = 0; i < n; ++i) {
+        node[i] = -1;
+        if (cand[i].size() >= 2 && label[i] != alpha &&
+            std::binary_search(cand[i].begin(), cand[i].end(), alpha)) {
+          node[i] = static_cast<int>(members.size());
+          members.push_back(i);
+        }
+      }
+      if (members.empty()) continue;
+      const int m = static_cast<int>(members.size());
+      std::vector<double> e0(m), e1(m);
+      for (int k = 0; k < m; ++k) {
+        e0[k] = unaryOf(members[k], label[members[k]]);
+        e1[k] = unaryOf(members[k], alpha);
+      }
+      pcl::segmentation::grabcut::BoykovKolmogorov graph(m);
+      graph.addNodes(m);
+      for (int i = 0; i < n; ++i)
+        for (const auto& [j, w] : edges[i]) {
+          const int ni = node[i], nj = node[j];
+          if (ni < 0 && nj < 0) continue;
+          if (ni >= 0 && nj >= 0) {
+            // E(xi, xj), x = 1: take alpha. A = E00, B = E01, C = E10, D = E11 = 0.
+            const double A = label[i] != label[j] ? w : 0.0;
+            const double B = w;  // label[i] != alpha
+            const double C = w;  // label[j] != alpha
+            e1[ni] += C - A;
+            e1[nj] += -C;  // D - C
+            graph.addEdge(ni, nj, B + C - A, 0.0);
+          } else if (ni >= 0) {
+            e0[ni] += label[i] != label[j] ? w : 0.0;
+            e1[ni] += alpha != label[j] ? w : 0.0;
+          } else {
+            e0[nj] += label[j] != label[i] ? w : 0.0;
+            e1[nj] += alpha != label[i] ? w : 0.0;
+          }
+        }
+      for (int k = 0; k < m; ++k) {
+        const double lo = std::min(e0[k], e1[k]);
+        // Cut s->k when k takes alpha (sink side), k->t when it keeps its label.
+        if (e1[k] - lo > 0.0) graph.addSourceEdge(k, e1[k] - lo);
+        if (e0[k] - lo > 0.0) graph.addTargetEdge(k, e0[k] - lo);
+      }
+      graph.solve();
+      for (int k = 0; k < m; ++k)
+        if (graph.inSinkTree(k)) label[members[k]] = alpha, any_change = true;
+    }
+    if (!any_change) break;
+  }
+  int changed = 0;
+  for (int i = 0; i < n; ++i) changed += label[i] != before[i];
   return changed;
 }
 
@@ -1046,11 +1186,18 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
       }
     }
   }
-  // Every reference point moves to the part (its own or a surface neighbour's) whose motion keeps
-  // its neighbourhood on the surface best over all frames: the part motions are final now.
+  // The part motions are final now: the borders between parts are placed once more, by the
+  // graph cut (motion fit plus a short border, cut where the surface folds inwards) or, with
+  // border_smoothness 0, by moving each point to the neighbouring part whose motion keeps its
+  // neighbourhood on the surface best over all frames.
   if (tr.surface.size() == static_cast<std::size_t>(n0)) {
-    for (int round = 0; round < 2; ++round)
-      if (reassignByMotion(rc, tr.surface, frames, ref, motion, label) == 0) break;
+    if (params.border_smoothness > 0.0) {
+      reassignByGraphCut(rc, tr.surface, frames, ref, motion, label, params.border_smoothness,
+                         params.border_hops);
+    } else {
+      for (int round = 0; round < 2; ++round)
+        if (reassignByMotion(rc, tr.surface, frames, ref, motion, label) == 0) break;
+    }
   }
   // A part left with a handful of reference points (an isolated point whose group was moved away
   // around it) is a remnant, not a part: its points join the label of their nearest points of

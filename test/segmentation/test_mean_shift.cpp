@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <random>
 
@@ -104,6 +105,9 @@ TEST(MeanShift, BadInput) {
   EXPECT_THROW(run(seq, p), pcl_animseg::Error);
   p = seg::MeanShiftParams();
   p.crease_cost = -1.0;
+  EXPECT_THROW(run(seq, p), pcl_animseg::Error);
+  p = seg::MeanShiftParams();
+  p.border_smoothness = std::numeric_limits<double>::quiet_NaN();
   EXPECT_THROW(run(seq, p), pcl_animseg::Error);
   EXPECT_THROW(run(std::make_shared<PointCloudSequence>(), seg::MeanShiftParams()),
                pcl_animseg::Error);

@@ -109,6 +109,10 @@ struct MeanShiftParams {
    * much to merge (point spacings of the tracking cost, MotionTrackingParams::crease_cost);
    * 0: no crease rule (motion alone). */
   double crease_cost = 3.25;
+  /** Final borders between parts (MotionTrackingParams::border_smoothness): the cost of cutting
+   * one surface-graph edge across a flat or convex surface, against the per-point motion fit;
+   * folds that turn inwards are almost free to cut. 0: per-point reassignment, no border term. */
+  double border_smoothness = 8.0;
   /** When > 0, merge until exactly this many parts instead (threshold ignored). */
   int target_clusters = 0;
   int icp_iterations = 25;

@@ -33,10 +33,14 @@
  *       sharp crease (no surface-graph edge joins them) and move differently cost at least
  *       `crease_cost`: parts of a body meet at creases, and a pelvis turning little under its
  *       torso must not merge before the pieces of one leg do.
- * 4. Labels: each reference point keeps its part, then moves to the part (among those of its
- *    surface neighbours) whose rigid motion keeps it on the surface best over all frames; every
- *    point of every frame takes the label of the nearest reference point moved by its part's
- *    motion (with a compatible normal).
+ * 4. Labels: the borders between the final parts are placed by a graph cut on the reference
+ *    frame's surface graph (alpha-expansion): each point pays the mean squared surface error of
+ *    its part's motion over the frames, each edge cut across a flat or convex surface pays
+ *    `border_smoothness`, and an edge across a fold that turns inwards almost nothing. Where
+ *    motion cannot tell two parts apart (a joint's cap, a sphere about the joint, fits both
+ *    bones) the border goes to the fold where one part leaves the other (the minima rule).
+ *    Every point of every frame then takes the label of the nearest reference point moved by
+ *    its part's motion (with a compatible normal).
  */
 #include <pcl_animseg/segmentation/segmentation_result.h>
 #include <pcl_animseg/sequence.h>
@@ -64,6 +68,13 @@ struct MotionTrackingParams {
   double crease_cost = 3.25;
   /** When > 0, merge until this many parts instead (threshold ignored). */
   int target_clusters = 0;
+  /** Final borders between parts: the cost of one surface-graph edge cut across a flat or convex
+   * surface, against the per-point motion fit (mean squared surface error over frames, in
+   * spacings^2); cuts along concave folds are almost free. Solved by graph cuts (alpha-expansion).
+   * 0: each point moves to the neighbouring part whose motion fits it best (no border term). */
+  double border_smoothness = 8.0;
+  /** Graph-cut borders: a point may take any part within this many surface-graph edges. */
+  int border_hops = 8;
   /** Groups with fewer samples than this are merged into a neighbour whatever the cost. */
   int min_group_samples = 2;
   /** Reference frame (-1: the first). */
