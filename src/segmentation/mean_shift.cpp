@@ -7,10 +7,14 @@
 #include <flann/flann.hpp>
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <cstdlib>
 #include <cstring>
 #include <functional>
-#include <map>
+#include <limits>
 #include <numeric>
 #include <queue>
 #include <sstream>
@@ -87,6 +91,16 @@ void MeanShiftSegmentation::validate() const {
 }
 
 namespace detail {
+
+StageTimer::StageTimer() : on_(std::getenv("ANIMSEG_MS_TIMING") != nullptr) { restart(); }
+void StageTimer::restart() { last_ = std::chrono::steady_clock::now(); }
+void StageTimer::lap(const char* stage) {
+  const auto now = std::chrono::steady_clock::now();
+  if (on_)
+    std::fprintf(stderr, "[mean shift] %-28s %8.3f s\n", stage,
+                 std::chrono::duration<double>(now - last_).count());
+  last_ = now;
+}
 
 JointSpace buildJointSpace(const PointCloudSequence& seq, const std::vector<Eigen::MatrixXf>& sig,
                            const std::vector<std::vector<int>>& keypoints,
@@ -195,8 +209,11 @@ class GkdBackend : public JointKernelSum::Backend {
   GkdBackend(const Eigen::MatrixXf& x, const Eigen::MatrixXf& values,
              const filters::GaussianKdTreeParams& params)
       : tree_(params) {
+    StageTimer timer;
     tree_.build(x);
+    timer.lap("gkdtree build");
     tree_.splatBlur(values, sample_values_);
+    timer.lap("gkdtree splat + blur");
   }
   void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows,
                 Eigen::MatrixXf& out) const override {
@@ -387,7 +404,8 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
         result.mode_density[flat[i]] = std::max<double>(result.mode_density[flat[i]], f(i, 0));
   }
   // Saddle between adjacent clusters: the highest min(f_i, f_j) over k-NN pairs across them.
-  std::map<std::pair<int, int>, double> saddle;
+  // Cross edges as (pair key, value), sorted: the pairs in increasing (a, b) order.
+  std::vector<std::pair<std::uint64_t, float>> cross;
   for (Eigen::Index i = 0; i < n; ++i) {
     const int a = flat[i];
     if (a < 0) continue;
@@ -396,15 +414,22 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
       if (j < 0) continue;
       const int b = flat[j];
       if (b < 0 || b == a) continue;
-      const std::pair<int, int> key(std::min(a, b), std::max(a, b));
-      const double s = std::min(f(i, 0), f(j, 0));
-      auto it = saddle.find(key);
-      if (it == saddle.end()) saddle.emplace(key, s);
-      else it->second = std::max(it->second, s);
+      const auto key = static_cast<std::uint64_t>(std::min(a, b)) << 32 |
+                       static_cast<std::uint64_t>(std::max(a, b));
+      cross.push_back({key, std::min(f(i, 0), f(j, 0))});
     }
   }
+  std::sort(cross.begin(), cross.end());
   result.saddles.clear();
-  for (const auto& [key, s] : saddle) result.saddles.push_back({key.first, key.second, s});
+  for (std::size_t e = 0; e < cross.size();) {
+    std::size_t g = e;
+    while (g < cross.size() && cross[g].first == cross[e].first) ++g;
+    // Sorted by value within a key: the last is the highest.
+    result.saddles.push_back({static_cast<int>(cross[e].first >> 32),
+                              static_cast<int>(cross[e].first & 0xffffffffu),
+                              static_cast<double>(cross[g - 1].second)});
+    e = g;
+  }
   result.labels.assign(seq.size(), {});
   for (std::size_t t = 0; t < seq.size(); ++t)
     result.labels[t].assign(flat.begin() + space.offsets[t], flat.begin() + space.offsets[t + 1]);
@@ -513,6 +538,7 @@ namespace {
 
 using detail::JointKernelSum;
 using detail::JointSpace;
+using detail::StageTimer;
 
 /** Hybrid ending of the Gaussian kd-tree backend: the approximate iteration leaves the end points
  * near the modes of the approximated density, whose small ripples (cells replaced by their means,
@@ -647,6 +673,7 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
                   Eigen::VectorXf& point_density, Progress* progress) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
+  StageTimer timer;
   Eigen::MatrixXf values(n, dim + 1);
   values.leftCols(dim) = space.z;
   values.col(dim).setOnes();
@@ -724,12 +751,16 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   if (progress) progress->end(std::to_string(active.size()) + (cells ? " cells" : " points") +
                               " not converged");
   for (Eigen::Index r = 0; r < m; ++r) ys.row(r) = ys.row(root(static_cast<int>(r))).eval();
-  if (params.backend == MeanShiftBackend::GaussianKdTree && params.refine_iterations > 0)
+  timer.lap("iteration (walk over cells)");
+  if (params.backend == MeanShiftBackend::GaussianKdTree && params.refine_iterations > 0) {
     refineEndPoints(space, params, start_key, ys);
+    timer.lap("exact refinement");
+  }
   // Density at the end points, to visit them from the highest.
   std::vector<int> all(m);
   std::iota(all.begin(), all.end(), 0);
   sums.evaluate(ys, all, start_key, out);
+  timer.lap("density at end points");
   if (!cells) {
     y = std::move(ys);
     end_density = out.col(dim);
@@ -773,8 +804,10 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   } else {
     seekModesCpu(space, params, y, end_density, sums, point_density, progress);
   }
+  StageTimer timer;
   std::vector<int> mode_rep;  // point whose end point is the mode
   groupModes(y, space.metric_plain, end_density, params.merge_radius, flat, mode_rep);
+  timer.lap("mode grouping");
   int nm = static_cast<int>(mode_rep.size());
 
   // Absorb tiny clusters into the neighbour they share most k-NN edges with, smallest first.
@@ -786,15 +819,36 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   // Symmetric edge counts (the k-NN graph is not): the absorption below removes a cluster from
   // the lists of its neighbours, and a one-sided entry would survive as a stale neighbour that a
   // later absorption could follow into a cycle of targets.
-  std::vector<std::map<int, long>> adj(nm);
-  for (Eigen::Index i = 0; i < n; ++i)
-    for (int m = 0; m < k; ++m) {
-      const int j = graph[i * k + m];
-      if (j >= 0 && flat[j] != flat[i]) {
-        ++adj[flat[i]][flat[j]];
-        ++adj[flat[j]][flat[i]];
+  // Flat lists sorted by neighbour id (pairs counted from a sorted list of the cross edges, not
+  // one std::map insertion per edge: 8M edges at 800k points).
+  using Edge = std::pair<int, long>;
+  std::vector<std::vector<Edge>> adj(nm);
+  {
+    std::vector<std::uint64_t> cross;
+    for (Eigen::Index i = 0; i < n; ++i)
+      for (int m = 0; m < k; ++m) {
+        const int j = graph[i * k + m];
+        if (j >= 0 && flat[j] != flat[i]) {
+          const auto a = static_cast<std::uint64_t>(std::min(flat[i], flat[j]));
+          const auto b = static_cast<std::uint64_t>(std::max(flat[i], flat[j]));
+          cross.push_back(a << 32 | b);
+        }
       }
+    std::sort(cross.begin(), cross.end());
+    for (std::size_t e = 0; e < cross.size();) {
+      std::size_t f = e;
+      while (f < cross.size() && cross[f] == cross[e]) ++f;
+      const int a = static_cast<int>(cross[e] >> 32), b = static_cast<int>(cross[e] & 0xffffffffu);
+      const long cnt = static_cast<long>(f - e);
+      adj[a].push_back({b, cnt});  // a < b and keys ascending: both lists stay sorted
+      adj[b].push_back({a, cnt});
+      e = f;
     }
+    for (auto& list : adj) std::sort(list.begin(), list.end());
+  }
+  auto find = [](std::vector<Edge>& list, int id) {
+    return std::lower_bound(list.begin(), list.end(), Edge(id, std::numeric_limits<long>::min()));
+  };
   std::vector<int> target(nm);
   std::iota(target.begin(), target.end(), 0);
   // Smallest eligible cluster first (ties: lowest id), from a min-heap with lazy deletion: an
@@ -817,14 +871,28 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     size[b] += size[c];
     size[c] = 0;
     for (const auto& [nb, cnt] : adj[c]) {
-      adj[nb].erase(c);
       if (nb == b) continue;
-      adj[b][nb] += cnt;
-      adj[nb][b] += cnt;
+      // In nb's list, c's entry becomes (or adds to) b's.
+      std::vector<Edge>& list = adj[nb];
+      list.erase(find(list, c));
+      auto at = find(list, b);
+      if (at != list.end() && at->first == b) at->second += cnt;
+      else list.insert(at, {b, cnt});
       if (size[nb] < min_size) heap.push({size[nb], nb});
     }
-    adj[b].erase(c);
-    adj[c].clear();
+    // b's list: merged with c's (both sorted), without b and c.
+    std::vector<Edge> merged;
+    merged.reserve(adj[b].size() + adj[c].size());
+    auto x = adj[b].begin(), y = adj[c].begin();
+    while (x != adj[b].end() || y != adj[c].end()) {
+      Edge e;
+      if (y == adj[c].end() || (x != adj[b].end() && x->first < y->first)) e = *x++;
+      else if (x == adj[b].end() || y->first < x->first) e = *y++;
+      else e = {x->first, x->second + y->second}, ++x, ++y;
+      if (e.first != b && e.first != c) merged.push_back(e);
+    }
+    adj[b].swap(merged);
+    std::vector<Edge>().swap(adj[c]);
     if (size[b] < min_size) heap.push({size[b], b});
   }
   // Absorption chains can be thousands long (many tiny clusters absorbed one into the next):
@@ -854,6 +922,7 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   for (Eigen::Index i = 0; i < n; ++i) flat[i] = final_id[flat[i]];
   modes.resize(num_clusters, dim);
   for (int c = 0; c < num_clusters; ++c) modes.row(c) = y.row(final_rep[c]);
+  timer.lap("absorption");
 }
 
 }  // namespace
@@ -884,8 +953,11 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     }
   };
   if (params_.method == MeanShiftMethod::Paper) {
+    detail::StageTimer timer;
     const JointSpace space = detail::buildJointSpace(seq, signatures_, keypoints_, params_);
+    timer.lap("joint space");
     const std::vector<int> graph = detail::knnGraph(seq, k);
+    timer.lap("k-NN graph");
     // The CPU iteration leaves its kernel sums and the density at the points for the densities
     // of the result (no second filter over the data).
     std::unique_ptr<detail::JointKernelSum> sums;
@@ -896,6 +968,7 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
                progress_);
       result.modes = modes;
     });
+    timer.restart();
     guarded([&](MeanShiftDeviceBackend* d) {
       if (!d && sums) {
         detail::finishResult(space, flat, num_clusters, graph, k, seq, *sums, point_density,
@@ -904,6 +977,7 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
         detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, true, result, d);
       }
     });
+    timer.lap("densities + saddles");
   } else {
     detail::runMotion(seq, params_, flat, num_clusters, result.merges, progress_);
     // Built after the tracking, so that the joint space (N x d floats) and the k-NN graph do not

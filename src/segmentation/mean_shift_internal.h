@@ -4,12 +4,27 @@
 
 #include <Eigen/Core>
 
+#include <chrono>
 #include <memory>
 #include <vector>
 
 namespace pcl_animseg {
 namespace segmentation {
 namespace detail {
+
+/** Stage timings of the paper method on stderr when the environment variable ANIMSEG_MS_TIMING
+ * is set (profiling aid; silent otherwise). */
+class StageTimer {
+ public:
+  StageTimer();
+  void restart();
+  /** Prints the time since the last lap (or restart) under `stage`, then restarts. */
+  void lap(const char* stage);
+
+ private:
+  bool on_;
+  std::chrono::steady_clock::time_point last_;
+};
 
 /** The joint feature space of Eq. 5-6 (see mean_shift.h). */
 struct JointSpace {
