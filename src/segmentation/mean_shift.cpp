@@ -234,10 +234,22 @@ class ExactBackend : public JointKernelSum::Backend {
           if (c.anchor.size() == static_cast<std::size_t>(d))
             for (int k = 0; k < d; ++k) moved += (qb[k] - c.anchor[k]) * (qb[k] - c.anchor[k]);
           if (c.anchor.size() != static_cast<std::size_t>(d) || !(moved <= m2)) {
+            // Anchored ahead of the query along its last move (trajectories keep their
+            // direction), so that the list lasts about twice as long; the query itself is within
+            // the margin of the anchor, so the list holds everything within 3 of it.
+            std::vector<float> anchor = qb;
+            if (c.last.size() == static_cast<std::size_t>(d)) {
+              float len2 = 0.0f;
+              for (int k = 0; k < d; ++k) len2 += (qb[k] - c.last[k]) * (qb[k] - c.last[k]);
+              if (len2 > 0.0f) {
+                const float t = lead_ * margin_ / std::sqrt(len2);
+                for (int k = 0; k < d; ++k) anchor[k] += t * (qb[k] - c.last[k]);
+              }
+            }
             flann::RadiusResultSet<float> found(wide);
-            flannFindNeighbors(*index_, found, qb.data(), sp, idx, dst, false);
+            flannFindNeighbors(*index_, found, anchor.data(), sp, idx, dst, false);
             ++searches;
-            c.anchor = qb;
+            c.anchor = anchor;
             c.list.assign(idx.begin(), idx.end());
             std::sort(c.list.begin(), c.list.end());
           }
@@ -247,6 +259,7 @@ class ExactBackend : public JointKernelSum::Backend {
             for (int k = 0; k < d; ++k) d2 += (qb[k] - xj[k]) * (qb[k] - xj[k]);
             if (d2 < r2) acc += std::exp(-0.5 * d2) * values_.col(j).cast<double>();
           }
+          c.last = qb;
         }
         for (int c = 0; c < v; ++c) out(rows[r], c) += static_cast<float>(acc[c]);
       }
@@ -261,13 +274,14 @@ class ExactBackend : public JointKernelSum::Backend {
 
  private:
   struct Cached {
-    std::vector<float> anchor;
+    std::vector<float> anchor, last;
     std::vector<std::uint32_t> list;
   };
   Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> x_;
   Eigen::MatrixXf values_;  // v x n
   std::unique_ptr<flann::KDTreeSingleIndex<flann::L2<float>>> index_;
   float margin_ = 0.0f;
+  float lead_ = 0.8f;  // anchor this many margins ahead of the query (see evaluate)
   Eigen::MatrixXf rotation_;  // d x d principal axes (columns), empty: none
   mutable std::vector<Cached> cache_;
   mutable long searches_ = 0;
