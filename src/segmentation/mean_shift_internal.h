@@ -4,12 +4,27 @@
 
 #include <Eigen/Core>
 
+#include <chrono>
 #include <memory>
 #include <vector>
 
 namespace pcl_animseg {
 namespace segmentation {
 namespace detail {
+
+/** Stage timings of the paper method on stderr when the environment variable ANIMSEG_MS_TIMING
+ * is set (profiling aid; silent otherwise). */
+class StageTimer {
+ public:
+  StageTimer();
+  void restart();
+  /** Prints the time since the last lap (or restart) under `stage`, then restarts. */
+  void lap(const char* stage);
+
+ private:
+  bool on_;
+  std::chrono::steady_clock::time_point last_;
+};
 
 /** The joint feature space of Eq. 5-6 (see mean_shift.h). */
 struct JointSpace {
@@ -30,14 +45,21 @@ JointSpace buildJointSpace(const PointCloudSequence& seq, const std::vector<Eige
  * pair rule of Eq. 5 realised as a sum over two point sets. */
 class JointKernelSum {
  public:
+  /** exact_cache_margin > 0 (exact backend): each query row keeps its neighbour list within
+   * 3 + margin bandwidths and reuses it while it moves less than the margin (same sums, fewer
+   * tree searches: for the refinement's many small steps). */
   JointKernelSum(const JointSpace& space, const Eigen::MatrixXf& values,
-                 const MeanShiftParams& params);
+                 const MeanShiftParams& params, float exact_cache_margin = 0.0f);
   ~JointKernelSum();
   /** out.row(r) = sums at raw position y.row(r) for r in rows (others untouched); query_key[r]
    * says whether the query started from a keypoint (empty: none did). */
   void evaluate(const Eigen::MatrixXf& y, const std::vector<int>& rows,
                 const std::vector<char>& query_key, Eigen::MatrixXf& out) const;
   int valueCount() const { return value_count_; }
+  /** Releases the exact backend's neighbour lists of these rows (see the constructor). */
+  void forget(const std::vector<int>& rows) const;
+  /** Tree searches made so far by the exact backend (diagnostics). */
+  long searches() const;
   /** The Gaussian kd-tree over all points in the plain metric, in input order, when the sums
    * use one (Gaussian kd-tree backend, no keypoint pair rule); nullptr otherwise. */
   const filters::GaussianKdTree* cellTree() const;
