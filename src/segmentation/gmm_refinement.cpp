@@ -69,6 +69,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     throw Error("GMM refinement: need 0 < narrow band L_r < outer band L_R (got " +
                 std::to_string(p.narrow_band) + ", " + std::to_string(p.outer_band) + ")");
   if (p.boundary_k < 2) throw Error("GMM refinement: boundary_k must be >= 2");
+  if (!(p.fold_angle_deg >= 0.0 && p.fold_angle_deg < 180.0))
+    throw Error("GMM refinement: fold_angle_deg must be in [0, 180) (got " +
+                std::to_string(p.fold_angle_deg) + ")");
   if (!(p.motion_tolerance >= 0.0) || !(p.motion_cap > 0.0))
     throw Error("GMM refinement: need motion_tolerance >= 0 and motion_cap > 0 (got " +
                 std::to_string(p.motion_tolerance) + ", " + std::to_string(p.motion_cap) + ")");
@@ -342,6 +345,29 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // labels of this iteration (Jacobi), so the result does not depend on the visiting order.
     std::vector<std::vector<std::pair<int, int>>> changes(frames);
     std::size_t band_w = 0;
+    // True when every point of `target` among the near neighbours of point j lies across an
+    // inward fold (normals converging, turned by more than fold_angle_deg); false when there is
+    // none or one on a smooth or outward-curving surface.
+    constexpr double kPi = 3.14159265358979323846;
+    const double fold_cos = p.fold_angle_deg > 0.0 ? std::cos(p.fold_angle_deg * kPi / 180.0) : 1.0;
+    auto acrossFold = [&](int t, int j, int target) {
+      const Cloud& cloud = *sequence_->frame(t);
+      const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * spacing[t], 2));
+      std::vector<int> nn;
+      std::vector<float> nd2;
+      trees[t].nearestKSearch(cloud[j], p.boundary_k + 1, nn, nd2);
+      const Eigen::Vector3f pj = cloud[j].getVector3fMap(), nj = cloud[j].getNormalVector3fMap();
+      bool seen = false;
+      for (std::size_t k = 0; k < nn.size(); ++k) {
+        if (labels[t][nn[k]] != target || nd2[k] > max_d2) continue;
+        seen = true;
+        const Eigen::Vector3f pm = cloud[nn[k]].getVector3fMap();
+        const Eigen::Vector3f nm = cloud[nn[k]].getNormalVector3fMap();
+        const bool inward = (nj - nm).dot(pj - pm) < 0.0f;
+        if (!inward || nj.dot(nm) >= fold_cos) return false;
+      }
+      return seen;
+    };
 #pragma omp parallel for schedule(dynamic) reduction(+ : band_w)
     for (int t = 0; t < static_cast<int>(frames); ++t) {
       const int g = pool ? 0 : t;
@@ -388,6 +414,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         if (check_motion && motionResidual(lab[1 - own], t, bp.index) >
                                 (1.0 + p.motion_tolerance) * motionResidual(lab[own], t, bp.index))
           continue;
+        if (fold_cos < 1.0 && acrossFold(t, bp.index, lab[1 - own])) continue;
         changes[t].emplace_back(bp.index, lab[1 - own]);
       }
     }

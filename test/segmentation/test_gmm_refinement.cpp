@@ -97,6 +97,10 @@ TEST(GMMRefinement, RejectsInconsistentInput) {
   bad.motion_tolerance = -0.1;
   refine.setParams(bad);
   EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
+  bad = RefinementParams();
+  bad.fold_angle_deg = 180.0;
+  refine.setParams(bad);
+  EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
   // A single part has no boundary: nothing changes.
   for (auto& f : in.labels) std::fill(f.begin(), f.end(), 0);
   in.num_clusters = 1;

@@ -68,6 +68,12 @@ struct RefinementParams {
   bool motion_check = true;
   double motion_tolerance = 0.35;
   double motion_cap = 5.0;
+  /** Fold guard (beyond the paper): a W point does not take a label whose points near it (its
+   * `boundary_k` nearest within `boundary_max_distance`) all lie across an inward fold of more
+   * than `fold_angle_deg` (normals converging): a border on such a fold is where parts meet (the
+   * minima rule), which the segmentation put there on purpose; normals alone cannot tell the
+   * two sides of a shoulder apart. 0: off. */
+  double fold_angle_deg = 20.0;
   /** Iterate (bands rebuilt from the new labels) until fewer than `min_changed_fraction` of all
    * points change, or `max_iterations`. */
   int max_iterations = 4;
