@@ -8,6 +8,7 @@
 #include <pcl_animseg/tool_common.h>
 #include <pcl_animseg/visualization/contact_sheet.h>
 
+#include "motion_options.h"
 #include "scale_space_options.h"
 
 #include <iomanip>
@@ -90,15 +91,8 @@ int main(int argc, char** argv) {
     ("parts", po::value<int>()->default_value(0),
      "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")
     ("patches", po::value<int>()->default_value(msd.patches),
-     "motion method: patches of the over-segmentation (0: automatic)")
-    ("motion-threshold", po::value<double>()->default_value(msd.motion_threshold),
-     "motion method: stop merging above this rigid-motion residual (point spacings)")
-    ("crease-cost", po::value<double>()->default_value(msd.crease_cost),
-     "motion method: least cost of merging two parts that meet at a sharp crease and move "
-     "differently (0: off)")
-    ("border-smoothness", po::value<double>()->default_value(msd.border_smoothness),
-     "motion method: cost of a part border across a smooth surface, against the motion fit "
-     "(borders prefer inward folds; 0: per-point borders)");
+     "motion method: patches of the over-segmentation (0: automatic)");
+  tools::addMotionOptions(od, msd);
   tools::addScaleSpaceOptions(od, defaults.multiscale);
   od.add_options()
     ("signature-h", po::value<double>()->default_value(defaults.multiscale.signature_h),
@@ -139,9 +133,7 @@ int main(int argc, char** argv) {
         ms.backend = segmentation::meanShiftBackendFromString(vm["backend"].as<std::string>());
         ms.target_clusters = vm["parts"].as<int>();
         ms.patches = vm["patches"].as<int>();
-        ms.motion_threshold = vm["motion-threshold"].as<double>();
-        ms.crease_cost = vm["crease-cost"].as<double>();
-        ms.border_smoothness = vm["border-smoothness"].as<double>();
+        tools::readMotionOptions(vm, ms);
         ms.seed = vm["seed"].as<unsigned>();
         tools::readScaleSpaceOptions(vm, params.multiscale);
         params.multiscale.signature_h = vm["signature-h"].as<double>();

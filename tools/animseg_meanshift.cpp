@@ -8,6 +8,8 @@
 #include <pcl_animseg/segmentation/mean_shift.h>
 #include <pcl_animseg/tool_common.h>
 
+#include "motion_options.h"
+
 #include <string>
 
 namespace po = boost::program_options;
@@ -29,15 +31,9 @@ int main(int argc, char** argv) {
       "backend", po::value<std::string>()->default_value(seg::toString(d.backend)),
       "kernel sums: exact (kd-tree + exact Gaussian) or gkdtree (Gaussian kd-tree filter)")(
       "parts", po::value<int>()->default_value(0),
-      "motion method: merge until exactly N parts (0: stop at the motion threshold)")(
-      "motion-threshold", po::value<double>()->default_value(d.motion_threshold),
-      "motion method: stop merging above this rigid-motion residual (point spacings)")(
-      "crease-cost", po::value<double>()->default_value(d.crease_cost),
-      "motion method: least cost of merging two parts that meet at a sharp crease and move "
-      "differently (0: off)")(
-      "border-smoothness", po::value<double>()->default_value(d.border_smoothness),
-      "motion method: cost of a part border across a smooth surface, against the motion fit "
-      "(borders prefer inward folds; 0: per-point borders)")(
+      "motion method: merge until exactly N parts (0: stop at the motion threshold)");
+  pcl_animseg::tools::addMotionOptions(od, d);
+  od.add_options()(
       "no-features", po::bool_switch(),
       "cluster on position and normal only (skip scale space, keypoints and signatures)")(
       "seed", po::value<unsigned>()->default_value(d.seed), "random seed");
@@ -60,14 +56,7 @@ int main(int argc, char** argv) {
         params.backend = seg::meanShiftBackendFromString(ctx.vm["backend"].as<std::string>());
         params.target_clusters = ctx.vm["parts"].as<int>();
         if (params.target_clusters < 0) throw pcl_animseg::Error("--parts must be >= 0");
-        params.motion_threshold = ctx.vm["motion-threshold"].as<double>();
-        params.crease_cost = ctx.vm["crease-cost"].as<double>();
-        if (!(params.motion_threshold > 0.0))
-          throw pcl_animseg::Error("--motion-threshold must be positive");
-        if (!(params.crease_cost >= 0.0)) throw pcl_animseg::Error("--crease-cost must be >= 0");
-        params.border_smoothness = ctx.vm["border-smoothness"].as<double>();
-        if (!(params.border_smoothness >= 0.0))
-          throw pcl_animseg::Error("--border-smoothness must be >= 0");
+        pcl_animseg::tools::readMotionOptions(ctx.vm, params);
         params.seed = ctx.vm["seed"].as<unsigned>();
         const std::string out_dir = ctx.vm["output"].as<std::string>();
         // Parameters are checked before the (slow) feature computation.

@@ -5,6 +5,9 @@
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
+#include "surface_fold.h"
+
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -356,15 +359,11 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       std::vector<int> nn;
       std::vector<float> nd2;
       trees[t].nearestKSearch(cloud[j], p.boundary_k + 1, nn, nd2);
-      const Eigen::Vector3f pj = cloud[j].getVector3fMap(), nj = cloud[j].getNormalVector3fMap();
       bool seen = false;
       for (std::size_t k = 0; k < nn.size(); ++k) {
         if (labels[t][nn[k]] != target || nd2[k] > max_d2) continue;
         seen = true;
-        const Eigen::Vector3f pm = cloud[nn[k]].getVector3fMap();
-        const Eigen::Vector3f nm = cloud[nn[k]].getNormalVector3fMap();
-        const bool inward = (nj - nm).dot(pj - pm) < 0.0f;
-        if (!inward || nj.dot(nm) >= fold_cos) return false;
+        if (detail::inwardFoldCos(cloud[j], cloud[nn[k]]) >= fold_cos) return false;
       }
       return seen;
     };

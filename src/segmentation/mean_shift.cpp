@@ -96,6 +96,17 @@ void MeanShiftSegmentation::validate() const {
 
 namespace detail {
 
+namespace {
+/** An unordered pair of cluster ids as one sortable key (smaller id in the high half), for the
+ * sorted cross-edge lists of the saddles and of the absorption. */
+std::uint64_t pairKey(int a, int b) {
+  return static_cast<std::uint64_t>(std::min(a, b)) << 32 |
+         static_cast<std::uint64_t>(std::max(a, b));
+}
+int pairFirst(std::uint64_t key) { return static_cast<int>(key >> 32); }
+int pairSecond(std::uint64_t key) { return static_cast<int>(key & 0xffffffffu); }
+}  // namespace
+
 StageTimer::StageTimer() : on_(std::getenv("ANIMSEG_MS_TIMING") != nullptr) { restart(); }
 void StageTimer::restart() { last_ = std::chrono::steady_clock::now(); }
 void StageTimer::lap(const char* stage) {
@@ -509,9 +520,7 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
       if (j < 0) continue;
       const int b = flat[j];
       if (b < 0 || b == a) continue;
-      const auto key = static_cast<std::uint64_t>(std::min(a, b)) << 32 |
-                       static_cast<std::uint64_t>(std::max(a, b));
-      cross.push_back({key, std::min(f(i, 0), f(j, 0))});
+      cross.push_back({pairKey(a, b), std::min(f(i, 0), f(j, 0))});
     }
   }
   std::sort(cross.begin(), cross.end());
@@ -520,8 +529,7 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
     std::size_t g = e;
     while (g < cross.size() && cross[g].first == cross[e].first) ++g;
     // Sorted by value within a key: the last is the highest.
-    result.saddles.push_back({static_cast<int>(cross[e].first >> 32),
-                              static_cast<int>(cross[e].first & 0xffffffffu),
+    result.saddles.push_back({pairFirst(cross[e].first), pairSecond(cross[e].first),
                               static_cast<double>(cross[g - 1].second)});
     e = g;
   }
@@ -739,7 +747,7 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   exact.forget(active);
   for (int r = 0; r < g; ++r) yg.row(r) = yg.row(root(r)).eval();
   for (Eigen::Index i = 0; i < n; ++i) y.row(i) = yg.row(group_of[i]);
-  if (std::getenv("ANIMSEG_MS_TIMING"))
+  if (timer.on())
     std::fprintf(stderr,
                  "[mean shift] refinement: %d groups, %ld exact steps, %ld tree searches, %d "
                  "iterations, %zu not converged\n",
@@ -947,17 +955,13 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     for (Eigen::Index i = 0; i < n; ++i)
       for (int m = 0; m < k; ++m) {
         const int j = graph[i * k + m];
-        if (j >= 0 && flat[j] != flat[i]) {
-          const auto a = static_cast<std::uint64_t>(std::min(flat[i], flat[j]));
-          const auto b = static_cast<std::uint64_t>(std::max(flat[i], flat[j]));
-          cross.push_back(a << 32 | b);
-        }
+        if (j >= 0 && flat[j] != flat[i]) cross.push_back(detail::pairKey(flat[i], flat[j]));
       }
     std::sort(cross.begin(), cross.end());
     for (std::size_t e = 0; e < cross.size();) {
       std::size_t f = e;
       while (f < cross.size() && cross[f] == cross[e]) ++f;
-      const int a = static_cast<int>(cross[e] >> 32), b = static_cast<int>(cross[e] & 0xffffffffu);
+      const int a = detail::pairFirst(cross[e]), b = detail::pairSecond(cross[e]);
       const long cnt = static_cast<long>(f - e);
       adj[a].push_back({b, cnt});  // a < b and keys ascending: both lists stay sorted
       adj[b].push_back({a, cnt});

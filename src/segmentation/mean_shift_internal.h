@@ -20,6 +20,8 @@ class StageTimer {
   void restart();
   /** Prints the time since the last lap (or restart) under `stage`, then restarts. */
   void lap(const char* stage);
+  /** Whether timings are printed (for other diagnostics of the same switch). */
+  bool on() const { return on_; }
 
  private:
   bool on_;

@@ -7,6 +7,8 @@
 
 #include <pcl/segmentation/grabcut_segmentation.h>
 
+#include "surface_fold.h"
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
@@ -16,7 +18,6 @@
 #include <queue>
 #include <set>
 #include <string>
-
 
 namespace pcl_animseg {
 namespace segmentation {
@@ -639,17 +640,14 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
   };
   // Edge weights (each undirected edge once, i < j).
   std::vector<std::vector<std::pair<int, double>>> edges(n);
-  const double a0 = kConcaveAngle;
   for (int i = 0; i < n; ++i)
     for (int j : surface[i]) {
       if (j <= i) continue;
-      const Eigen::Vector3f pi = rc[i].getVector3fMap(), pj = rc[j].getVector3fMap();
-      const Eigen::Vector3f ni = rc[i].getNormalVector3fMap(), nj = rc[j].getNormalVector3fMap();
+      const float fold = detail::inwardFoldCos(rc[i], rc[j]);
       double w = 1.0;
-      // Concave: the normals converge along the edge.
-      if ((ni - nj).dot(pi - pj) < 0.0f) {
-        const double ang = std::acos(std::clamp(static_cast<double>(ni.dot(nj)), -1.0, 1.0));
-        w = std::exp(-(ang / a0) * (ang / a0));
+      if (fold < 1.0f) {
+        const double ang = std::acos(std::clamp(static_cast<double>(fold), -1.0, 1.0));
+        w = std::exp(-(ang / kConcaveAngle) * (ang / kConcaveAngle));
       }
       edges[i].push_back({j, smooth * w});
     }

@@ -1,0 +1,39 @@
+#pragma once
+// The motion method's options shared by animseg and animseg_meanshift: one place for their names,
+// defaults, help and checks.
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/segmentation/mean_shift.h>
+
+#include <boost/program_options.hpp>
+
+namespace pcl_animseg {
+namespace tools {
+
+/** Adds --motion-threshold, --crease-cost and --border-smoothness with the defaults of `d`. */
+inline void addMotionOptions(boost::program_options::options_description& od,
+                             const segmentation::MeanShiftParams& d) {
+  namespace po = boost::program_options;
+  od.add_options()
+    ("motion-threshold", po::value<double>()->default_value(d.motion_threshold),
+     "motion method: stop merging above this rigid-motion residual (point spacings)")
+    ("crease-cost", po::value<double>()->default_value(d.crease_cost),
+     "motion method: least cost of merging two parts that meet at a sharp crease and move "
+     "differently (0: off)")
+    ("border-smoothness", po::value<double>()->default_value(d.border_smoothness),
+     "motion method: cost of a part border across a smooth surface, against the motion fit "
+     "(borders prefer inward folds; 0: per-point borders)");
+}
+
+/** The options into `p`; throws Error (one line) for a value out of range, before any work. */
+inline void readMotionOptions(const boost::program_options::variables_map& vm,
+                              segmentation::MeanShiftParams& p) {
+  p.motion_threshold = vm["motion-threshold"].as<double>();
+  p.crease_cost = vm["crease-cost"].as<double>();
+  p.border_smoothness = vm["border-smoothness"].as<double>();
+  if (!(p.motion_threshold > 0.0)) throw Error("--motion-threshold must be positive");
+  if (!(p.crease_cost >= 0.0)) throw Error("--crease-cost must be >= 0");
+  if (!(p.border_smoothness >= 0.0)) throw Error("--border-smoothness must be >= 0");
+}
+
+}  // namespace tools
+}  // namespace pcl_animseg
