@@ -1,12 +1,12 @@
 #pragma once
 /** \file kdtree.h A 3-D kd-tree for one-point-at-a-time queries from inside parallel loops. */
-#include <pcl_animseg/error.h>
-
-#include <flann/flann.hpp>
 #include <pcl/point_cloud.h>
 #include <pcl/search/kdtree.h>
+#include <pcl_animseg/error.h>
 
 #include <cmath>
+#include <flann/flann.hpp>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -84,8 +84,7 @@ class KdTree {
                      std::vector<float>& sqr_distances) const {
     indices.clear();
     sqr_distances.clear();
-    if (!index_ || k <= 0 || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z))
-      return 0;
+    if (!index_ || k <= 0 || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) return 0;
     const std::size_t kk = std::min<std::size_t>(static_cast<std::size_t>(k), map_.size());
     const float q[3] = {x, y, z};
     std::vector<std::size_t> idx;
@@ -94,6 +93,23 @@ class KdTree {
     indices.resize(idx.size());
     for (std::size_t i = 0; i < idx.size(); ++i) indices[i] = map_[idx[i]];
     return static_cast<int>(indices.size());
+  }
+
+  /** \brief The nearest point within sqrt(`max_sqr_distance`) (inclusive), or -1 when there is
+   * none, an empty tree or a non-finite query; its squared distance in `sqr_distance`. The same
+   * point as nearestKSearch(k = 1) whenever that one lies within the bound, without the heap
+   * allocations of a general query, and the bound prunes the search: the motion method's
+   * residuals and ICP make tens of millions of these. */
+  int nearest(float x, float y, float z, float max_sqr_distance, float& sqr_distance) const {
+    if (!index_ || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z) ||
+        !(max_sqr_distance >= 0.0f))
+      return -1;
+    const float q[3] = {x, y, z};
+    NearestResult result(std::nextafter(max_sqr_distance, std::numeric_limits<float>::max()));
+    index_->findNeighbors(result, q, params_);
+    if (result.index == kNone) return -1;
+    sqr_distance = result.dist;
+    return map_[result.index];
   }
 
   /** \brief All points within `radius` (at most `max_nn` of the closest when max_nn > 0),
@@ -123,6 +139,19 @@ class KdTree {
 
  private:
   using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
+  static constexpr std::size_t kNone = static_cast<std::size_t>(-1);
+  /** One nearest point under a bound: FLANN's result-set interface without a heap buffer
+   * (KNNSimpleResultSet keeps a std::vector); same rule (strictly closer replaces). */
+  struct NearestResult : flann::ResultSet<float> {
+    explicit NearestResult(float bound) : dist(bound) {}
+    bool full() const override { return true; }
+    void addPoint(float d, std::size_t i) override {
+      if (d < dist) dist = d, index = i;
+    }
+    float worstDist() const override { return dist; }
+    float dist;
+    std::size_t index = kNone;
+  };
   CloudConstPtr cloud_;
   std::vector<float> data_;  ///< xyz of the finite points, the matrix FLANN indexes
   std::vector<int> map_;     ///< tree row -> index in the cloud
@@ -132,8 +161,8 @@ class KdTree {
 
 /** \brief A pcl::search::KdTree whose point queries go through KdTree above, for PCL
  * algorithms that take a search object (registration's correspondence estimation:
- * `icp.setSearchMethodTarget(tree, true)`). Only whole clouds: with an index subset it falls back to
- * PCL's own tree. */
+ * `icp.setSearchMethodTarget(tree, true)`). Only whole clouds: with an index subset it falls back
+ * to PCL's own tree. */
 template <typename PointT>
 class SearchKdTree : public pcl::search::KdTree<PointT> {
  public:

@@ -1102,14 +1102,19 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     });
     timer.lap("densities + saddles");
   } else {
+    detail::StageTimer timer;
     detail::runMotion(seq, params_, flat, num_clusters, result.merges, progress_);
+    timer.lap("motion method");
     // Built after the tracking, so that the joint space (N x d floats) and the k-NN graph do not
     // add to the tracking's peak memory.
     const JointSpace space = detail::buildJointSpace(seq, signatures_, keypoints_, params_);
+    timer.lap("joint space");
     const std::vector<int> graph = detail::knnGraph(seq, k);
+    timer.lap("k-NN graph");
     guarded([&](MeanShiftDeviceBackend* d) {
       detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, false, result, d);
     });
+    timer.lap("densities + saddles");
   }
 }
 

@@ -13,6 +13,7 @@
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <map>
 #include <string>
 
 namespace seg = pcl_animseg::segmentation;
@@ -279,6 +280,7 @@ TEST(MotionQuality, DISABLED_Tracking) {
   for (std::size_t t = 0; t < frames.size(); ++t) {
     const auto& c = *frames[t].cloud;
     int ok = 0;
+    std::map<std::pair<int, int>, int> off;  // (true part, part landed on) -> samples
     for (int s = 0; s < S; ++s) {
       const Eigen::Vector3d p = tr.positions[t].col(s);
       double best = 1e300;
@@ -288,6 +290,13 @@ TEST(MotionQuality, DISABLED_Tracking) {
         if (d < best) best = d, lab = frames[t].labels[j];
       }
       ok += lab == truth0[s];
+      if (lab != truth0[s]) ++off[{truth0[s], lab}];
+    }
+    if (envInt("OFF", 0)) {
+      std::printf("  off part (true->landed:count):");
+      for (const auto& [k, v] : off)
+        if (v >= 2) std::printf(" %d->%d:%d", k.first, k.second, v);
+      std::printf("\n");
     }
     // Residual of each sample under the Kabsch fit of its true part's samples.
     std::vector<double> err(S, 0.0);
@@ -383,15 +392,15 @@ TEST(MotionQuality, DISABLED_Purity) {
       for (int c : row) tot += c;
     }
     std::vector<int> ref_pred(tc.point_labels.begin(), tc.point_labels.end());
-    std::printf("target %d: %d groups, point purity %.3f, reference ARI %.3f\n",
-                mp.target_clusters, tc.groups, double(pure) / tot,
-                ev::adjustedRandIndex(ref_pred, lab0));
+    std::printf("target %d: %d groups, point purity %.3f, reference ARI %.3f\n", mp.target_clusters,
+                tc.groups, double(pure) / tot, ev::adjustedRandIndex(ref_pred, lab0));
     for (int g = 0; g < tc.groups; ++g) {
       int rs = 0;
       for (int c : conf[g]) rs += c;
       std::printf("  G%-2d %5d:", g, rs);
       for (int p = 0; p < P; ++p)
-        if (conf[g][p] * 20 > rs) std::printf(" %s=%.0f%%", names[p].c_str(), 100.0 * conf[g][p] / rs);
+        if (conf[g][p] * 20 > rs)
+          std::printf(" %s=%.0f%%", names[p].c_str(), 100.0 * conf[g][p] / rs);
       std::printf("\n");
     }
   }
