@@ -269,13 +269,14 @@ TEST(MotionQuality, DISABLED_Tracking) {
   mp.samples = envInt("SAMPLES", 0);
   mp.neighbourhood = envInt("NBH", mp.neighbourhood);
   mp.icp_iterations = envInt("ITERS", mp.icp_iterations);
+  mp.reference_frame = envInt("REF", 0);
   auto t0 = std::chrono::steady_clock::now();
   const seg::SampleTracks tr = seg::trackSamples(seq, mp);
   const double t_track =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const int S = static_cast<int>(tr.sample_points.size());
   std::vector<int> truth0(S);
-  for (int s = 0; s < S; ++s) truth0[s] = frames[0].labels[tr.sample_points[s]];
+  for (int s = 0; s < S; ++s) truth0[s] = frames[tr.reference_frame].labels[tr.sample_points[s]];
   std::printf("%d samples, tracking %.1f s, spacing %.4f\n", S, t_track, tr.spacing);
   for (std::size_t t = 0; t < frames.size(); ++t) {
     const auto& c = *frames[t].cloud;
@@ -307,7 +308,7 @@ TEST(MotionQuality, DISABLED_Tracking) {
       if (m.size() < 3) continue;
       Eigen::Matrix3Xd a(3, m.size()), b(3, m.size());
       for (std::size_t k = 0; k < m.size(); ++k)
-        a.col(k) = tr.positions[0].col(m[k]), b.col(k) = tr.positions[t].col(m[k]);
+        a.col(k) = tr.positions[tr.reference_frame].col(m[k]), b.col(k) = tr.positions[t].col(m[k]);
       const auto fit = ev::kabsch(a, b);
       for (std::size_t k = 0; k < m.size(); ++k)
         err[m[k]] = ((fit.rotation * a.col(k) + fit.translation) - b.col(k)).norm() / tr.spacing;
@@ -372,7 +373,7 @@ TEST(MotionQuality, DISABLED_Purity) {
   const int P = synth::partCount(plan);
   const auto names = synth::partNames(plan);
   std::vector<int> truth0(S);
-  for (int s = 0; s < S; ++s) truth0[s] = frames[0].labels[tr.sample_points[s]];
+  for (int s = 0; s < S; ++s) truth0[s] = frames[tr.reference_frame].labels[tr.sample_points[s]];
   const char* targets = std::getenv("TARGETS");
   std::string list = targets ? targets : std::to_string(P);
   std::size_t pos = 0;
