@@ -262,7 +262,7 @@ TEST(MotionQuality, DISABLED_Table) {
 
 // A walking humanoid's legs swap places relative to the body every half stride. Tracked samples
 // must stay on their own leg: a start from the whole body's pose had put 28 of the right shin's
-// samples on the left shin at frame 11 of this sequence (82% of all samples on their part in the
+// samples on the left shin at frame 11 of this sequence (80.5% of all samples on their part in the
 // worst frame, up to 58 samples on the other leg; measured now: 91%, at most 6 on the other leg,
 // where the legs pass close).
 TEST(MotionQuality, WalkingLegsKeepTheirSamples) {
