@@ -1,11 +1,12 @@
 #pragma once
 /** \file kdtree.h A 3-D kd-tree for one-point-at-a-time queries from inside parallel loops. */
-#include <pcl/point_cloud.h>
-#include <pcl/search/kdtree.h>
 #include <pcl_animseg/error.h>
 
-#include <cmath>
 #include <flann/flann.hpp>
+#include <pcl/point_cloud.h>
+#include <pcl/search/kdtree.h>
+
+#include <cmath>
 #include <limits>
 #include <memory>
 #include <vector>
@@ -84,7 +85,8 @@ class KdTree {
                      std::vector<float>& sqr_distances) const {
     indices.clear();
     sqr_distances.clear();
-    if (!index_ || k <= 0 || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z)) return 0;
+    if (!index_ || k <= 0 || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z))
+      return 0;
     const std::size_t kk = std::min<std::size_t>(static_cast<std::size_t>(k), map_.size());
     const float q[3] = {x, y, z};
     std::vector<std::size_t> idx;

@@ -1,10 +1,14 @@
 // Tracked samples + trajectory clustering (see motion_tracking.h).
-#include <pcl/segmentation/grabcut_segmentation.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
-#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
+
+#include <pcl/segmentation/grabcut_segmentation.h>
+
+#include "mean_shift_internal.h"
+#include "surface_fold.h"
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -15,9 +19,6 @@
 #include <queue>
 #include <set>
 #include <string>
-
-#include "mean_shift_internal.h"
-#include "surface_fold.h"
 
 namespace pcl_animseg {
 namespace segmentation {

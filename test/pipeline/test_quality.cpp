@@ -85,6 +85,18 @@ std::vector<synth::SynthFrame> diagnosticFrames(synth::BodyPlan plan) {
       sequenceParams(plan, envInt("FRAMES", 20), envInt("POINTS", 1500), envInt("SEED", 3)));
 }
 
+/** True part of the point of `frame` nearest to `p` (brute force: a few hundred samples). */
+int trueLabelAt(const synth::SynthFrame& frame, const Eigen::Vector3d& p) {
+  const auto& c = *frame.cloud;
+  double best = 1e300;
+  int lab = -1;
+  for (std::size_t j = 0; j < c.size(); ++j) {
+    const double d = (Eigen::Vector3d(c[j].x, c[j].y, c[j].z) - p).squaredNorm();
+    if (d < best) best = d, lab = frame.labels[j];
+  }
+  return lab;
+}
+
 }  // namespace
 
 // The quality goal (>= 10 parts, >= 20 frames, large motion, +-20% point counts, no
@@ -280,17 +292,10 @@ TEST(MotionQuality, WalkingLegsKeepTheirSamples) {
   double worst = 1.0;
   int most_swapped = 0;
   for (std::size_t t = 0; t < frames.size(); ++t) {
-    const auto& c = *frames[t].cloud;
     int on = 0, swapped = 0;
     for (int s = 0; s < S; ++s) {
       const int truth = frames[ref].labels[tr.sample_points[s]];
-      const Eigen::Vector3d p = tr.positions[t].col(s);
-      double best = 1e300;
-      int lab = -1;
-      for (std::size_t j = 0; j < c.size(); ++j) {
-        const double d = (Eigen::Vector3d(c[j].x, c[j].y, c[j].z) - p).squaredNorm();
-        if (d < best) best = d, lab = frames[t].labels[j];
-      }
+      const int lab = trueLabelAt(frames[t], tr.positions[t].col(s));
       on += lab == truth;
       swapped += (isLeg(truth, "r") && isLeg(lab, "l")) || (isLeg(truth, "l") && isLeg(lab, "r"));
     }
@@ -324,17 +329,10 @@ TEST(MotionQuality, DISABLED_Tracking) {
   for (int s = 0; s < S; ++s) truth0[s] = frames[tr.reference_frame].labels[tr.sample_points[s]];
   std::printf("%d samples, tracking %.1f s, spacing %.4f\n", S, t_track, tr.spacing);
   for (std::size_t t = 0; t < frames.size(); ++t) {
-    const auto& c = *frames[t].cloud;
     int ok = 0;
     std::map<std::pair<int, int>, int> off;  // (true part, part landed on) -> samples
     for (int s = 0; s < S; ++s) {
-      const Eigen::Vector3d p = tr.positions[t].col(s);
-      double best = 1e300;
-      int lab = -1;
-      for (std::size_t j = 0; j < c.size(); ++j) {
-        const double d = (Eigen::Vector3d(c[j].x, c[j].y, c[j].z) - p).squaredNorm();
-        if (d < best) best = d, lab = frames[t].labels[j];
-      }
+      const int lab = trueLabelAt(frames[t], tr.positions[t].col(s));
       ok += lab == truth0[s];
       if (lab != truth0[s]) ++off[{truth0[s], lab}];
     }
