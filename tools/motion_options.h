@@ -9,7 +9,8 @@
 namespace pcl_animseg {
 namespace tools {
 
-/** Adds --motion-threshold, --crease-cost and --border-smoothness with the defaults of `d`. */
+/** Adds --motion-threshold, --crease-cost, --border-smoothness and --dissolve-ratio with the
+ * defaults of `d`. */
 inline void addMotionOptions(boost::program_options::options_description& od,
                              const segmentation::MeanShiftParams& d) {
   namespace po = boost::program_options;
@@ -21,7 +22,10 @@ inline void addMotionOptions(boost::program_options::options_description& od,
      "differently (0: off)")
     ("border-smoothness", po::value<double>()->default_value(d.border_smoothness),
      "motion method: cost of a part border across a smooth surface, against the motion fit "
-     "(borders prefer inward folds; 0: per-point borders)");
+     "(borders prefer inward folds; 0: per-point borders)")
+    ("dissolve-ratio", po::value<double>()->default_value(d.dissolve_ratio),
+     "motion method: a part dissolves into the parts it touches when their motions explain it "
+     "within this factor of its own motion's residual (0: pairwise merges only)");
 }
 
 /** The options into `p`; throws Error (one line) for a value out of range, before any work. */
@@ -30,9 +34,11 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
   p.motion_threshold = vm["motion-threshold"].as<double>();
   p.crease_cost = vm["crease-cost"].as<double>();
   p.border_smoothness = vm["border-smoothness"].as<double>();
+  p.dissolve_ratio = vm["dissolve-ratio"].as<double>();
   if (!(p.motion_threshold > 0.0)) throw Error("--motion-threshold must be positive");
   if (!(p.crease_cost >= 0.0)) throw Error("--crease-cost must be >= 0");
   if (!(p.border_smoothness >= 0.0)) throw Error("--border-smoothness must be >= 0");
+  if (!(p.dissolve_ratio >= 0.0)) throw Error("--dissolve-ratio must be >= 0");
 }
 
 }  // namespace tools

@@ -20,6 +20,7 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
   mp.threshold = 2.0 * params.motion_threshold;
   mp.crease_cost = params.crease_cost;
   mp.border_smoothness = params.border_smoothness;
+  mp.dissolve_ratio = params.dissolve_ratio;
   mp.target_clusters = params.target_clusters;
   mp.reference_frame = params.reference_frame;
   mp.point_neighbours = params.neighbours;

@@ -113,6 +113,10 @@ struct MeanShiftParams {
    * one surface-graph edge across a flat or convex surface, against the per-point motion fit;
    * folds that turn inwards are almost free to cut. 0: per-point reassignment, no border term. */
   double border_smoothness = 8.0;
+  /** A part may dissolve into the parts it touches (each point to the one whose motion fits it)
+   * when their motions explain it within this factor of its own motion's residual
+   * (MotionTrackingParams::dissolve_ratio); 0: parts only merge pairwise. */
+  double dissolve_ratio = 1.5;
   /** When > 0, merge until exactly this many parts instead (threshold ignored). */
   int target_clusters = 0;
   int icp_iterations = 25;
