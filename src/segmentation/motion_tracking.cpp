@@ -603,6 +603,38 @@ int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surfa
   return changed;
 }
 
+/** A part held by fewer than max(5, 0.2%) of the reference points is a remnant, not a part: each
+ * of its points takes the label of the first of its 16 nearest reference points that belongs to
+ * a real part (it keeps its label where none does). Labels < 0 are left alone. Returns whether
+ * any point changed. */
+bool absorbRemnants(const Frame& ref_frame, std::vector<int>& label) {
+  const Cloud& rc = *ref_frame.cloud;
+  const int n0 = static_cast<int>(rc.size());
+  const int min_points = std::max(5, n0 / 500);
+  const int labels = label.empty() ? 0 : *std::max_element(label.begin(), label.end()) + 1;
+  std::vector<int> count(std::max(labels, 0), 0);
+  for (int l : label)
+    if (l >= 0) ++count[l];
+  auto real = [&](int l) { return l >= 0 && count[l] >= min_points; };
+  const int kk = std::min(16, n0);
+  std::vector<int> next(label);
+  std::vector<int> idx;
+  std::vector<float> d2;
+  bool any = false;
+  for (int i = 0; i < n0; ++i) {
+    if (label[i] < 0 || real(label[i])) continue;
+    ref_frame.tree.nearestKSearch(rc[i], kk, idx, d2);
+    for (int j : idx)
+      if (real(label[j])) {
+        next[i] = label[j];
+        any = true;
+        break;
+      }
+  }
+  label.swap(next);
+  return any;
+}
+
 /** Places the borders between parts by alpha-expansion (Boykov, Veksler, Zabih 2001) on the
  * reference frame's surface graph. Energy: per point, the mean over frames of its squared surface
  * error under its part's motion (pointCost / (T - 1), spacings^2); per surface-graph edge whose
@@ -959,34 +991,13 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   // nothing (800k-point humanoid, seed 3: 7 of 15 parts held 1-22 of 16.6k reference points,
   // and the real parts were merged down to 8).
   {
-    const int min_points = std::max(5, n0 / 500);
-    auto remnant = [&](int g) {
-      return !gpts[g].empty() && static_cast<int>(gpts[g].size()) < min_points;
-    };
     std::vector<int> plabel(n0, -1);
     for (int g = 0; g < G; ++g)
       for (int i : gpts[g]) plabel[i] = g;
-    bool any = false;
-    std::vector<int> next(plabel);
-    const int kk = std::min(16, n0);
-    std::vector<int> idx;
-    std::vector<float> d2;
-    for (int g = 0; g < G; ++g) {
-      if (!remnant(g)) continue;
-      for (int i : gpts[g]) {
-        frames[ref].tree.nearestKSearch(rc[i], kk, idx, d2);
-        for (int j : idx)
-          if (plabel[j] >= 0 && !remnant(plabel[j])) {
-            next[i] = plabel[j];
-            any = true;
-            break;
-          }
-      }
-    }
-    if (any) {
+    if (absorbRemnants(frames[ref], plabel)) {
       for (auto& v : gpts) v.clear();
       for (int i = 0; i < n0; ++i)
-        if (next[i] >= 0) gpts[next[i]].push_back(i);
+        if (plabel[i] >= 0) gpts[plabel[i]].push_back(i);
     }
   }
 
@@ -1066,13 +1077,15 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   // kPartPoints) each take the surface-joined neighbour whose motion fits it best over all
   // frames, and the worst frame's residual of the piece under those motions counts, on the
   // scale of a merge's cost. A part with fewer than two such neighbours is only ever merged.
-  auto dissolveCandidates = [&](int x) {
-    std::vector<int> c;
+  // The parts that share an edge with x (only surface-joined ones with joined_only), ascending.
+  auto neighboursOf = [&](int x, bool joined_only = false) {
+    std::vector<int> n;
     for (const auto& [k, e] : pedges)
-      if (e.joined && (k.first == x || k.second == x))
-        c.push_back(k.first == x ? k.second : k.first);
-    return c;
+      if ((k.first == x || k.second == x) && (e.joined || !joined_only))
+        n.push_back(k.first == x ? k.second : k.first);
+    return n;
   };
+  auto dissolveCandidates = [&](int x) { return neighboursOf(x, true); };
   constexpr double kNoDissolve = std::numeric_limits<double>::infinity();
   auto dissolveCost = [&](int x) {
     const std::vector<int> nb = dissolveCandidates(x);
@@ -1140,13 +1153,6 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     for (std::size_t i = 0; i < list.size(); ++i)
       dcost[list[i]] = galive[list[i]] ? dissolveCost(list[i]) : kNoDissolve;
   };
-  auto neighboursOf = [&](int x) {
-    std::set<int> n;
-    for (const auto& kv : pedges)
-      if (kv.first.first == x) n.insert(kv.first.second);
-      else if (kv.first.second == x) n.insert(kv.first.first);
-    return n;
-  };
   auto dissolvePart = [&](int x) {
     const std::vector<int> nb = dissolveCandidates(x);
     const std::vector<int>& px = gpts[x];
@@ -1175,7 +1181,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       part_of[px[k]] = to[k];
       receivers.insert(to[k]);
     }
-    std::set<int> affected = neighboursOf(x);
+    const std::vector<int> former = neighboursOf(x);
+    std::set<int> affected(former.begin(), former.end());
     for (auto it = pedges.begin(); it != pedges.end();)
       it = (it->first.first == x || it->first.second == x) ? pedges.erase(it) : std::next(it);
     const std::vector<int> rec(receivers.begin(), receivers.end());
@@ -1233,7 +1240,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     rewireEdges(pedges, a, b, evaluatePair);
     if (refresh_dissolve) {
       // a's motion changed: a and the parts that touch it are scored again.
-      std::set<int> affected = neighboursOf(a);
+      const std::vector<int> touching = neighboursOf(a);
+      std::set<int> affected(touching.begin(), touching.end());
       affected.insert(a);
       dcost[b] = kNoDissolve;
       refreshDissolve(affected);
@@ -1435,25 +1443,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   // A part left with a handful of reference points (an isolated point whose group was moved away
   // around it) is a remnant, not a part: its points join the label of their nearest points of
   // another, real part.
-  {
-    const int min_points = std::max(5, n0 / 500);
-    std::vector<int> count(nc, 0);
-    for (int l : label) ++count[l];
-    const int kk = std::min(16, n0);
-    std::vector<int> next(label);
-    std::vector<int> idx;
-    std::vector<float> d2;
-    for (int i = 0; i < n0; ++i) {
-      if (count[label[i]] >= min_points) continue;
-      frames[ref].tree.nearestKSearch(rc[i], kk, idx, d2);
-      for (int j : idx)
-        if (count[label[j]] >= min_points) {
-          next[i] = label[j];
-          break;
-        }
-    }
-    label.swap(next);
-  }
+  absorbRemnants(frames[ref], label);
   // Labels of every frame: the nearest reference point moved by its part's motion, with a
   // compatible normal.
   const auto offsets = seq.offsets();
