@@ -660,6 +660,7 @@ struct PcdHeader {
   std::string types, data;
   long width = 0, height = 0;
   std::size_t data_offset = 0;  ///< bytes before the data (after the DATA line)
+  std::vector<double> ascii_values;  ///< DATA ascii: every value, point after point
 };
 
 /** PCL's PCD reader trusts the header (and crashes on garbage), so the header is checked here
@@ -741,6 +742,7 @@ PcdHeader checkPCDHeader(const std::string& path) {
     point_size += sizes[i] * c;
   }
   if (width < 0 || height < 1) throw fileError(path, "PCD header: bad WIDTH/HEIGHT");
+  PcdHeader h;
   // No file we read holds a petabyte; bounding the sizes first keeps the products below from
   // overflowing (found by fuzz_pcd). Such a header is a truncated (or corrupt) file.
   const double announced = static_cast<double>(width) * static_cast<double>(height);
@@ -779,6 +781,7 @@ PcdHeader checkPCDHeader(const std::string& path) {
     // data line with other tokens (found by fuzz_pcd), so it only ever sees well-formed lines.
     const long expected = width * height;
     long lines = 0;
+    h.ascii_values.reserve(static_cast<std::size_t>(expected) * static_cast<std::size_t>(values));
     while (std::getline(in, line)) {
       if (!line.empty() && line.back() == '\r') line.pop_back();
       std::istringstream ls(line);
@@ -786,10 +789,11 @@ PcdHeader checkPCDHeader(const std::string& path) {
       long n = 0;
       while (ls >> tok) {
         char* end = nullptr;
-        std::strtod(tok.c_str(), &end);
+        const double v = std::strtod(tok.c_str(), &end);
         if (end == tok.c_str() || *end != '\0')
           throw fileError(path, "PCD data line " + std::to_string(lines + 1) + ": '" + tok +
                                     "' is not a number");
+        h.ascii_values.push_back(v);
         ++n;
       }
       if (n == 0) continue;
@@ -805,7 +809,6 @@ PcdHeader checkPCDHeader(const std::string& path) {
   } else {
     throw fileError(path, "PCD header: unknown DATA encoding '" + data + "'");
   }
-  PcdHeader h;
   h.fields = fields;
   h.sizes = sizes;
   h.counts = counts.empty() ? std::vector<long>(nf, 1) : counts;
@@ -856,6 +859,35 @@ pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
   return cloud;
 }
 
+/** ASCII PCD data, read by us from the values that checkPCDHeader has already parsed (every
+ * point one line of exactly the header's number of numbers). PCL's parser crashed (SIGSEGV
+ * inside pcl::PCDReader::read) on a file whose header had a blank-only line before the
+ * VERSION line (found by fuzz_pcd), after data-line checks had already mended another of its
+ * crashes. Every value is kept as a double whatever the declared TYPE: only x y z and the
+ * normals are used, and they become floats. */
+pcl::PCLPointCloud2 readAsciiPCD(const PcdHeader& h) {
+  pcl::PCLPointCloud2 cloud;
+  std::uint32_t offset = 0;
+  for (std::size_t i = 0; i < h.fields.size(); ++i) {
+    pcl::PCLPointField f;
+    f.name = h.fields[i];
+    f.offset = offset;
+    f.count = static_cast<std::uint32_t>(h.counts[i]);
+    f.datatype = pcl::PCLPointField::FLOAT64;
+    cloud.fields.push_back(f);
+    offset += static_cast<std::uint32_t>(sizeof(double) * h.counts[i]);
+  }
+  cloud.width = static_cast<std::uint32_t>(h.width);
+  cloud.height = static_cast<std::uint32_t>(h.height);
+  cloud.point_step = offset;
+  cloud.row_step = offset * cloud.width;
+  cloud.is_dense = false;
+  cloud.data.resize(h.ascii_values.size() * sizeof(double));
+  if (!h.ascii_values.empty())
+    std::memcpy(cloud.data.data(), h.ascii_values.data(), cloud.data.size());
+  return cloud;
+}
+
 }  // namespace
 
 RawFrame readPCD(const std::string& path) {
@@ -864,10 +896,13 @@ RawFrame readPCD(const std::string& path) {
   int rc = 0;
   if (header.data == "binary") {
     cloud = readBinaryPCD(path, header);
+  } else if (header.data == "ascii") {
+    cloud = readAsciiPCD(header);
   } else {
     QuietPcl quiet;
-    // PCL's parser throws std::out_of_range and friends on some corrupt headers (a line with a
-    // leading blank, found by fuzz_pcd): one clear error, like every other bad file.
+    // Only binary_compressed data still goes through PCL's parser. It throws
+    // std::out_of_range and friends on some corrupt headers (a line with a leading blank, found
+    // by fuzz_pcd): one clear error, like every other bad file.
     try {
       rc = pcl::io::loadPCDFile(path, cloud);
     } catch (const std::exception&) {

@@ -178,3 +178,30 @@ TEST(ReaderRegressions, AsciiPcdDataLinesAreChecked) {
                            "/fuzz/corpus/pcd/regression-ascii-bad-lines.pcd"),
                pcl_animseg::Error);
 }
+
+// An ASCII PCD whose header has a blank-only line before VERSION (found by fuzz_pcd: PCL's
+// reader segfaulted on it). ASCII data is now read by us from the checked lines: the file is a
+// valid PCD (comments and blank lines are allowed), so its four points come back exactly, and
+// an organised ASCII cloud with a multi-value field keeps its point order.
+TEST(ReaderRegressions, AsciiPcdIsReadWithoutPcl) {
+  const io::RawFrame crash = io::readPCD(std::string(PCL_ANIMSEG_SOURCE_DIR) +
+                                         "/fuzz/corpus/pcd/regression-blank-header-line.pcd");
+  ASSERT_EQ(crash.points.size(), 4u);
+  ASSERT_EQ(crash.normals.size(), 4u);
+  EXPECT_FLOAT_EQ(crash.points[3].x(), 1.0f);
+  EXPECT_FLOAT_EQ(crash.points[3].y(), 1.0f);
+  EXPECT_FLOAT_EQ(crash.points[3].z(), 0.5f);
+  EXPECT_FLOAT_EQ(crash.normals[3].z(), 1.0f);
+  TempDir tmp;
+  const io::RawFrame raw = io::readPCD(
+      write(tmp.dir(), "organised.pcd",
+            "VERSION 0.7\nFIELDS rgb x y z label\nSIZE 4 4 4 4 4\nTYPE U F F F I\n"
+            "COUNT 2 1 1 1 1\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA ascii\n"
+            "9 9 0 0 0 1\n9 9 1 0 0 2\n9 9 0 1 0 3\n9 9 0.25 -2 7 4\n"));
+  ASSERT_EQ(raw.points.size(), 4u);
+  EXPECT_TRUE(raw.normals.empty());
+  EXPECT_FLOAT_EQ(raw.points[1].x(), 1.0f);
+  EXPECT_FLOAT_EQ(raw.points[3].x(), 0.25f);
+  EXPECT_FLOAT_EQ(raw.points[3].y(), -2.0f);
+  EXPECT_FLOAT_EQ(raw.points[3].z(), 7.0f);
+}
