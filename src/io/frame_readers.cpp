@@ -1,6 +1,6 @@
 #include <pcl/PCLPointCloud2.h>
-#include <pcl/console/print.h>
-#include <pcl/io/pcd_io.h>
+#include <pcl/common/io.h>
+#include <pcl/io/lzf.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/frame_readers.h>
 
@@ -14,7 +14,6 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
-#include <mutex>
 #include <sstream>
 #include <set>
 
@@ -99,39 +98,6 @@ void fanTriangulate(const pcl::Indices& poly, std::vector<pcl::Vertices>& faces)
     faces.push_back(std::move(t));
   }
 }
-
-/** PCL prints its own complaints to stderr; tools must print exactly one `error:` line, so its
- * console is silenced while a reader runs (reference counted: frames load in parallel). */
-class QuietPcl {
- public:
-  QuietPcl() {
-    std::lock_guard<std::mutex> lock(mutex());
-    if (depth()++ == 0) {
-      saved() = pcl::console::getVerbosityLevel();
-      pcl::console::setVerbosityLevel(pcl::console::L_ALWAYS);
-    }
-  }
-  ~QuietPcl() {
-    std::lock_guard<std::mutex> lock(mutex());
-    if (--depth() == 0) pcl::console::setVerbosityLevel(saved());
-  }
-  QuietPcl(const QuietPcl&) = delete;
-  QuietPcl& operator=(const QuietPcl&) = delete;
-
- private:
-  static std::mutex& mutex() {
-    static std::mutex m;
-    return m;
-  }
-  static int& depth() {
-    static int d = 0;
-    return d;
-  }
-  static pcl::console::VERBOSITY_LEVEL& saved() {
-    static pcl::console::VERBOSITY_LEVEL v = pcl::console::L_INFO;
-    return v;
-  }
-};
 
 double fieldValue(const std::uint8_t* p, std::uint8_t type) {
   switch (type) {
@@ -825,7 +791,7 @@ PcdHeader checkPCDHeader(const std::string& path) {
  * (SIGSEGV inside pcl::PCDReader::read) on such a file whose header and length are valid and
  * whose data bytes are arbitrary (found by fuzz_pcd); there is nothing in these bytes that needs
  * PCL's parser. */
-pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
+pcl::PCLPointCloud2 binaryLayout(const PcdHeader& h) {
   pcl::PCLPointCloud2 cloud;
   std::uint32_t offset = 0;
   for (std::size_t i = 0; i < h.fields.size(); ++i) {
@@ -851,6 +817,11 @@ pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
   cloud.row_step = offset * cloud.width;
   cloud.is_dense = false;
   cloud.data.resize(static_cast<std::size_t>(cloud.row_step) * cloud.height);
+  return cloud;
+}
+
+pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
+  pcl::PCLPointCloud2 cloud = binaryLayout(h);
   std::ifstream in(path, std::ios::binary);
   in.seekg(static_cast<std::streamoff>(h.data_offset));
   in.read(reinterpret_cast<char*>(cloud.data.data()),
@@ -859,58 +830,89 @@ pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
   return cloud;
 }
 
-/** ASCII PCD data, read by us from the values that checkPCDHeader has already parsed (every
- * point one line of exactly the header's number of numbers). PCL's parser crashed (SIGSEGV
- * inside pcl::PCDReader::read) on a file whose header had a blank-only line before the
- * VERSION line (found by fuzz_pcd), after data-line checks had already mended another of its
- * crashes. Every value is kept as a double whatever the declared TYPE: only x y z and the
- * normals are used, and they become floats. */
-pcl::PCLPointCloud2 readAsciiPCD(const PcdHeader& h) {
-  pcl::PCLPointCloud2 cloud;
-  std::uint32_t offset = 0;
-  for (std::size_t i = 0; i < h.fields.size(); ++i) {
-    pcl::PCLPointField f;
-    f.name = h.fields[i];
-    f.offset = offset;
-    f.count = static_cast<std::uint32_t>(h.counts[i]);
-    f.datatype = pcl::PCLPointField::FLOAT64;
-    cloud.fields.push_back(f);
-    offset += static_cast<std::uint32_t>(sizeof(double) * h.counts[i]);
+/** binary_compressed PCD data, read by us: LZF (PCL's own lzfDecompress) into the header's
+ * announced size, which must come out exactly, then each field's column (the format stores the
+ * data field after field) copied into the point records. With this, no PCD data goes through
+ * PCL's parser, which fuzz_pcd found crashing on six kinds of input. */
+pcl::PCLPointCloud2 readCompressedPCD(const std::string& path, const PcdHeader& h) {
+  pcl::PCLPointCloud2 cloud = binaryLayout(h);
+  const Error corrupt = fileError(path, "truncated or corrupt compressed PCD data");
+  std::ifstream in(path, std::ios::binary);
+  in.seekg(static_cast<std::streamoff>(h.data_offset));
+  std::uint32_t sz[2] = {0, 0};
+  in.read(reinterpret_cast<char*>(sz), 8);
+  if (!in || sz[1] != cloud.data.size()) throw corrupt;
+  std::vector<char> packed(sz[0]);
+  in.read(packed.data(), static_cast<std::streamsize>(packed.size()));
+  if (!in) throw corrupt;
+  std::vector<std::uint8_t> columns(sz[1]);
+  if (sz[1] > 0 &&
+      (sz[0] == 0 || pcl::lzfDecompress(packed.data(), sz[0], columns.data(), sz[1]) != sz[1]))
+    throw corrupt;
+  const std::size_t n = static_cast<std::size_t>(cloud.width) * cloud.height;
+  std::size_t column = 0;
+  for (const auto& f : cloud.fields) {
+    const std::size_t bytes = static_cast<std::size_t>(pcl::getFieldSize(f.datatype)) * f.count;
+    for (std::size_t i = 0; i < n; ++i)
+      std::memcpy(cloud.data.data() + i * cloud.point_step + f.offset,
+                  columns.data() + column + i * bytes, bytes);
+    column += n * bytes;
   }
-  cloud.width = static_cast<std::uint32_t>(h.width);
-  cloud.height = static_cast<std::uint32_t>(h.height);
-  cloud.point_step = offset;
-  cloud.row_step = offset * cloud.width;
-  cloud.is_dense = false;
-  cloud.data.resize(h.ascii_values.size() * sizeof(double));
-  if (!h.ascii_values.empty())
-    std::memcpy(cloud.data.data(), h.ascii_values.data(), cloud.data.size());
+  return cloud;
+}
+
+/** ASCII PCD data, read by us from the values that checkPCDHeader has already parsed (every
+ * point one line of exactly the header's number of numbers), stored with the declared types
+ * (integers rounded and clamped to their range, NaN as 0). PCL's parser crashed (SIGSEGV inside
+ * pcl::PCDReader::read) on a file whose header had a blank-only line before the VERSION line
+ * (found by fuzz_pcd), after the data-line check had already mended another of its crashes. */
+pcl::PCLPointCloud2 readAsciiPCD(const PcdHeader& h) {
+  pcl::PCLPointCloud2 cloud = binaryLayout(h);
+  auto store = [](std::uint8_t* dst, char type, long size, double v) {
+    if (type == 'F') {
+      if (size == 8) {
+        std::memcpy(dst, &v, 8);
+      } else {
+        const float f = static_cast<float>(v);
+        std::memcpy(dst, &f, 4);
+      }
+      return;
+    }
+    auto fit = [&](double lo, double hi) {
+      return std::isnan(v) ? 0.0 : std::clamp(std::nearbyint(v), lo, hi);
+    };
+    if (type == 'I') {
+      const double lim = std::ldexp(1.0, static_cast<int>(8 * size - 1));
+      // 2^63 itself does not fit: the top value is the largest double below it.
+      const std::int64_t x = static_cast<std::int64_t>(fit(-lim, std::nextafter(lim, 0.0)));
+      std::memcpy(dst, &x, static_cast<std::size_t>(size));  // little endian: the low bytes
+    } else {
+      const double lim = std::ldexp(1.0, static_cast<int>(8 * size));
+      const std::uint64_t x = static_cast<std::uint64_t>(fit(0.0, std::nextafter(lim, 0.0)));
+      std::memcpy(dst, &x, static_cast<std::size_t>(size));
+    }
+  };
+  const std::size_t n = static_cast<std::size_t>(cloud.width) * cloud.height;
+  std::size_t v = 0;
+  for (std::size_t i = 0; i < n; ++i)
+    for (std::size_t k = 0; k < h.fields.size(); ++k)
+      for (long c = 0; c < h.counts[k]; ++c, ++v)
+        store(cloud.data.data() + i * cloud.point_step + cloud.fields[k].offset + c * h.sizes[k],
+              h.types[k], h.sizes[k], h.ascii_values[v]);
   return cloud;
 }
 
 }  // namespace
 
-RawFrame readPCD(const std::string& path) {
+pcl::PCLPointCloud2 readPCDCloud(const std::string& path) {
   const PcdHeader header = checkPCDHeader(path);
-  pcl::PCLPointCloud2 cloud;
-  int rc = 0;
-  if (header.data == "binary") {
-    cloud = readBinaryPCD(path, header);
-  } else if (header.data == "ascii") {
-    cloud = readAsciiPCD(header);
-  } else {
-    QuietPcl quiet;
-    // Only binary_compressed data still goes through PCL's parser. It throws
-    // std::out_of_range and friends on some corrupt headers (a line with a leading blank, found
-    // by fuzz_pcd): one clear error, like every other bad file.
-    try {
-      rc = pcl::io::loadPCDFile(path, cloud);
-    } catch (const std::exception&) {
-      rc = -1;
-    }
-  }
-  if (rc < 0)
-    throw fileError(path, "cannot be read as PCD (truncated, corrupt, or not a PCD file)");
+  if (header.data == "binary") return readBinaryPCD(path, header);
+  if (header.data == "ascii") return readAsciiPCD(header);
+  return readCompressedPCD(path, header);
+}
+
+RawFrame readPCD(const std::string& path) {
+  const pcl::PCLPointCloud2 cloud = readPCDCloud(path);
   RawFrame raw;
   raw.format = "pcd";
   fromCloud2(cloud, path, raw);

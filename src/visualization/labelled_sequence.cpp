@@ -1,9 +1,9 @@
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/io/frame_readers.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/visualization/labelled_sequence.h>
 
 #include <pcl/PCLPointCloud2.h>
-#include <pcl/io/pcd_io.h>
 
 #include <algorithm>
 #include <cstring>
@@ -69,7 +69,8 @@ pcl::PCLPointCloud2 readBlob(const std::string& path) {
   pcl::PCLPointCloud2 blob;
   std::error_code ec;
   if (!fs::is_regular_file(path, ec)) throw Error("missing file '" + path + "'");
-  if (pcl::io::loadPCDFile(path, blob) < 0) throw Error("cannot read PCD file '" + path + "'");
+  // The checked reader: PCL's own crashes on some corrupt files (docs/reliability.md).
+  blob = io::readPCDCloud(path);
   return blob;
 }
 

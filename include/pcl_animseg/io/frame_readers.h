@@ -3,6 +3,7 @@
  *
  * loadFrame() is what most code wants; these readers are exposed for tests and for tools that
  * need the file's own content (e.g. its vertex order). */
+#include <pcl/PCLPointCloud2.h>
 #include <pcl/Vertices.h>
 
 #include <Eigen/Core>
@@ -40,8 +41,12 @@ RawFrame readOFF(const std::string& path);
  * elements are skipped. */
 RawFrame readPLY(const std::string& path);
 
-/** \brief PCD (any encoding PCL reads) through pcl::io::loadPCDFile: x y z, and normal_x
- * normal_y normal_z when present. */
+/** \brief Every field of a PCD file (ascii, binary or binary_compressed), read by hand after
+ * a strict header check: PCL's PCD reader crashes on some corrupt files (docs/reliability.md).
+ * Fields keep their declared types; throws Error on any bad file. */
+pcl::PCLPointCloud2 readPCDCloud(const std::string& path);
+
+/** \brief PCD through readPCDCloud: x y z, and normal_x normal_y normal_z when present. */
 RawFrame readPCD(const std::string& path);
 
 /** \brief Text, one point per line: `x y z` or `x y z nx ny nz` (further columns ignored; so a
