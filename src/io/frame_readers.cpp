@@ -731,7 +731,10 @@ PcdHeader checkPCDHeader(const std::string& path) {
   } else if (data == "binary_compressed") {
     std::uint32_t sz[2] = {0, 0};
     in.read(reinterpret_cast<char*>(sz), 8);
-    if (!in || file_size < header_bytes + 8 + sz[0] || sz[1] != need)
+    // LZF expands at most 88-fold (264 bytes from a 3-byte back-reference): a header that
+    // announces more is corrupt, and is rejected before anything of that size is allocated.
+    if (!in || file_size < header_bytes + 8 + sz[0] || sz[1] != need ||
+        static_cast<double>(sz[1]) > 100.0 * static_cast<double>(sz[0]) + 1024.0)
       throw fileError(path, "truncated or corrupt compressed PCD data");
   } else if (data == "ascii") {
     // Every value takes at least a digit and a separator: rejects a bogus count before PCL

@@ -269,6 +269,15 @@ TEST(ReaderRegressions, CompressedPcdIsReadWithoutPcl) {
   for (std::size_t i = data; i < bytes.size(); ++i) bytes[i] = static_cast<char>(0xE0);
   const std::string bad = write(tmp.dir(), "damaged.pcd", bytes);
   EXPECT_THROW(io::readPCD(bad), pcl_animseg::Error);
+  // Sizes that announce far more data than LZF can expand the payload to (1.2 GB from 10
+  // bytes) are an error before anything of that size is allocated.
+  std::string huge =
+      "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100000000\n"
+      "HEIGHT 1\nPOINTS 100000000\nDATA binary_compressed\n";
+  const std::uint32_t sizes[2] = {10u, 1200000000u};
+  huge.append(reinterpret_cast<const char*>(sizes), sizeof(sizes));
+  huge.append(10, '\x01');
+  EXPECT_THROW(io::readPCD(write(tmp.dir(), "huge.pcd", huge)), pcl_animseg::Error);
   // The fuzz seed (four points, written by PCL) reads too.
   EXPECT_EQ(io::readPCD(std::string(PCL_ANIMSEG_SOURCE_DIR) + "/fuzz/corpus/pcd/compressed.pcd")
                 .points.size(),
