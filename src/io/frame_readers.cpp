@@ -627,10 +627,12 @@ struct PcdHeader {
   long width = 0, height = 0;
   std::size_t data_offset = 0;  ///< bytes before the data (after the DATA line)
   std::vector<double> ascii_values;  ///< DATA ascii: every value, point after point
+  std::uint32_t packed_bytes = 0;    ///< DATA binary_compressed: LZF bytes after the two sizes
 };
 
-/** PCL's PCD reader trusts the header (and crashes on garbage), so the header is checked here
- * first: known keys, consistent counts, and, for binary data, that the file is long enough. */
+/** The header checked before any data is read (PCL's PCD reader trusted it and crashed on
+ * garbage): known keys, consistent counts, and that the file is long enough for the data; ASCII
+ * data lines are checked and parsed here too. */
 PcdHeader checkPCDHeader(const std::string& path) {
   std::error_code ec;
   if (!std::filesystem::exists(path, ec)) throw fileError(path, "file does not exist");
@@ -736,9 +738,10 @@ PcdHeader checkPCDHeader(const std::string& path) {
     if (!in || file_size < header_bytes + 8 + sz[0] || sz[1] != need ||
         static_cast<double>(sz[1]) > 100.0 * static_cast<double>(sz[0]) + 1024.0)
       throw fileError(path, "truncated or corrupt compressed PCD data");
+    h.packed_bytes = sz[0];
   } else if (data == "ascii") {
-    // Every value takes at least a digit and a separator: rejects a bogus count before PCL
-    // allocates for it.
+    // Every value takes at least a digit and a separator: rejects a bogus count before anything
+    // is allocated for it.
     long values = 0;
     for (std::size_t i = 0; i < nf; ++i) values += counts.empty() ? 1 : counts[i];
     const double need = 2.0 * static_cast<double>(width) * height * values - 1;
@@ -746,8 +749,9 @@ PcdHeader checkPCDHeader(const std::string& path) {
       throw fileError(path, "truncated: the PCD header announces " +
                                 std::to_string(width * height) +
                                 " points but the file is too short to hold them");
-    // Every point a line of exactly `values` numbers: PCL's ASCII reader went out of bounds on a
-    // data line with other tokens (found by fuzz_pcd), so it only ever sees well-formed lines.
+    // Every point a line of exactly `values` numbers, every value a number (PCL's ASCII reader
+    // went out of bounds on a data line with other tokens, found by fuzz_pcd); the values are
+    // kept for readAsciiPCD.
     const long expected = width * height;
     long lines = 0;
     h.ascii_values.reserve(static_cast<std::size_t>(expected) * static_cast<std::size_t>(values));
@@ -789,11 +793,8 @@ PcdHeader checkPCDHeader(const std::string& path) {
   return h;
 }
 
-/** Uncompressed binary PCD data, read by us: the header is already checked (sizes, counts, file
- * long enough), and the data is a plain array of `point_step`-byte records. PCL's reader crashed
- * (SIGSEGV inside pcl::PCDReader::read) on such a file whose header and length are valid and
- * whose data bytes are arbitrary (found by fuzz_pcd); there is nothing in these bytes that needs
- * PCL's parser. */
+/** An empty cloud laid out for the header's fields (declared types, packed records), its data
+ * sized for every point. */
 pcl::PCLPointCloud2 binaryLayout(const PcdHeader& h) {
   pcl::PCLPointCloud2 cloud;
   std::uint32_t offset = 0;
@@ -823,6 +824,11 @@ pcl::PCLPointCloud2 binaryLayout(const PcdHeader& h) {
   return cloud;
 }
 
+/** Uncompressed binary PCD data, read by us: the header is already checked (sizes, counts, file
+ * long enough), and the data is a plain array of `point_step`-byte records. PCL's reader crashed
+ * (SIGSEGV inside pcl::PCDReader::read) on such a file whose header and length are valid and
+ * whose data bytes are arbitrary (found by fuzz_pcd); there is nothing in these bytes that needs
+ * PCL's parser. */
 pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
   pcl::PCLPointCloud2 cloud = binaryLayout(h);
   std::ifstream in(path, std::ios::binary);
@@ -833,24 +839,24 @@ pcl::PCLPointCloud2 readBinaryPCD(const std::string& path, const PcdHeader& h) {
   return cloud;
 }
 
-/** binary_compressed PCD data, read by us: LZF (PCL's own lzfDecompress) into the header's
- * announced size, which must come out exactly, then each field's column (the format stores the
+/** binary_compressed PCD data, read by us (the two sizes are already checked against the
+ * header and the file): LZF (PCL's own lzfDecompress) into the announced size, which must come
+ * out exactly, then each field's column (the format stores the
  * data field after field) copied into the point records. With this, no PCD data goes through
  * PCL's parser, which fuzz_pcd found crashing on six kinds of input. */
 pcl::PCLPointCloud2 readCompressedPCD(const std::string& path, const PcdHeader& h) {
   pcl::PCLPointCloud2 cloud = binaryLayout(h);
   const Error corrupt = fileError(path, "truncated or corrupt compressed PCD data");
   std::ifstream in(path, std::ios::binary);
-  in.seekg(static_cast<std::streamoff>(h.data_offset));
-  std::uint32_t sz[2] = {0, 0};
-  in.read(reinterpret_cast<char*>(sz), 8);
-  if (!in || sz[1] != cloud.data.size()) throw corrupt;
-  std::vector<char> packed(sz[0]);
+  in.seekg(static_cast<std::streamoff>(h.data_offset + 8));
+  std::vector<char> packed(h.packed_bytes);
   in.read(packed.data(), static_cast<std::streamsize>(packed.size()));
   if (!in) throw corrupt;
-  std::vector<std::uint8_t> columns(sz[1]);
-  if (sz[1] > 0 &&
-      (sz[0] == 0 || pcl::lzfDecompress(packed.data(), sz[0], columns.data(), sz[1]) != sz[1]))
+  const auto unpacked = static_cast<unsigned int>(cloud.data.size());
+  std::vector<std::uint8_t> columns(unpacked);
+  if (unpacked > 0 && (h.packed_bytes == 0 ||
+                       pcl::lzfDecompress(packed.data(), h.packed_bytes, columns.data(),
+                                          unpacked) != unpacked))
     throw corrupt;
   const std::size_t n = static_cast<std::size_t>(cloud.width) * cloud.height;
   std::size_t column = 0;

@@ -66,12 +66,10 @@ std::vector<double> field(const pcl::PCLPointCloud2& blob, const std::string& na
 }
 
 pcl::PCLPointCloud2 readBlob(const std::string& path) {
-  pcl::PCLPointCloud2 blob;
   std::error_code ec;
   if (!fs::is_regular_file(path, ec)) throw Error("missing file '" + path + "'");
   // The checked reader: PCL's own crashes on some corrupt files (docs/reliability.md).
-  blob = io::readPCDCloud(path);
-  return blob;
+  return io::readPCDCloud(path);
 }
 
 /** Points of an OUT .pcd with their level-0 label. */
