@@ -10,6 +10,8 @@
 #include "mean_shift_internal.h"
 #include "surface_fold.h"
 
+#include <omp.h>
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
@@ -454,16 +456,22 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
       const Frame& f = frames[t];
       const int tp = t - dir, tpp = t - 2 * dir;
       const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
-      // Global pose: the previous one and a constant-velocity guess, the better kept.
+      // Global pose: the previous one and a constant-velocity guess, the better kept (the two
+      // ICPs of the whole frame side by side: done one after the other they were the serial
+      // part of every frame).
       {
         std::vector<Pose> inits{global[tp]};
         if (has_pp) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
-        double best = std::numeric_limits<double>::max();
-        for (const Pose& init : inits) {
-          const Pose cand = icp(whole, init, f, 30, 10.0 * f.spacing);
-          const double r = residual(whole, cand, f);
-          if (r < best) best = r, global[t] = cand;
+        std::vector<Pose> cand(inits.size());
+        std::vector<double> r(inits.size());
+#pragma omp parallel for schedule(static, 1) num_threads(2)
+        for (std::size_t c = 0; c < inits.size(); ++c) {
+          cand[c] = icp(whole, inits[c], f, 30, 10.0 * f.spacing);
+          r[c] = residual(whole, cand[c], f);
         }
+        double best = std::numeric_limits<double>::max();
+        for (std::size_t c = 0; c < inits.size(); ++c)
+          if (r[c] < best) best = r[c], global[t] = cand[c];
       }
       // Root: the sample best explained by the global pose.
       std::vector<double> groot(S);
@@ -765,7 +773,9 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
 }
 
 /** After b joined a: drops every edge that touches a or b and scores the edges between a and its
- * former neighbours again (in parallel). */
+ * former neighbours again, one after the other: each score runs over the frames in parallel (a
+ * merge has a handful of neighbours and a sequence tens of frames, so the frames keep many cores
+ * busy where the neighbours did not: 16 threads were slower than 8). */
 template <class Edge, class Evaluate>
 void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evaluate evaluate) {
   std::set<int> nbrs;
@@ -779,12 +789,7 @@ void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evalu
       ++it;
     }
   }
-  const std::vector<int> nb(nbrs.begin(), nbrs.end());
-  std::vector<Edge> c(nb.size());
-#pragma omp parallel for schedule(dynamic, 1)
-  for (std::size_t i = 0; i < nb.size(); ++i) c[i] = evaluate(a, nb[i]);
-  for (std::size_t i = 0; i < nb.size(); ++i)
-    edges[{std::min(a, nb[i]), std::max(a, nb[i])}] = std::move(c[i]);
+  for (int o : nbrs) edges[{std::min(a, o), std::max(a, o)}] = evaluate(a, o);
 }
 
 TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const SampleTracks& tr,
@@ -811,8 +816,11 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
 
   // Each group's residual under its own pose, per frame (half of every evaluation's work).
   std::vector<std::vector<double>> self(S, std::vector<double>(T, 0.0));
+  // The per-frame loops below run over the frames in parallel when called on their own (a
+  // merge's updates) and serially inside the parallel scoring of all groups and edges.
   auto selfResidual = [&](int g) {
     const Source sg = sourceOf(rc, points[g], kSourcePoints);
+#pragma omp parallel for schedule(static) if (!omp_in_parallel())
     for (int t = 0; t < T; ++t) self[g][t] = t == ref ? 0.0 : residual(sg, pose[g][t], frames[t]);
   };
 #pragma omp parallel for schedule(dynamic, 8)
@@ -832,6 +840,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     const Source sb = sourceOf(rc, points[b], kSourcePoints);
     Eval e;
     e.pose.resize(T);
+    std::vector<double> cost(T, 0.0);
+#pragma omp parallel for schedule(static) if (!omp_in_parallel())
     for (int t = 0; t < T; ++t) {
       if (t == ref) {
         e.pose[t] = pose[a][t];
@@ -840,8 +850,9 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       const double ca = std::max(self[a][t], residual(sb, pose[a][t], frames[t]));
       const double cb = std::max(residual(sa, pose[b][t], frames[t]), self[b][t]);
       e.pose[t] = ca <= cb ? pose[a][t] : pose[b][t];
-      e.cost = std::max(e.cost, std::min(ca, cb));
+      cost[t] = std::min(ca, cb);
     }
+    for (int t = 0; t < T; ++t) e.cost = std::max(e.cost, cost[t]);
     return e;
   };
   std::map<std::pair<int, int>, Eval> edges;
@@ -945,8 +956,12 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     const Source src = sourceOf(rc, pts, kPartPoints);
     std::vector<Pose> fit(T, Pose::Identity());
     // Frames in order away from the reference, so that the fit of the previous frame is a start
-    // too: a part that a sample lost in one frame is found again from its own motion.
-    for (int dir : {+1, -1}) {
+    // too: a part that a sample lost in one frame is found again from its own motion. The two
+    // directions share only the reference frame's identity, so they run side by side when
+    // called on their own (a merge's fit).
+#pragma omp parallel for schedule(static, 1) num_threads(2) if (!omp_in_parallel())
+    for (int d = 0; d < 2; ++d) {
+      const int dir = d == 0 ? +1 : -1;
       for (int t = ref + dir; t >= 0 && t < T; t += dir) {
         std::vector<Pose> starts{ia[t], fit[t - dir]};
         if (ib) starts.push_back((*ib)[t]);
@@ -1024,14 +1039,17 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     PartEdge e;
     const Source sa = sourceOf(rc, gpts[a], kPartPoints);
     const Source sb = sourceOf(rc, gpts[b], kPartPoints);
+    std::vector<double> cost(T, 0.0);
+#pragma omp parallel for schedule(static) if (!omp_in_parallel())
     for (int t = 0; t < T; ++t) {
       if (t == ref) continue;
       const double ca =
           std::max(residual(sa, gpose[a][t], frames[t]), residual(sb, gpose[a][t], frames[t]));
       const double cb =
           std::max(residual(sa, gpose[b][t], frames[t]), residual(sb, gpose[b][t], frames[t]));
-      e.cost = std::max(e.cost, std::min(ca, cb));
+      cost[t] = std::min(ca, cb);
     }
+    for (int t = 0; t < T; ++t) e.cost = std::max(e.cost, cost[t]);
     if (has_surface) {
       const int small = gpts[a].size() <= gpts[b].size() ? a : b;
       const int other = small == a ? b : a;
@@ -1332,6 +1350,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);
   if (progress) progress->end(std::to_string(tc.groups) + " parts");
   if (progress) progress->begin("part motions and labels", 0);
+  detail::StageTimer timer;
   const int T = static_cast<int>(seq.size());
   const int ref = tr.reference_frame;
   const int nc = tc.groups;
@@ -1388,12 +1407,17 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
         const int tp = t - dir, tpp = t - 2 * dir;
         const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
         for (const std::vector<int>& lv : levels) {
-#pragma omp parallel for schedule(dynamic, 1)
-          for (std::size_t li = 0; li < lv.size(); ++li) {
+          // The starts of each part of the level, then every (part, start) score and every
+          // (part, best start) ICP as one parallel loop each: a level has few parts, and one
+          // loop over the parts left most cores idle.
+          const std::size_t L = lv.size();
+          std::vector<std::vector<Pose>> starts(L);
+          for (std::size_t li = 0; li < L; ++li) {
             const int c = lv[li];
             if (pts[c].empty()) continue;
-            std::vector<Pose> starts{tc.poses[c][t], motion[c][tp]};
-            if (has_pp) starts.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
+            std::vector<Pose>& st = starts[li];
+            st = {tc.poses[c][t], motion[c][tp]};
+            if (has_pp) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
             const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
             if (m >= 3) {
               Eigen::Matrix3Xd a(3, m), b(3, m);
@@ -1404,29 +1428,59 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
               Pose k = Pose::Identity();
               k.linear() = fit.rotation;
               k.translation() = fit.translation;
-              starts.push_back(k);
+              st.push_back(k);
             }
             for (int h : adj[c])
               if (level[h] < level[c])
-                starts.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
-            std::vector<std::pair<double, int>> score;
-            for (std::size_t k = 0; k < starts.size(); ++k)
-              score.push_back({residual(src[c], starts[k], frames[t]), static_cast<int>(k)});
-            std::stable_sort(score.begin(), score.end());
-            double best = score[0].first;
-            Pose best_pose = starts[score[0].second];
-            for (std::size_t k = 0; k < std::min<std::size_t>(2, score.size()); ++k) {
-              const Pose cand =
-                  icp(src[c], starts[score[k].second], frames[t], 10, 4.0 * frames[t].spacing);
-              const double r = residual(src[c], cand, frames[t]);
-              if (r < best) best = r, best_pose = cand;
+                st.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
+          }
+          std::vector<std::pair<std::size_t, std::size_t>> jobs;  // (part of the level, start)
+          for (std::size_t li = 0; li < L; ++li)
+            for (std::size_t k = 0; k < starts[li].size(); ++k) jobs.push_back({li, k});
+          std::vector<double> start_score(jobs.size());
+#pragma omp parallel for schedule(dynamic, 1)
+          for (std::size_t q = 0; q < jobs.size(); ++q) {
+            const int c = lv[jobs[q].first];
+            start_score[q] = residual(src[c], starts[jobs[q].first][jobs[q].second], frames[t]);
+          }
+          std::vector<std::vector<std::pair<double, int>>> score(L);
+          for (std::size_t q = 0; q < jobs.size(); ++q)
+            score[jobs[q].first].push_back({start_score[q], static_cast<int>(jobs[q].second)});
+          std::vector<std::pair<std::size_t, std::size_t>> refine;  // (part, rank among starts)
+          for (std::size_t li = 0; li < L; ++li) {
+            std::stable_sort(score[li].begin(), score[li].end());
+            for (std::size_t k = 0; k < std::min<std::size_t>(2, score[li].size()); ++k)
+              refine.push_back({li, k});
+          }
+          std::vector<Pose> refined(refine.size());
+          std::vector<double> refined_res(refine.size());
+#pragma omp parallel for schedule(dynamic, 1)
+          for (std::size_t q = 0; q < refine.size(); ++q) {
+            const std::size_t li = refine[q].first;
+            const int c = lv[li];
+            refined[q] = icp(src[c], starts[li][score[li][refine[q].second].second], frames[t], 10,
+                             4.0 * frames[t].spacing);
+            refined_res[q] = residual(src[c], refined[q], frames[t]);
+          }
+          // Per part: the best start, replaced by a refined one that fits better (in rank order).
+          std::vector<double> best(L);
+          for (std::size_t li = 0; li < L; ++li)
+            if (!score[li].empty()) {
+              best[li] = score[li][0].first;
+              motion[lv[li]][t] = starts[li][score[li][0].second];
             }
-            motion[c][t] = best_pose;
+          for (std::size_t q = 0; q < refine.size(); ++q) {
+            const std::size_t li = refine[q].first;
+            if (refined_res[q] < best[li]) {
+              best[li] = refined_res[q];
+              motion[lv[li]][t] = refined[q];
+            }
           }
         }
       }
     }
   }
+  timer.lap("labels: part motions");
   // The part motions are final now: the borders between parts are placed once more, by the
   // graph cut (motion fit plus a short border, cut where the surface folds inwards) or, with
   // border_smoothness 0, by moving each point to the neighbouring part whose motion keeps its
@@ -1444,6 +1498,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   // around it) is a remnant, not a part: its points join the label of their nearest points of
   // another, real part.
   absorbRemnants(frames[ref], label);
+  timer.lap("labels: part borders");
   // Labels of every frame: the nearest reference point moved by its part's motion, with a
   // compatible normal.
   const auto offsets = seq.offsets();
@@ -1488,6 +1543,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
       }
     }
   }
+  timer.lap("labels: every frame");
   // Compact labels (a part may have lost every point to its neighbours).
   std::vector<int> count(nc, 0), id(nc, -1);
   for (int l : flat)
