@@ -2,6 +2,7 @@
 // correspondences, >= 10 parts, large joint motion, +-20% point-count variation. Lives with the
 // pipeline tests because it needs the synth and evaluation modules.
 #include <gtest/gtest.h>
+#include <omp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/io/sequence_io.h>
@@ -221,6 +222,33 @@ TEST(MotionQuality, SameSeedSameLabels) {
   std::vector<seg::ClusterMerge> ma, mb;
   seg::segmentByTracking(seq, mp, a, na, ma);
   seg::segmentByTracking(seq, mp, b, nb, mb);
+  EXPECT_EQ(a, b);
+  EXPECT_EQ(na, nb);
+  ASSERT_EQ(ma.size(), mb.size());
+  for (std::size_t i = 0; i < ma.size(); ++i) {
+    EXPECT_EQ(ma[i].a, mb[i].a);
+    EXPECT_EQ(ma[i].b, mb[i].b);
+    EXPECT_EQ(ma[i].cost, mb[i].cost);
+  }
+}
+
+// The merges, the tracking's whole-body ICPs and the part motions split their work over frames
+// and (part, start) pairs, each result written to its own slot and reduced in a fixed order: the
+// labels, merges and costs must not depend on how many threads ran them.
+TEST(MotionQuality, SameLabelsOnAnyThreadCount) {
+  const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Humanoid, 8, 1500, 4));
+  const auto seq = synth::toSequence(frames);
+  seg::MotionTrackingParams mp;
+  const int threads = omp_get_max_threads();
+  std::vector<int> a, b;
+  int na = 0, nb = 0;
+  std::vector<seg::ClusterMerge> ma, mb;
+  omp_set_num_threads(1);
+  seg::segmentByTracking(seq, mp, a, na, ma);
+  omp_set_num_threads(5);
+  seg::segmentByTracking(seq, mp, b, nb, mb);
+  omp_set_num_threads(threads);
+  EXPECT_GT(na, 5);  // a humanoid, not one blob: the merges ran
   EXPECT_EQ(a, b);
   EXPECT_EQ(na, nb);
   ASSERT_EQ(ma.size(), mb.size());
