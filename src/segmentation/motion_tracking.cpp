@@ -113,13 +113,29 @@ inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, c
   return std::min(clip2, pl * pl + far * far);
 }
 
+/** A source this large, outside any parallel region (the whole body's ICP of the tracking),
+ * finds its nearest points in parallel; the sums stay in point order, so that the result is the
+ * same bit for bit on any number of threads. */
+constexpr Eigen::Index kParallelSource = 256;
+bool searchInParallel(const Source& src) {
+  return src.p.cols() >= kParallelSource && !omp_in_parallel() && omp_get_max_threads() > 1;
+}
+
 /** RMS over the source of the surface error (in the frame's spacings). */
 double residual(const Source& src, const Pose& T, const Frame& f) {
   if (src.p.cols() == 0) return 0.0;
   double sum = 0.0;
   const Eigen::Matrix3d R = T.linear();
-  for (Eigen::Index i = 0; i < src.p.cols(); ++i)
-    sum += surfaceError(T * src.p.col(i), R * src.n.col(i), f);
+  if (searchInParallel(src)) {
+    std::vector<double> e(static_cast<std::size_t>(src.p.cols()));
+#pragma omp parallel for schedule(static)
+    for (Eigen::Index i = 0; i < src.p.cols(); ++i)
+      e[i] = surfaceError(T * src.p.col(i), R * src.n.col(i), f);
+    for (double v : e) sum += v;
+  } else {
+    for (Eigen::Index i = 0; i < src.p.cols(); ++i)
+      sum += surfaceError(T * src.p.col(i), R * src.n.col(i), f);
+  }
   return std::sqrt(sum / static_cast<double>(src.p.cols()));
 }
 
@@ -130,6 +146,8 @@ double residual(const Source& src, const Pose& T, const Frame& f) {
 Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, double max_dist) {
   Pose T = init;
   const float max_d2 = static_cast<float>(max_dist * max_dist);
+  const bool parallel = searchInParallel(src);
+  std::vector<int> match(parallel ? static_cast<std::size_t>(src.p.cols()) : 0);
   for (int it = 0; it < iterations; ++it) {
     const Eigen::Matrix3d R = T.linear();
     Eigen::Vector3d c = Eigen::Vector3d::Zero();
@@ -138,11 +156,25 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
     Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
     Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
     int used = 0;
+    if (parallel) {  // the searches first, the sums below in point order as without
+#pragma omp parallel for schedule(static)
+      for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
+        const Eigen::Vector3d yw = T * src.p.col(i);
+        float d2;
+        match[i] = f.tree.nearest(static_cast<float>(yw.x()), static_cast<float>(yw.y()),
+                                  static_cast<float>(yw.z()), max_d2, d2);
+      }
+    }
     for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
       const Eigen::Vector3d yw = T * src.p.col(i);
-      float d2;
-      const int k = f.tree.nearest(static_cast<float>(yw.x()), static_cast<float>(yw.y()),
-                                   static_cast<float>(yw.z()), max_d2, d2);
+      int k;
+      if (parallel) {
+        k = match[i];
+      } else {
+        float d2;
+        k = f.tree.nearest(static_cast<float>(yw.x()), static_cast<float>(yw.y()),
+                           static_cast<float>(yw.z()), max_d2, d2);
+      }
       if (k < 0) continue;
       const auto& t = (*f.cloud)[k];
       const Eigen::Vector3d tn(t.normal_x, t.normal_y, t.normal_z);
@@ -456,22 +488,18 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
       const Frame& f = frames[t];
       const int tp = t - dir, tpp = t - 2 * dir;
       const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
-      // Global pose: the previous one and a constant-velocity guess, the better kept (the two
-      // ICPs of the whole frame side by side: done one after the other they were the serial
-      // part of every frame).
+      // Global pose: the previous one and a constant-velocity guess, the better kept (the whole
+      // body's source is large enough to search its nearest points in parallel: done serially
+      // these ICPs were a quarter of the tracking on 16 cores).
       {
         std::vector<Pose> inits{global[tp]};
         if (has_pp) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
-        std::vector<Pose> cand(inits.size());
-        std::vector<double> r(inits.size());
-#pragma omp parallel for schedule(static, 1) num_threads(2)
-        for (std::size_t c = 0; c < inits.size(); ++c) {
-          cand[c] = icp(whole, inits[c], f, 30, 10.0 * f.spacing);
-          r[c] = residual(whole, cand[c], f);
-        }
         double best = std::numeric_limits<double>::max();
-        for (std::size_t c = 0; c < inits.size(); ++c)
-          if (r[c] < best) best = r[c], global[t] = cand[c];
+        for (const Pose& init : inits) {
+          const Pose cand = icp(whole, init, f, 30, 10.0 * f.spacing);
+          const double r = residual(whole, cand, f);
+          if (r < best) best = r, global[t] = cand;
+        }
       }
       // Root: the sample best explained by the global pose.
       std::vector<double> groot(S);
