@@ -109,6 +109,8 @@ int main(int argc, char** argv) {
     ("no-features", "skip scale space, keypoints and signatures (mean shift on p, n only)")
     ("no-refine", "skip the GMM boundary refinement")
     ("no-transforms", "skip the rigid motion per part (transforms.json lists no parts)")
+    ("transform-levels", po::value<int>()->default_value(defaults.motion_levels),
+     "rigid motions for this many levels, finest first (0: every level)")
     ("seed", po::value<unsigned>()->default_value(msd.seed), "random seed (results are deterministic)");
   return tools::runTool(
       argc, argv, "animseg",
@@ -143,6 +145,7 @@ int main(int argc, char** argv) {
         params.features = !vm.count("no-features");
         params.refine = !vm.count("no-refine");
         params.motions = !vm.count("no-transforms");
+        params.motion_levels = vm["transform-levels"].as<int>();
         validate(params);  // fail before the (long) load on a bad parameter
 
         const std::string input = vm["input"].as<std::string>();

@@ -65,14 +65,11 @@ int main(int argc, char** argv) {
         progress.end(std::to_string(levels.levels()) + " levels, parts: " + counts);
 
         if (!ctx.vm["no-transforms"].as<bool>()) {
-          progress.begin("rigid_motion", levels.levels());
+          progress.begin("rigid_motion");
           seg::RigidMotionEstimation motion;
           motion.setInputSequence(&seq);
-          std::vector<seg::LevelMotion> motions;
-          for (int l = 0; l < levels.levels(); ++l) {
-            motions.push_back({l, motion.compute(levels.labels[l], levels.num_parts[l])});
-            progress.update(l + 1);
-          }
+          const std::vector<seg::LevelMotion> motions =
+              motion.computeLevels(levels.labels, levels.num_parts);
           progress.end();
           pcl_animseg::io::ensureDirectory(out_dir);
           seg::writeTransformsJson(out_dir + "/transforms.json", seq, motions);

@@ -21,6 +21,8 @@ void validate(const PipelineParams& p) {
   if (p.device != "auto" && p.device != "cpu" && p.device != "gpu")
     throw Error("device must be auto, cpu or gpu (got '" + p.device + "')");
   if (p.levels < 0) throw Error("levels must be >= 0 (got " + std::to_string(p.levels) + ")");
+  if (p.motion_levels < 0)
+    throw Error("transform levels must be >= 0 (got " + std::to_string(p.motion_levels) + ")");
 }
 
 namespace {
@@ -132,16 +134,18 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   for (const auto& l : r.levels) r.parts_per_level.push_back(countLabels(l));
   progress.end(std::to_string(r.levels.size()) + " levels");
 
-  // 5. Rigid motion of every level-0 part (what skinning / bone estimation needs).
+  // 5. Rigid motion of every part of every level (what skinning / bone estimation needs; the
+  // same transforms.json as animseg_hierarchy writes). Parts that no merge touched keep the
+  // motion of the level below, so only merged parts cost an ICP.
   if (params.motions) {
     progress.begin("rigid_motion");
     segmentation::RigidMotionEstimation rme;
     rme.setInputSequence(&seq);
     rme.setParams(params.rigid_motion);
-    segmentation::LevelMotion lm;
-    lm.level = 0;
-    lm.parts = rme.compute(r.levels[0]);
-    r.motions.push_back(std::move(lm));
+    const std::size_t n = params.motion_levels > 0
+                              ? std::min<std::size_t>(params.motion_levels, r.levels.size())
+                              : r.levels.size();
+    r.motions = rme.computeLevels({r.levels.begin(), r.levels.begin() + n});
     progress.end();
   }
   r.timings = progress.timings();

@@ -77,6 +77,74 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
 
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
                                                        int num_parts) const {
+  return computeParts(labels, num_parts, {});
+}
+
+std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
+    const std::vector<std::vector<std::vector<int>>>& levels,
+    const std::vector<int>& num_parts) const {
+  if (!num_parts.empty() && num_parts.size() != levels.size())
+    throw Error("rigid motion: " + std::to_string(num_parts.size()) + " part counts for " +
+                std::to_string(levels.size()) + " levels");
+  std::vector<LevelMotion> out;
+  for (std::size_t l = 0; l < levels.size(); ++l) {
+    const int wanted = num_parts.empty() ? 0 : num_parts[l];
+    if (l == 0) {
+      out.push_back({0, computeParts(levels[0], wanted, {})});
+      continue;
+    }
+    const auto& prev = levels[l - 1];
+    const auto& cur = levels[l];
+    int np = wanted;
+    if (np <= 0) {
+      np = 0;
+      for (const auto& f : cur)
+        for (int b : f) np = std::max(np, b + 1);
+    }
+    // source[b]: the one part of the level before that all of b's points come from (-2: none
+    // yet, -3: several or unlabelled points); image[a] likewise for a's points. b keeps a's
+    // motion when each is all of the other.
+    std::vector<int> source(static_cast<std::size_t>(np), -2);
+    const int na = static_cast<int>(out.back().parts.size());
+    std::vector<int> image(static_cast<std::size_t>(na), -2);
+    bool same_shape = prev.size() == cur.size();
+    for (std::size_t t = 0; same_shape && t < cur.size(); ++t) {
+      if (prev[t].size() != cur[t].size()) {
+        same_shape = false;
+        break;
+      }
+      for (std::size_t j = 0; j < cur[t].size(); ++j) {
+        const int a = prev[t][j], b = cur[t][j];
+        if (b >= 0 && b < np) {
+          int& s = source[b];
+          s = (a < 0 || a >= na) ? -3 : (s == -2 || s == a) ? a : -3;
+        }
+        if (a >= 0 && a < na) {
+          int& m = image[a];
+          m = (b < 0 || b >= np) ? -3 : (m == -2 || m == b) ? b : -3;
+        }
+      }
+    }
+    std::vector<char> fit(static_cast<std::size_t>(np), 1);
+    if (same_shape)
+      for (int b = 0; b < np; ++b) {
+        const int a = source[b];
+        if (a >= 0 && image[a] == b) fit[b] = 0;
+      }
+    std::vector<PartMotion> parts = computeParts(cur, wanted, fit);
+    for (int b = 0; b < np; ++b)
+      if (!fit[b]) {
+        parts[b] = out.back().parts[source[b]];
+        parts[b].part = b;
+      }
+    out.push_back({static_cast<int>(l), std::move(parts)});
+  }
+  return out;
+}
+
+std::vector<PartMotion> RigidMotionEstimation::computeParts(
+    const std::vector<std::vector<int>>& labels, int num_parts,
+    const std::vector<char>& fit) const {
   if (!sequence_ || sequence_->empty()) throw Error("rigid motion: no input sequence");
   const std::size_t frames = sequence_->size();
   if (labels.size() != frames)
@@ -100,6 +168,7 @@ std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::ve
   for (int part = 0; part < num_parts; ++part) {
     PartMotion& motion = out[part];
     motion.part = part;
+    if (!fit.empty() && !fit[part]) continue;  // the caller fills it in
     motion.frames.assign(frames, RigidTransform());
     for (RigidTransform& r : motion.frames) r.rms = -1.0;
     Cloud::Ptr source = partCloud(*sequence_->frame(0), labels[0], part, p.max_points);

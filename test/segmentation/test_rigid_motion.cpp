@@ -133,3 +133,56 @@ TEST(RigidMotion, WrongLabelsGiveLargeResidualAndMissingPartsAreInvalid) {
   EXPECT_EQ(count, 3u * 5u + 1u);
   std::remove(path.c_str());
 }
+
+namespace {
+void expectSameMotion(const PartMotion& a, const PartMotion& b, const std::string& what) {
+  EXPECT_EQ(a.part, b.part) << what;
+  EXPECT_EQ(a.points_frame0, b.points_frame0) << what;
+  ASSERT_EQ(a.frames.size(), b.frames.size()) << what;
+  for (std::size_t t = 0; t < a.frames.size(); ++t) {
+    EXPECT_EQ(a.frames[t].valid, b.frames[t].valid) << what << " frame " << t;
+    EXPECT_EQ(a.frames[t].rms, b.frames[t].rms) << what << " frame " << t;
+    EXPECT_TRUE(a.frames[t].rotation == b.frames[t].rotation) << what << " frame " << t;
+    EXPECT_TRUE(a.frames[t].translation == b.frames[t].translation) << what << " frame " << t;
+  }
+}
+}  // namespace
+
+TEST(RigidMotion, EveryLevelAsComputedAloneWithUnchangedPartsReused) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(5, 6000, false, 13);
+  // Level 1: parts 0 and 1 merged (as 0), part 2 unchanged but renamed 1: its motion is the
+  // level-0 part 2's. Level 2: everything one part. Level 3: like level 1, except that in frame 3
+  // a few points of part 1 join the renamed part: it is not the same point set any more and must
+  // be fitted, not copied.
+  std::vector<std::vector<std::vector<int>>> levels(4, chain.truth);
+  for (auto& f : levels[1])
+    for (int& l : f) l = l == 2 ? 1 : 0;
+  for (auto& f : levels[2])
+    for (int& l : f) l = 0;
+  levels[3] = levels[1];
+  int moved = 0;
+  for (std::size_t j = 0; j < chain.truth[3].size() && moved < 40; ++j)
+    if (chain.truth[3][j] == 1) levels[3][3][j] = 1, ++moved;
+  ASSERT_EQ(moved, 40);
+  RigidMotionEstimation est;
+  est.setInputSequence(&chain.sequence);
+  const auto all = est.computeLevels(levels);
+  ASSERT_EQ(all.size(), levels.size());
+  for (std::size_t l = 0; l < levels.size(); ++l) {
+    EXPECT_EQ(all[l].level, static_cast<int>(l));
+    const auto alone = est.compute(levels[l]);
+    ASSERT_EQ(all[l].parts.size(), alone.size()) << "level " << l;
+    for (std::size_t p = 0; p < alone.size(); ++p)
+      expectSameMotion(all[l].parts[p], alone[p],
+                       "level " + std::to_string(l) + " part " + std::to_string(p));
+  }
+  // The reused part is the level-0 part 2, renamed; the one with 40 foreign points in frame 3
+  // fits differently there.
+  expectSameMotion(all[1].parts[1], [&] {
+    PartMotion m = all[0].parts[2];
+    m.part = 1;
+    return m;
+  }(), "renamed part");
+  EXPECT_FALSE(all[3].parts[1].frames[3].translation == all[1].parts[1].frames[3].translation);
+  EXPECT_THROW(est.computeLevels(levels, {3, 2}), pcl_animseg::Error);
+}

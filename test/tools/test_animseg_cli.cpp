@@ -115,6 +115,7 @@ INSTANTIATE_TEST_SUITE_P(
                       BadCase{"negative_weight", "--input {in} --output {out} --weights 0.5,-1,2,1"},
                       BadCase{"short_weights", "--input {in} --output {out} --weights 0.5,1"},
                       BadCase{"bad_device", "--input {in} --output {out} --device tpu"},
+                      BadCase{"negative_transform_levels", "--input {in} --output {out} --transform-levels -1"},
                       BadCase{"unknown_config_key", "--config {tmp}/badcfg.json --input {in} --output {out}"},
                       BadCase{"broken_config", "--config {tmp}/brokencfg.json --input {in} --output {out}"},
                       BadCase{"missing_config", "--config {tmp}/none.json --input {in} --output {out}"}),
@@ -145,4 +146,31 @@ TEST(AnimsegCli, DeterministicAcrossThreadCounts) {
     ++compared;
   }
   EXPECT_EQ(compared, 5);
+  // transforms.json: the same on any thread count, and one entry per level of the labels (one
+  // column each), as animseg_hierarchy writes it.
+  const std::string transforms = slurp(outs[0] + "/transforms.json");
+  EXPECT_EQ(transforms, slurp(outs[1] + "/transforms.json"));
+  std::istringstream first(slurp(outs[0] + "/f000.labels"));
+  std::string first_line;
+  std::getline(first, first_line);
+  std::istringstream columns(first_line);
+  int levels = 0;
+  for (std::string v; columns >> v;) ++levels;
+  int level_entries = 0;
+  for (std::size_t p = transforms.find("{\"level\": "); p != std::string::npos;
+       p = transforms.find("{\"level\": ", p + 1))
+    ++level_entries;
+  EXPECT_GE(levels, 2) << first_line;
+  EXPECT_EQ(level_entries, levels) << transforms.substr(0, 200);
+  // --transform-levels 1: the finest level's parts only, with the same transforms.
+  const std::string out1 = tmp.str() + "/finest";
+  const RunResult r = run(tool("animseg") + " --quiet --seed 5 --transform-levels 1 --input " + in +
+                              " --output " + out1,
+                          tmp.dir());
+  ASSERT_EQ(r.code, 0) << r.err;
+  const std::string finest = slurp(out1 + "/transforms.json");
+  EXPECT_EQ(finest.find("{\"level\": 1"), std::string::npos);
+  const std::size_t level1 = transforms.find(",\n    {\"level\": 1");
+  ASSERT_NE(level1, std::string::npos);
+  EXPECT_EQ(finest.substr(0, finest.find("\n  ]\n}")), transforms.substr(0, level1));
 }

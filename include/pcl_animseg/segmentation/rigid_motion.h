@@ -58,6 +58,12 @@ struct PartMotion {
   std::vector<RigidTransform> frames;
 };
 
+/** \brief Motions of one hierarchy level (level 0 = finest). */
+struct LevelMotion {
+  int level = 0;
+  std::vector<PartMotion> parts;
+};
+
 /** \brief Point-to-plane ICP of every part from frame 0 to each frame, chained along time. */
 class RigidMotionEstimation {
  public:
@@ -73,15 +79,21 @@ class RigidMotionEstimation {
   std::vector<PartMotion> compute(const std::vector<std::vector<int>>& labels,
                                   int num_parts = 0) const;
 
+  /** \brief Motions of the parts of every level: levels[l][t][j] as in compute(); num_parts[l]
+   * as compute()'s num_parts (empty: max label + 1 of each level). A part whose points are
+   * exactly one part's of the level before (in every frame: a part no merge touched) takes that
+   * part's motion without a second ICP, which is what compute() would give it; only merged
+   * parts are fitted, so all levels cost little more than the finest. */
+  std::vector<LevelMotion> computeLevels(
+      const std::vector<std::vector<std::vector<int>>>& levels,
+      const std::vector<int>& num_parts = {}) const;
+
  private:
+  std::vector<PartMotion> computeParts(const std::vector<std::vector<int>>& labels, int num_parts,
+                                       const std::vector<char>& fit) const;
+
   const PointCloudSequence* sequence_ = nullptr;
   RigidMotionParams params_;
-};
-
-/** \brief Motions of one hierarchy level (level 0 = finest). */
-struct LevelMotion {
-  int level = 0;
-  std::vector<PartMotion> parts;
 };
 
 /** \brief Writes transforms.json (atomically):
