@@ -213,23 +213,38 @@ TEST(MotionQuality, NoRemnantPartsOnTheShippedQuadruped) {
     EXPECT_GE(count[c], seq->size() * 5) << "part " << c << " has " << count[c] << " points";
 }
 
+namespace {
+/** The motion method's labels, part count and merges, run on `threads` OpenMP threads (0: as
+ * set). */
+struct TrackingRun {
+  std::vector<int> labels;
+  int parts = 0;
+  std::vector<seg::ClusterMerge> merges;
+};
+TrackingRun runTracking(const pcl_animseg::PointCloudSequence& seq, int threads = 0) {
+  const int before = omp_get_max_threads();
+  if (threads > 0) omp_set_num_threads(threads);
+  TrackingRun r;
+  seg::segmentByTracking(seq, seg::MotionTrackingParams(), r.labels, r.parts, r.merges);
+  omp_set_num_threads(before);
+  return r;
+}
+void expectSameRun(const TrackingRun& x, const TrackingRun& y) {
+  EXPECT_EQ(x.labels, y.labels);
+  EXPECT_EQ(x.parts, y.parts);
+  ASSERT_EQ(x.merges.size(), y.merges.size());
+  for (std::size_t i = 0; i < x.merges.size(); ++i) {
+    EXPECT_EQ(x.merges[i].a, y.merges[i].a);
+    EXPECT_EQ(x.merges[i].b, y.merges[i].b);
+    EXPECT_EQ(x.merges[i].cost, y.merges[i].cost);
+  }
+}
+}  // namespace
+
 TEST(MotionQuality, SameSeedSameLabels) {
   const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Snake, 6, 500, 5));
   const auto seq = synth::toSequence(frames);
-  seg::MotionTrackingParams mp;
-  std::vector<int> a, b;
-  int na = 0, nb = 0;
-  std::vector<seg::ClusterMerge> ma, mb;
-  seg::segmentByTracking(seq, mp, a, na, ma);
-  seg::segmentByTracking(seq, mp, b, nb, mb);
-  EXPECT_EQ(a, b);
-  EXPECT_EQ(na, nb);
-  ASSERT_EQ(ma.size(), mb.size());
-  for (std::size_t i = 0; i < ma.size(); ++i) {
-    EXPECT_EQ(ma[i].a, mb[i].a);
-    EXPECT_EQ(ma[i].b, mb[i].b);
-    EXPECT_EQ(ma[i].cost, mb[i].cost);
-  }
+  expectSameRun(runTracking(seq), runTracking(seq));
 }
 
 // The merges, the tracking's whole-body ICPs and the part motions split their work over frames
@@ -238,25 +253,9 @@ TEST(MotionQuality, SameSeedSameLabels) {
 TEST(MotionQuality, SameLabelsOnAnyThreadCount) {
   const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Humanoid, 8, 1500, 4));
   const auto seq = synth::toSequence(frames);
-  seg::MotionTrackingParams mp;
-  const int threads = omp_get_max_threads();
-  std::vector<int> a, b;
-  int na = 0, nb = 0;
-  std::vector<seg::ClusterMerge> ma, mb;
-  omp_set_num_threads(1);
-  seg::segmentByTracking(seq, mp, a, na, ma);
-  omp_set_num_threads(5);
-  seg::segmentByTracking(seq, mp, b, nb, mb);
-  omp_set_num_threads(threads);
-  EXPECT_GT(na, 5);  // a humanoid, not one blob: the merges ran
-  EXPECT_EQ(a, b);
-  EXPECT_EQ(na, nb);
-  ASSERT_EQ(ma.size(), mb.size());
-  for (std::size_t i = 0; i < ma.size(); ++i) {
-    EXPECT_EQ(ma[i].a, mb[i].a);
-    EXPECT_EQ(ma[i].b, mb[i].b);
-    EXPECT_EQ(ma[i].cost, mb[i].cost);
-  }
+  const TrackingRun one = runTracking(seq, 1);
+  EXPECT_GT(one.parts, 5);  // a humanoid, not one blob: the merges ran
+  expectSameRun(one, runTracking(seq, 5));
 }
 
 TEST(MotionQuality, RejectsBadParameters) {
