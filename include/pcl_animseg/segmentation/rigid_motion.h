@@ -83,7 +83,8 @@ class RigidMotionEstimation {
    * as compute()'s num_parts (empty: max label + 1 of each level). A part whose points are
    * exactly one part's of the level before (in every frame: a part no merge touched) takes that
    * part's motion without a second ICP, which is what compute() would give it; only merged
-   * parts are fitted, so all levels cost little more than the finest. */
+   * parts are fitted. Those are large and not rigid, so they still cost most: 800k points, 16
+   * threads, five levels 10.0 s against 2.8 s for the finest alone. */
   std::vector<LevelMotion> computeLevels(
       const std::vector<std::vector<std::vector<int>>>& levels,
       const std::vector<int>& num_parts = {}) const;
