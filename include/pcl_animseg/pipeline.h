@@ -24,8 +24,8 @@ struct PipelineParams {
   bool refine = true;           ///< run the GMM boundary refinement
   bool motions = true;          ///< estimate the rigid motion of every part of every level
   /** Levels whose parts get rigid motions, finest first; 0: all. The coarse levels' merged
-   * parts are large and not rigid, so their ICPs cost most (200k points: 0.8 s for level 0,
-   * 3.8 s for all five levels). */
+   * parts are large and not rigid, so their ICPs cost most on few cores (200k points, 2
+   * threads: 0.8 s for level 0, 3.8 s for all five levels). */
   int motion_levels = 0;
   MultiscaleParams multiscale;
   segmentation::MeanShiftParams mean_shift;

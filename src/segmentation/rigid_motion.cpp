@@ -77,7 +77,7 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
 
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
                                                        int num_parts) const {
-  return computeParts(labels, num_parts, {});
+  return computeParts({&labels}, {num_parts}, {{}}).front();
 }
 
 std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
@@ -86,27 +86,27 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
   if (!num_parts.empty() && num_parts.size() != levels.size())
     throw Error("rigid motion: " + std::to_string(num_parts.size()) + " part counts for " +
                 std::to_string(levels.size()) + " levels");
-  std::vector<LevelMotion> out;
-  for (std::size_t l = 0; l < levels.size(); ++l) {
-    const int wanted = num_parts.empty() ? 0 : num_parts[l];
-    if (l == 0) {
-      out.push_back({0, computeParts(levels[0], wanted, {})});
-      continue;
+  const std::size_t nl = levels.size();
+  std::vector<int> np(nl, 0);
+  for (std::size_t l = 0; l < nl; ++l) {
+    np[l] = num_parts.empty() ? 0 : num_parts[l];
+    if (np[l] <= 0) {
+      np[l] = 0;
+      for (const auto& f : levels[l])
+        for (int b : f) np[l] = std::max(np[l], b + 1);
     }
+  }
+  // source[l][b]: the part of level l - 1 whose points are exactly b's in every frame, or -1;
+  // such a part is not fitted but copied (levels in order, so a chain of copies resolves).
+  std::vector<std::vector<int>> source(nl);
+  std::vector<std::vector<char>> fit(nl);
+  for (std::size_t l = 1; l < nl; ++l) {
     const auto& prev = levels[l - 1];
     const auto& cur = levels[l];
-    int np = wanted;
-    if (np <= 0) {
-      np = 0;
-      for (const auto& f : cur)
-        for (int b : f) np = std::max(np, b + 1);
-    }
-    // source[b]: the one part of the level before that all of b's points come from (-2: none
-    // yet, -3: several or unlabelled points); image[a] likewise for a's points. b keeps a's
-    // motion when each is all of the other.
-    std::vector<int> source(static_cast<std::size_t>(np), -2);
-    const int na = static_cast<int>(out.back().parts.size());
-    std::vector<int> image(static_cast<std::size_t>(na), -2);
+    const int na = np[l - 1], nb = np[l];
+    // from[b]: the one part of the level before that all of b's points come from (-2: none yet,
+    // -3: several, or unlabelled points); to[a] likewise for a's points.
+    std::vector<int> from(static_cast<std::size_t>(nb), -2), to(static_cast<std::size_t>(na), -2);
     bool same_shape = prev.size() == cur.size();
     for (std::size_t t = 0; same_shape && t < cur.size(); ++t) {
       if (prev[t].size() != cur[t].size()) {
@@ -115,60 +115,76 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
       }
       for (std::size_t j = 0; j < cur[t].size(); ++j) {
         const int a = prev[t][j], b = cur[t][j];
-        if (b >= 0 && b < np) {
-          int& s = source[b];
+        if (b >= 0 && b < nb) {
+          int& s = from[b];
           s = (a < 0 || a >= na) ? -3 : (s == -2 || s == a) ? a : -3;
         }
         if (a >= 0 && a < na) {
-          int& m = image[a];
-          m = (b < 0 || b >= np) ? -3 : (m == -2 || m == b) ? b : -3;
+          int& m = to[a];
+          m = (b < 0 || b >= nb) ? -3 : (m == -2 || m == b) ? b : -3;
         }
       }
     }
-    std::vector<char> fit(static_cast<std::size_t>(np), 1);
+    source[l].assign(static_cast<std::size_t>(nb), -1);
+    fit[l].assign(static_cast<std::size_t>(nb), 1);
     if (same_shape)
-      for (int b = 0; b < np; ++b) {
-        const int a = source[b];
-        if (a >= 0 && image[a] == b) fit[b] = 0;
+      for (int b = 0; b < nb; ++b)
+        if (from[b] >= 0 && to[from[b]] == b) source[l][b] = from[b], fit[l][b] = 0;
+  }
+  std::vector<const std::vector<std::vector<int>>*> sets;
+  for (const auto& level : levels) sets.push_back(&level);
+  std::vector<std::vector<PartMotion>> parts = computeParts(sets, np, fit);
+  std::vector<LevelMotion> out(nl);
+  for (std::size_t l = 0; l < nl; ++l) {
+    out[l].level = static_cast<int>(l);
+    out[l].parts = std::move(parts[l]);
+    for (std::size_t b = 0; l > 0 && b < source[l].size(); ++b)
+      if (source[l][b] >= 0) {
+        out[l].parts[b] = out[l - 1].parts[source[l][b]];
+        out[l].parts[b].part = static_cast<int>(b);
       }
-    std::vector<PartMotion> parts = computeParts(cur, wanted, fit);
-    for (int b = 0; b < np; ++b)
-      if (!fit[b]) {
-        parts[b] = out.back().parts[source[b]];
-        parts[b].part = b;
-      }
-    out.push_back({static_cast<int>(l), std::move(parts)});
   }
   return out;
 }
 
-std::vector<PartMotion> RigidMotionEstimation::computeParts(
-    const std::vector<std::vector<int>>& labels, int num_parts,
-    const std::vector<char>& fit) const {
+std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
+    const std::vector<const std::vector<std::vector<int>>*>& sets,
+    const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit) const {
   if (!sequence_ || sequence_->empty()) throw Error("rigid motion: no input sequence");
   const std::size_t frames = sequence_->size();
-  if (labels.size() != frames)
-    throw Error("rigid motion: " + std::to_string(labels.size()) +
-                " label frames for a sequence of " + std::to_string(frames) + " frames");
-  int max_label = -1;
-  for (std::size_t t = 0; t < frames; ++t) {
-    if (labels[t].size() != sequence_->frame(t)->size())
-      throw Error("rigid motion: frame " + std::to_string(t) + " has " +
-                  std::to_string(labels[t].size()) + " labels for " +
-                  std::to_string(sequence_->frame(t)->size()) + " points");
-    for (int l : labels[t]) max_label = std::max(max_label, l);
+  std::vector<std::vector<PartMotion>> out(sets.size());
+  // (labelling, part) pairs to fit: the parts of every labelling in one parallel loop, so that a
+  // few large parts of several levels run side by side.
+  std::vector<std::pair<std::size_t, int>> jobs;
+  for (std::size_t s = 0; s < sets.size(); ++s) {
+    const std::vector<std::vector<int>>& labels = *sets[s];
+    if (labels.size() != frames)
+      throw Error("rigid motion: " + std::to_string(labels.size()) +
+                  " label frames for a sequence of " + std::to_string(frames) + " frames");
+    int max_label = -1;
+    for (std::size_t t = 0; t < frames; ++t) {
+      if (labels[t].size() != sequence_->frame(t)->size())
+        throw Error("rigid motion: frame " + std::to_string(t) + " has " +
+                    std::to_string(labels[t].size()) + " labels for " +
+                    std::to_string(sequence_->frame(t)->size()) + " points");
+      for (int l : labels[t]) max_label = std::max(max_label, l);
+    }
+    const int np = num_parts[s] > 0 ? num_parts[s] : max_label + 1;
+    out[s].resize(np);
+    for (int part = 0; part < np; ++part) {
+      out[s][part].part = part;
+      if (fit[s].empty() || fit[s][part]) jobs.push_back({s, part});  // else the caller's
+    }
   }
-  if (num_parts <= 0) num_parts = max_label + 1;
   std::vector<double> spacing(frames);
   for (std::size_t t = 0; t < frames; ++t) spacing[t] = meanSpacing(*sequence_->frame(t));
 
-  std::vector<PartMotion> out(num_parts);
   const RigidMotionParams p = params_;
 #pragma omp parallel for schedule(dynamic)
-  for (int part = 0; part < num_parts; ++part) {
-    PartMotion& motion = out[part];
-    motion.part = part;
-    if (!fit.empty() && !fit[part]) continue;  // the caller fills it in
+  for (std::size_t job = 0; job < jobs.size(); ++job) {
+    const std::vector<std::vector<int>>& labels = *sets[jobs[job].first];
+    const int part = jobs[job].second;
+    PartMotion& motion = out[jobs[job].first][part];
     motion.frames.assign(frames, RigidTransform());
     for (RigidTransform& r : motion.frames) r.rms = -1.0;
     Cloud::Ptr source = partCloud(*sequence_->frame(0), labels[0], part, p.max_points);
