@@ -148,6 +148,11 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const bool parallel = searchInParallel(src);
   std::vector<int> match(parallel ? static_cast<std::size_t>(src.p.cols()) : 0);
+  auto nearestTo = [&](const Eigen::Vector3d& y) {
+    float d2;
+    return f.tree.nearest(static_cast<float>(y.x()), static_cast<float>(y.y()),
+                          static_cast<float>(y.z()), max_d2, d2);
+  };
   for (int it = 0; it < iterations; ++it) {
     const Eigen::Matrix3d R = T.linear();
     Eigen::Vector3d c = Eigen::Vector3d::Zero();
@@ -158,23 +163,11 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
     int used = 0;
     if (parallel) {  // the searches first, the sums below in point order as without
 #pragma omp parallel for schedule(static)
-      for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
-        const Eigen::Vector3d yw = T * src.p.col(i);
-        float d2;
-        match[i] = f.tree.nearest(static_cast<float>(yw.x()), static_cast<float>(yw.y()),
-                                  static_cast<float>(yw.z()), max_d2, d2);
-      }
+      for (Eigen::Index i = 0; i < src.p.cols(); ++i) match[i] = nearestTo(T * src.p.col(i));
     }
     for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
       const Eigen::Vector3d yw = T * src.p.col(i);
-      int k;
-      if (parallel) {
-        k = match[i];
-      } else {
-        float d2;
-        k = f.tree.nearest(static_cast<float>(yw.x()), static_cast<float>(yw.y()),
-                           static_cast<float>(yw.z()), max_d2, d2);
-      }
+      const int k = parallel ? match[i] : nearestTo(yw);
       if (k < 0) continue;
       const auto& t = (*f.cloud)[k];
       const Eigen::Vector3d tn(t.normal_x, t.normal_y, t.normal_z);
