@@ -9,7 +9,8 @@
 namespace pcl_animseg {
 namespace tools {
 
-/** Adds --motion-threshold, --crease-cost, --border-smoothness and --dissolve-ratio with the
+/** Adds --motion-threshold, --crease-cost, --border-smoothness, --dissolve-ratio and
+ * --joint-weight with the
  * defaults of `d`. */
 inline void addMotionOptions(boost::program_options::options_description& od,
                              const segmentation::MeanShiftParams& d) {
@@ -25,7 +26,10 @@ inline void addMotionOptions(boost::program_options::options_description& od,
      "(borders prefer inward folds; 0: per-point borders)")
     ("dissolve-ratio", po::value<double>()->default_value(d.dissolve_ratio),
      "motion method: a part dissolves into the parts it touches when their motions explain it "
-     "within this factor of its own motion's residual (0: pairwise merges only)");
+     "within this factor of its own motion's residual (0: pairwise merges only)")
+    ("joint-weight", po::value<double>()->default_value(d.joint_weight),
+     "motion method: cost per point spacing of a joint that a part's motion opens beyond 4 "
+     "spacings from its neighbour's (keeps a finger from jumping onto the next; 0: off)");
 }
 
 /** The options into `p`; throws Error (one line) for a value out of range, before any work. */
@@ -35,10 +39,13 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
   p.crease_cost = vm["crease-cost"].as<double>();
   p.border_smoothness = vm["border-smoothness"].as<double>();
   p.dissolve_ratio = vm["dissolve-ratio"].as<double>();
+  p.joint_weight = vm["joint-weight"].as<double>();
   if (!(p.motion_threshold > 0.0)) throw Error("--motion-threshold must be positive");
   if (!(p.crease_cost >= 0.0)) throw Error("--crease-cost must be >= 0");
   if (!(p.border_smoothness >= 0.0)) throw Error("--border-smoothness must be >= 0");
   if (!(p.dissolve_ratio >= 0.0)) throw Error("--dissolve-ratio must be >= 0");
+  if (!(p.joint_weight >= 0.0) || !std::isfinite(p.joint_weight))
+    throw Error("--joint-weight must be a number >= 0");
 }
 
 }  // namespace tools

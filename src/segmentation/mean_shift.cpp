@@ -77,6 +77,8 @@ void MeanShiftSegmentation::validate() const {
     throw Error("mean shift: border smoothness must be a number >= 0");
   if (!(p.dissolve_ratio >= 0.0) || !std::isfinite(p.dissolve_ratio))
     throw Error("mean shift: dissolve ratio must be a number >= 0");
+  if (!(p.joint_weight >= 0.0) || !std::isfinite(p.joint_weight))
+    throw Error("mean shift: joint weight must be a number >= 0");
   if (!signatures_.empty()) {
     if (signatures_.size() != sequence_->size())
       throw Error("mean shift: " + std::to_string(signatures_.size()) + " signature matrices for " +

@@ -21,6 +21,7 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
   mp.crease_cost = params.crease_cost;
   mp.border_smoothness = params.border_smoothness;
   mp.dissolve_ratio = params.dissolve_ratio;
+  mp.joint_weight = params.joint_weight;
   mp.target_clusters = params.target_clusters;
   mp.reference_frame = params.reference_frame;
   mp.point_neighbours = params.neighbours;

@@ -39,6 +39,13 @@ constexpr double kConcaveAngle = 10.0 * 3.14159265358979323846 / 180.0;
 // Residual distances are clipped at this many point spacings, so that one lost point does not
 // dominate a fit's score.
 constexpr double kClip = 4.0;
+/** Part motions: a joint (the centroid of the points where two parts meet, >= kJointPoints of
+ * them) may open kJointGap spacings between the two parts' motions for free; beyond that each
+ * spacing costs MotionTrackingParams::joint_weight on the residual's scale (RMS spacings). A
+ * joint of a finger flexed by 70 degrees opens about 1-3 spacings; a part that jumped onto
+ * another limb opens 10-40. */
+constexpr int kJointPoints = 3;
+constexpr double kJointGap = 4.0;
 
 struct Frame {
   Cloud::Ptr cloud;
@@ -429,6 +436,8 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     throw Error("motion tracking: border smoothness must be a number >= 0 and border hops >= 1");
   if (!(params.dissolve_ratio >= 0.0) || !std::isfinite(params.dissolve_ratio))
     throw Error("motion tracking: dissolve ratio must be a number >= 0");
+  if (!(params.joint_weight >= 0.0) || !std::isfinite(params.joint_weight))
+    throw Error("motion tracking: joint weight must be a number >= 0");
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
   const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, 1000);
@@ -1423,6 +1432,29 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
                      [&](int x, int y) { return pts[x].size() > pts[y].size(); });
     std::vector<int> level;
     const std::vector<std::vector<int>> levels = bfsLevels(adj, by_size, level);
+    // Joints: the centroid of a part's reference points that border a neighbour. A continuous
+    // surface keeps the border in place, so both parts' motions carry it to about the same
+    // point; a part whose motion carries it far from where its solved neighbour put it has
+    // jumped to another limb of the same shape (a finger onto the thumb beside it).
+    std::vector<std::vector<std::pair<int, Eigen::Vector3d>>> joints(nc);
+    if (tr.surface.size() == static_cast<std::size_t>(n0)) {
+      std::vector<std::map<int, std::pair<int, Eigen::Vector3d>>> acc(nc);
+      for (int i = 0; i < n0; ++i) {
+        const int c = label[i];
+        std::set<int> seen;
+        for (int j : tr.surface[i])
+          if (label[j] != c && seen.insert(label[j]).second) {
+            auto& a = acc[c][label[j]];
+            if (a.first == 0) a.second.setZero();
+            ++a.first;
+            a.second += Eigen::Vector3d(rc[i].x, rc[i].y, rc[i].z);
+          }
+      }
+      for (int c = 0; c < nc; ++c)
+        for (const auto& [h, a] : acc[c])
+          if (a.first >= kJointPoints && level[h] < level[c] && params.joint_weight > 0.0)
+            joints[c].push_back({h, a.second / static_cast<double>(a.first)});
+    }
     for (int dir : {+1, -1}) {
       for (int t = ref + dir; t >= 0 && t < T; t += dir) {
         const int tp = t - dir, tpp = t - 2 * dir;
@@ -1458,11 +1490,20 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
           std::vector<std::pair<std::size_t, std::size_t>> jobs;  // (part of the level, start)
           for (std::size_t li = 0; li < L; ++li)
             for (std::size_t k = 0; k < starts[li].size(); ++k) jobs.push_back({li, k});
+          // Residual plus the joint term: joint_weight per spacing that a joint opens beyond
+          // kJointGap spacings from where the solved neighbour put it.
+          auto scoreOf = [&](int c, const Pose& P) {
+            double pen = 0.0;
+            for (const auto& [h, j] : joints[c])
+              pen += std::max(0.0, (P * j - motion[h][t] * j).norm() / frames[t].spacing -
+                                       kJointGap);
+            return residual(src[c], P, frames[t]) + params.joint_weight * pen;
+          };
           std::vector<double> start_score(jobs.size());
 #pragma omp parallel for schedule(dynamic, 1)
           for (std::size_t q = 0; q < jobs.size(); ++q) {
             const int c = lv[jobs[q].first];
-            start_score[q] = residual(src[c], starts[jobs[q].first][jobs[q].second], frames[t]);
+            start_score[q] = scoreOf(c, starts[jobs[q].first][jobs[q].second]);
           }
           std::vector<std::vector<std::pair<double, int>>> score(L);
           for (std::size_t q = 0; q < jobs.size(); ++q)
@@ -1481,7 +1522,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
             const int c = lv[li];
             refined[q] = icp(src[c], starts[li][score[li][refine[q].second].second], frames[t], 10,
                              4.0 * frames[t].spacing);
-            refined_res[q] = residual(src[c], refined[q], frames[t]);
+            refined_res[q] = scoreOf(c, refined[q]);
           }
           // Per part: the best start, replaced by a refined one that fits better (in rank order).
           std::vector<double> best(L);

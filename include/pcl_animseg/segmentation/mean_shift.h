@@ -117,6 +117,10 @@ struct MeanShiftParams {
    * when their motions explain it within this factor of its own motion's residual
    * (MotionTrackingParams::dissolve_ratio); 0: parts only merge pairwise. */
   double dissolve_ratio = 1.5;
+  /** Part motions as an articulated body (MotionTrackingParams::joint_weight): the cost, per
+   * point spacing, of a joint that a part's motion opens from its solved neighbour's beyond 4
+   * spacings; 0: each part's motion by its own fit alone. */
+  double joint_weight = 0.1;
   /** When > 0, merge until exactly this many parts instead (threshold ignored). */
   int target_clusters = 0;
   int icp_iterations = 25;
