@@ -822,6 +822,159 @@ void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evalu
   for (int o : nbrs) edges[{std::min(a, o), std::max(a, o)}] = evaluate(a, o);
 }
 
+/** Motions of the parts of `label` (a part per reference point, -1: none; parts 0..nc-1), tracked
+ * along the sequence as an articulated body: the frames in order away from the reference, the
+ * parts of a frame in breadth-first order over the part adjacency from the largest part, each
+ * started from the best of `init` (its motion so far), the Kabsch fit of its samples
+ * (`sample_part`: the part of each tracked sample, -1: none), its previous pose, a
+ * constant-velocity guess and, for every neighbour already solved in this frame, the
+ * neighbour's motion since the previous frame applied to the part (a lower leg follows its
+ * thigh), then refined by ICP of up to `max_points` of its reference points. Candidates are
+ * scored by their residual plus `joint_weight` per spacing that a joint with a solved neighbour
+ * opens beyond kJointGap (MotionTrackingParams::joint_weight). A part without points keeps the
+ * identity. */
+std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, const SampleTracks& tr,
+                                          const std::vector<int>& label, int nc,
+                                          const std::vector<std::vector<Pose>>& init,
+                                          const std::vector<int>& sample_part,
+                                          std::size_t max_points, double joint_weight) {
+  const int T = static_cast<int>(frames.size());
+  const int ref = tr.reference_frame;
+  const Cloud& rc = *frames[ref].cloud;
+  const int n0 = static_cast<int>(rc.size());
+  const int S = static_cast<int>(tr.sample_points.size());
+  const bool has_surface = tr.surface.size() == static_cast<std::size_t>(n0);
+  std::vector<std::vector<Pose>> motion(nc, std::vector<Pose>(T, Pose::Identity()));
+  std::vector<std::vector<int>> pts(nc), smp(nc);
+  for (int i = 0; i < n0; ++i)
+    if (label[i] >= 0) pts[label[i]].push_back(i);
+  for (int s = 0; s < S; ++s)
+    if (sample_part[s] >= 0) smp[sample_part[s]].push_back(s);
+  std::vector<Source> src(nc);
+  for (int c = 0; c < nc; ++c) src[c] = sourceOf(rc, pts[c], max_points);
+  std::vector<std::set<int>> adj(nc);
+  if (has_surface)
+    for (int i = 0; i < n0; ++i)
+      for (int j : tr.surface[i])
+        if (label[i] >= 0 && label[j] >= 0 && label[i] != label[j]) adj[label[i]].insert(label[j]);
+  std::vector<int> by_size(nc);
+  std::iota(by_size.begin(), by_size.end(), 0);
+  std::stable_sort(by_size.begin(), by_size.end(),
+                   [&](int x, int y) { return pts[x].size() > pts[y].size(); });
+  std::vector<int> level;
+  const std::vector<std::vector<int>> levels = bfsLevels(adj, by_size, level);
+  // Joints: the centroid of a part's reference points that border a neighbour. A continuous
+  // surface keeps the border in place, so both parts' motions carry it to about the same
+  // point; a part whose motion carries it far from where its solved neighbour put it has
+  // jumped to another limb of the same shape (a finger onto the thumb beside it).
+  std::vector<std::vector<std::pair<int, Eigen::Vector3d>>> joints(nc);
+  if (has_surface && joint_weight > 0.0) {
+    std::vector<std::map<int, std::pair<int, Eigen::Vector3d>>> acc(nc);
+    for (int i = 0; i < n0; ++i) {
+      const int c = label[i];
+      if (c < 0) continue;
+      std::set<int> seen;
+      for (int j : tr.surface[i])
+        if (label[j] >= 0 && label[j] != c && seen.insert(label[j]).second) {
+          auto& a = acc[c][label[j]];
+          if (a.first == 0) a.second.setZero();
+          ++a.first;
+          a.second += Eigen::Vector3d(rc[i].x, rc[i].y, rc[i].z);
+        }
+    }
+    for (int c = 0; c < nc; ++c)
+      for (const auto& [h, a] : acc[c])
+        if (a.first >= kJointPoints && level[h] < level[c])
+          joints[c].push_back({h, a.second / static_cast<double>(a.first)});
+  }
+  for (int dir : {+1, -1}) {
+    for (int t = ref + dir; t >= 0 && t < T; t += dir) {
+      const int tp = t - dir, tpp = t - 2 * dir;
+      const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+      for (const std::vector<int>& lv : levels) {
+        // The starts of each part of the level, then every (part, start) score and every
+        // (part, best start) ICP as one parallel loop each: a level has few parts, and one
+        // loop over the parts left most cores idle.
+        const std::size_t L = lv.size();
+        std::vector<std::vector<Pose>> starts(L);
+        for (std::size_t li = 0; li < L; ++li) {
+          const int c = lv[li];
+          if (pts[c].empty()) continue;
+          std::vector<Pose>& st = starts[li];
+          st = {init[c][t], motion[c][tp]};
+          if (has_pp) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
+          const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
+          if (m >= 3) {
+            Eigen::Matrix3Xd a(3, m), b(3, m);
+            for (Eigen::Index k = 0; k < m; ++k)
+              a.col(k) = tr.positions[ref].col(smp[c][k]),
+              b.col(k) = tr.positions[t].col(smp[c][k]);
+            const evaluation::RigidFit fit = evaluation::kabsch(a, b);
+            Pose k = Pose::Identity();
+            k.linear() = fit.rotation;
+            k.translation() = fit.translation;
+            st.push_back(k);
+          }
+          for (int h : adj[c])
+            if (level[h] < level[c])
+              st.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
+        }
+        std::vector<std::pair<std::size_t, std::size_t>> jobs;  // (part of the level, start)
+        for (std::size_t li = 0; li < L; ++li)
+          for (std::size_t k = 0; k < starts[li].size(); ++k) jobs.push_back({li, k});
+        // Residual plus the joint term: joint_weight per spacing that a joint opens beyond
+        // kJointGap spacings from where the solved neighbour put it.
+        auto scoreOf = [&](int c, const Pose& P) {
+          double pen = 0.0;
+          for (const auto& [h, j] : joints[c])
+            pen += std::max(0.0, (P * j - motion[h][t] * j).norm() / frames[t].spacing - kJointGap);
+          return residual(src[c], P, frames[t]) + joint_weight * pen;
+        };
+        std::vector<double> start_score(jobs.size());
+#pragma omp parallel for schedule(dynamic, 1)
+        for (std::size_t q = 0; q < jobs.size(); ++q) {
+          const int c = lv[jobs[q].first];
+          start_score[q] = scoreOf(c, starts[jobs[q].first][jobs[q].second]);
+        }
+        std::vector<std::vector<std::pair<double, int>>> score(L);
+        for (std::size_t q = 0; q < jobs.size(); ++q)
+          score[jobs[q].first].push_back({start_score[q], static_cast<int>(jobs[q].second)});
+        std::vector<std::pair<std::size_t, std::size_t>> refine;  // (part, rank among starts)
+        for (std::size_t li = 0; li < L; ++li) {
+          std::stable_sort(score[li].begin(), score[li].end());
+          for (std::size_t k = 0; k < std::min<std::size_t>(2, score[li].size()); ++k)
+            refine.push_back({li, k});
+        }
+        std::vector<Pose> refined(refine.size());
+        std::vector<double> refined_res(refine.size());
+#pragma omp parallel for schedule(dynamic, 1)
+        for (std::size_t q = 0; q < refine.size(); ++q) {
+          const std::size_t li = refine[q].first;
+          const int c = lv[li];
+          refined[q] = icp(src[c], starts[li][score[li][refine[q].second].second], frames[t], 10,
+                           4.0 * frames[t].spacing);
+          refined_res[q] = scoreOf(c, refined[q]);
+        }
+        // Per part: the best start, replaced by a refined one that fits better (in rank order).
+        std::vector<double> best(L);
+        for (std::size_t li = 0; li < L; ++li)
+          if (!score[li].empty()) {
+            best[li] = score[li][0].first;
+            motion[lv[li]][t] = starts[li][score[li][0].second];
+          }
+        for (std::size_t q = 0; q < refine.size(); ++q) {
+          const std::size_t li = refine[q].first;
+          if (refined_res[q] < best[li]) {
+            best[li] = refined_res[q];
+            motion[lv[li]][t] = refined[q];
+          }
+        }
+      }
+    }
+  }
+  return motion;
+}
+
 TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const SampleTracks& tr,
                                          const MotionTrackingParams& params) {
   const int S = static_cast<int>(tr.sample_points.size());
@@ -1408,140 +1561,10 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
         label[i] = tc.group[idx[0]];
     }
   }
-  // Part motions, tracked along the sequence as an articulated body: the frames in order away
-  // from the reference, the parts of a frame in breadth-first order over the part adjacency from
-  // the largest part, each started from the best of its clustering pose, the Kabsch fit of its
-  // samples, its previous pose, a constant-velocity guess and, for every neighbour already
-  // solved in this frame, the neighbour's motion since the previous frame applied to the part
-  // (a lower leg follows its thigh), then refined by ICP of up to 400 of its reference points.
-  std::vector<std::vector<Pose>> motion(nc, std::vector<Pose>(T, Pose::Identity()));
-  {
-    std::vector<std::vector<int>> pts(nc), smp(nc);
-    for (int i = 0; i < n0; ++i) pts[label[i]].push_back(i);
-    for (int s = 0; s < S; ++s) smp[tc.group[s]].push_back(s);
-    std::vector<Source> src(nc);
-    for (int c = 0; c < nc; ++c) src[c] = sourceOf(rc, pts[c], 400);
-    std::vector<std::set<int>> adj(nc);
-    if (tr.surface.size() == static_cast<std::size_t>(n0))
-      for (int i = 0; i < n0; ++i)
-        for (int j : tr.surface[i])
-          if (label[i] != label[j]) adj[label[i]].insert(label[j]);
-    std::vector<int> by_size(nc);
-    std::iota(by_size.begin(), by_size.end(), 0);
-    std::stable_sort(by_size.begin(), by_size.end(),
-                     [&](int x, int y) { return pts[x].size() > pts[y].size(); });
-    std::vector<int> level;
-    const std::vector<std::vector<int>> levels = bfsLevels(adj, by_size, level);
-    // Joints: the centroid of a part's reference points that border a neighbour. A continuous
-    // surface keeps the border in place, so both parts' motions carry it to about the same
-    // point; a part whose motion carries it far from where its solved neighbour put it has
-    // jumped to another limb of the same shape (a finger onto the thumb beside it).
-    std::vector<std::vector<std::pair<int, Eigen::Vector3d>>> joints(nc);
-    if (tr.surface.size() == static_cast<std::size_t>(n0)) {
-      std::vector<std::map<int, std::pair<int, Eigen::Vector3d>>> acc(nc);
-      for (int i = 0; i < n0; ++i) {
-        const int c = label[i];
-        std::set<int> seen;
-        for (int j : tr.surface[i])
-          if (label[j] != c && seen.insert(label[j]).second) {
-            auto& a = acc[c][label[j]];
-            if (a.first == 0) a.second.setZero();
-            ++a.first;
-            a.second += Eigen::Vector3d(rc[i].x, rc[i].y, rc[i].z);
-          }
-      }
-      for (int c = 0; c < nc; ++c)
-        for (const auto& [h, a] : acc[c])
-          if (a.first >= kJointPoints && level[h] < level[c] && params.joint_weight > 0.0)
-            joints[c].push_back({h, a.second / static_cast<double>(a.first)});
-    }
-    for (int dir : {+1, -1}) {
-      for (int t = ref + dir; t >= 0 && t < T; t += dir) {
-        const int tp = t - dir, tpp = t - 2 * dir;
-        const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
-        for (const std::vector<int>& lv : levels) {
-          // The starts of each part of the level, then every (part, start) score and every
-          // (part, best start) ICP as one parallel loop each: a level has few parts, and one
-          // loop over the parts left most cores idle.
-          const std::size_t L = lv.size();
-          std::vector<std::vector<Pose>> starts(L);
-          for (std::size_t li = 0; li < L; ++li) {
-            const int c = lv[li];
-            if (pts[c].empty()) continue;
-            std::vector<Pose>& st = starts[li];
-            st = {tc.poses[c][t], motion[c][tp]};
-            if (has_pp) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
-            const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
-            if (m >= 3) {
-              Eigen::Matrix3Xd a(3, m), b(3, m);
-              for (Eigen::Index k = 0; k < m; ++k)
-                a.col(k) = tr.positions[ref].col(smp[c][k]),
-                b.col(k) = tr.positions[t].col(smp[c][k]);
-              const evaluation::RigidFit fit = evaluation::kabsch(a, b);
-              Pose k = Pose::Identity();
-              k.linear() = fit.rotation;
-              k.translation() = fit.translation;
-              st.push_back(k);
-            }
-            for (int h : adj[c])
-              if (level[h] < level[c])
-                st.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
-          }
-          std::vector<std::pair<std::size_t, std::size_t>> jobs;  // (part of the level, start)
-          for (std::size_t li = 0; li < L; ++li)
-            for (std::size_t k = 0; k < starts[li].size(); ++k) jobs.push_back({li, k});
-          // Residual plus the joint term: joint_weight per spacing that a joint opens beyond
-          // kJointGap spacings from where the solved neighbour put it.
-          auto scoreOf = [&](int c, const Pose& P) {
-            double pen = 0.0;
-            for (const auto& [h, j] : joints[c])
-              pen += std::max(0.0, (P * j - motion[h][t] * j).norm() / frames[t].spacing -
-                                       kJointGap);
-            return residual(src[c], P, frames[t]) + params.joint_weight * pen;
-          };
-          std::vector<double> start_score(jobs.size());
-#pragma omp parallel for schedule(dynamic, 1)
-          for (std::size_t q = 0; q < jobs.size(); ++q) {
-            const int c = lv[jobs[q].first];
-            start_score[q] = scoreOf(c, starts[jobs[q].first][jobs[q].second]);
-          }
-          std::vector<std::vector<std::pair<double, int>>> score(L);
-          for (std::size_t q = 0; q < jobs.size(); ++q)
-            score[jobs[q].first].push_back({start_score[q], static_cast<int>(jobs[q].second)});
-          std::vector<std::pair<std::size_t, std::size_t>> refine;  // (part, rank among starts)
-          for (std::size_t li = 0; li < L; ++li) {
-            std::stable_sort(score[li].begin(), score[li].end());
-            for (std::size_t k = 0; k < std::min<std::size_t>(2, score[li].size()); ++k)
-              refine.push_back({li, k});
-          }
-          std::vector<Pose> refined(refine.size());
-          std::vector<double> refined_res(refine.size());
-#pragma omp parallel for schedule(dynamic, 1)
-          for (std::size_t q = 0; q < refine.size(); ++q) {
-            const std::size_t li = refine[q].first;
-            const int c = lv[li];
-            refined[q] = icp(src[c], starts[li][score[li][refine[q].second].second], frames[t], 10,
-                             4.0 * frames[t].spacing);
-            refined_res[q] = scoreOf(c, refined[q]);
-          }
-          // Per part: the best start, replaced by a refined one that fits better (in rank order).
-          std::vector<double> best(L);
-          for (std::size_t li = 0; li < L; ++li)
-            if (!score[li].empty()) {
-              best[li] = score[li][0].first;
-              motion[lv[li]][t] = starts[li][score[li][0].second];
-            }
-          for (std::size_t q = 0; q < refine.size(); ++q) {
-            const std::size_t li = refine[q].first;
-            if (refined_res[q] < best[li]) {
-              best[li] = refined_res[q];
-              motion[lv[li]][t] = refined[q];
-            }
-          }
-        }
-      }
-    }
-  }
+  // Part motions, tracked along the sequence as an articulated body, each refined by ICP of up
+  // to 400 of its reference points.
+  const std::vector<std::vector<Pose>> motion =
+      trackParts(frames, tr, label, nc, tc.poses, tc.group, 400, params.joint_weight);
   timer.lap("labels: part motions");
   // The part motions are final now: the borders between parts are placed once more, by the
   // graph cut (motion fit plus a short border, cut where the surface folds inwards) or, with
