@@ -66,7 +66,7 @@ struct MotionTrackingParams {
   /** Merging stops when the cheapest merge costs more than this (point spacings). */
   double threshold = 2.0;
   /** Parts that meet only across a sharp crease (no edge of the surface graph between them) and
-   * whose motions differ (merge cost at least half the threshold) cost at least this much to
+   * whose motions differ (merge cost at least 0.4 of the threshold) cost at least this much to
    * merge (point spacings; 0: no such rule). */
   double crease_cost = 3.25;
   /** Dissolving a part: a piece of the over-segmentation that straddles a joint has a
