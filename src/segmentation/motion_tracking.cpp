@@ -249,6 +249,28 @@ std::vector<std::vector<int>> bfsLevels(const Graph& graph, const std::vector<in
   return levels;
 }
 
+/** Connected components of a graph (adjacency lists of node ids), numbered in the order in which
+ * `order` reaches them (every node must be in `order`); comp[v] is v's component. Returns the
+ * number of components. */
+template <class Graph>
+int connectedComponents(const Graph& graph, const std::vector<int>& order, std::vector<int>& comp) {
+  comp.assign(graph.size(), -1);
+  int n = 0;
+  for (int start : order) {
+    if (comp[start] >= 0) continue;
+    std::vector<int> stack{start};
+    comp[start] = n;
+    while (!stack.empty()) {
+      const int v = stack.back();
+      stack.pop_back();
+      for (int o : graph[v])
+        if (comp[o] < 0) comp[o] = n, stack.push_back(o);
+    }
+    ++n;
+  }
+  return n;
+}
+
 /** Surface graph of a cloud: each point linked to its k nearest points that lie within
  * `max_dist` and have a compatible normal (symmetric). Unlike a plain k-NN graph it does not
  * bridge the gap between two limbs that nearly touch (facing sides have opposite normals), so
@@ -367,20 +389,10 @@ std::vector<std::vector<int>> cellGraphOf(const std::vector<std::vector<int>>& g
     for (int j : g[i])
       if (owner[j] >= 0 && owner[j] != owner[i]) nb[owner[i]].insert(owner[j]);
   }
-  std::vector<int> comp(S, -1);
-  int nc = 0;
-  for (int s = 0; s < S; ++s) {
-    if (comp[s] >= 0) continue;
-    std::vector<int> stack{s};
-    comp[s] = nc;
-    while (!stack.empty()) {
-      const int x = stack.back();
-      stack.pop_back();
-      for (int y : nb[x])
-        if (comp[y] < 0) comp[y] = nc, stack.push_back(y);
-    }
-    ++nc;
-  }
+  std::vector<int> order(S);
+  std::iota(order.begin(), order.end(), 0);
+  std::vector<int> comp;
+  const int nc = connectedComponents(nb, order, comp);
   if (nc > 1) {
     // Closest sample pair of every pair of components.
     const double lim2 = join_distance * join_distance;
@@ -885,19 +897,9 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
           adj[label[i]].insert(label[j]);
           contact[i].push_back(j);
         }
-    // Connected groups of parts over the surface graph, each named by its largest part.
-    std::vector<int> group(nc, -1);
-    for (int start : by_size) {
-      if (group[start] >= 0) continue;
-      std::vector<int> stack{start};
-      group[start] = start;
-      while (!stack.empty()) {
-        const int v = stack.back();
-        stack.pop_back();
-        for (int o : adj[v])
-          if (group[o] < 0) group[o] = start, stack.push_back(o);
-      }
-    }
+    // Connected groups of parts over the surface graph.
+    std::vector<int> group;
+    connectedComponents(adj, by_size, group);
     const double r2 =
         kContactSpacings * kContactSpacings * frames[ref].spacing * frames[ref].spacing;
     std::vector<int> idx;
