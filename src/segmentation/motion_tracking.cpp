@@ -853,10 +853,9 @@ void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evalu
  * -1: none), its previous pose, a constant-velocity guess and, for every neighbour already
  * solved in this frame, the neighbour's motion since the previous frame applied to the part (a
  * lower leg follows its thigh), then refined by ICP of up to `max_points` of its reference
- * points. Candidates are
- * scored by their residual plus `joint_weight` per spacing that a joint with a solved neighbour
- * opens beyond kJointGap (MotionTrackingParams::joint_weight). A part without points keeps the
- * identity. */
+ * points. Candidates are scored by their residual plus `joint_weight` per spacing that a joint
+ * with a solved neighbour opens beyond kJointGap (MotionTrackingParams::joint_weight). A part
+ * without points keeps the identity. */
 std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, const SampleTracks& tr,
                                           const std::vector<int>& label, int nc,
                                           const std::vector<std::vector<Pose>>& init,
