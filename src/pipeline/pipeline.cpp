@@ -142,10 +142,8 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     segmentation::RigidMotionEstimation rme;
     rme.setInputSequence(&seq);
     rme.setParams(params.rigid_motion);
-    const std::size_t n = params.motion_levels > 0
-                              ? std::min<std::size_t>(params.motion_levels, r.levels.size())
-                              : r.levels.size();
-    r.motions = rme.computeLevels({r.levels.begin(), r.levels.begin() + n});
+    r.motions = rme.computeLevels(r.levels, {},
+                                  static_cast<std::size_t>(std::max(0, params.motion_levels)));
     progress.end();
   }
   r.timings = progress.timings();

@@ -75,34 +75,54 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
 
 }  // namespace
 
+int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>& labels,
+                                            int num_parts) const {
+  if (!sequence_ || sequence_->empty()) throw Error("rigid motion: no input sequence");
+  const std::size_t frames = sequence_->size();
+  if (labels.size() != frames)
+    throw Error("rigid motion: " + std::to_string(labels.size()) +
+                " label frames for a sequence of " + std::to_string(frames) + " frames");
+  int max_label = -1;
+  for (std::size_t t = 0; t < frames; ++t) {
+    if (labels[t].size() != sequence_->frame(t)->size())
+      throw Error("rigid motion: frame " + std::to_string(t) + " has " +
+                  std::to_string(labels[t].size()) + " labels for " +
+                  std::to_string(sequence_->frame(t)->size()) + " points");
+    for (int l : labels[t]) max_label = std::max(max_label, l);
+  }
+  return num_parts > 0 ? num_parts : max_label + 1;
+}
+
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
                                                        int num_parts) const {
-  return computeParts({&labels}, {num_parts}, {{}}).front();
+  return computeParts({&labels}, {checkedPartCount(labels, num_parts)}, {{}}).front();
 }
 
 std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
-    const std::vector<std::vector<std::vector<int>>>& levels,
-    const std::vector<int>& num_parts) const {
-  if (!num_parts.empty() && num_parts.size() != levels.size())
+    const std::vector<std::vector<std::vector<int>>>& all_levels,
+    const std::vector<int>& num_parts, std::size_t max_levels) const {
+  // The first max_levels levels (0: all), by pointer: no copy of the labels.
+  const std::size_t nl = max_levels > 0 ? std::min(max_levels, all_levels.size())
+                                        : all_levels.size();
+  if (!num_parts.empty() && num_parts.size() != all_levels.size())
     throw Error("rigid motion: " + std::to_string(num_parts.size()) + " part counts for " +
-                std::to_string(levels.size()) + " levels");
-  const std::size_t nl = levels.size();
+                std::to_string(all_levels.size()) + " levels");
+  std::vector<const std::vector<std::vector<int>>*> sets;
+  for (std::size_t l = 0; l < nl; ++l) sets.push_back(&all_levels[l]);
+  const auto levels = [&](std::size_t l) -> const std::vector<std::vector<int>>& {
+    return *sets[l];
+  };
+  // One pass over each level's labels: checked against the sequence, and its part count.
   std::vector<int> np(nl, 0);
-  for (std::size_t l = 0; l < nl; ++l) {
-    np[l] = num_parts.empty() ? 0 : num_parts[l];
-    if (np[l] <= 0) {
-      np[l] = 0;
-      for (const auto& f : levels[l])
-        for (int b : f) np[l] = std::max(np[l], b + 1);
-    }
-  }
+  for (std::size_t l = 0; l < nl; ++l)
+    np[l] = checkedPartCount(levels(l), num_parts.empty() ? 0 : num_parts[l]);
   // source[l][b]: the part of level l - 1 whose points are exactly b's in every frame, or -1;
   // such a part is not fitted but copied (levels in order, so a chain of copies resolves).
   std::vector<std::vector<int>> source(nl);
   std::vector<std::vector<char>> fit(nl);
   for (std::size_t l = 1; l < nl; ++l) {
-    const auto& prev = levels[l - 1];
-    const auto& cur = levels[l];
+    const auto& prev = levels(l - 1);
+    const auto& cur = levels(l);
     const int na = np[l - 1], nb = np[l];
     // from[b]: the one part of the level before that all of b's points come from (-2: none yet,
     // -3: several, or unlabelled points); to[a] likewise for a's points.
@@ -131,8 +151,6 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
       for (int b = 0; b < nb; ++b)
         if (from[b] >= 0 && to[from[b]] == b) source[l][b] = from[b], fit[l][b] = 0;
   }
-  std::vector<const std::vector<std::vector<int>>*> sets;
-  for (const auto& level : levels) sets.push_back(&level);
   std::vector<std::vector<PartMotion>> parts = computeParts(sets, np, fit);
   std::vector<LevelMotion> out(nl);
   for (std::size_t l = 0; l < nl; ++l) {
@@ -150,26 +168,13 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
 std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     const std::vector<const std::vector<std::vector<int>>*>& sets,
     const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit) const {
-  if (!sequence_ || sequence_->empty()) throw Error("rigid motion: no input sequence");
   const std::size_t frames = sequence_->size();
   std::vector<std::vector<PartMotion>> out(sets.size());
   // (labelling, part) pairs to fit: the parts of every labelling in one parallel loop, so that a
   // few large parts of several levels run side by side.
   std::vector<std::pair<std::size_t, int>> jobs;
   for (std::size_t s = 0; s < sets.size(); ++s) {
-    const std::vector<std::vector<int>>& labels = *sets[s];
-    if (labels.size() != frames)
-      throw Error("rigid motion: " + std::to_string(labels.size()) +
-                  " label frames for a sequence of " + std::to_string(frames) + " frames");
-    int max_label = -1;
-    for (std::size_t t = 0; t < frames; ++t) {
-      if (labels[t].size() != sequence_->frame(t)->size())
-        throw Error("rigid motion: frame " + std::to_string(t) + " has " +
-                    std::to_string(labels[t].size()) + " labels for " +
-                    std::to_string(sequence_->frame(t)->size()) + " points");
-      for (int l : labels[t]) max_label = std::max(max_label, l);
-    }
-    const int np = num_parts[s] > 0 ? num_parts[s] : max_label + 1;
+    const int np = num_parts[s];
     out[s].resize(np);
     for (int part = 0; part < np; ++part) {
       out[s][part].part = part;

@@ -185,4 +185,16 @@ TEST(RigidMotion, EveryLevelAsComputedAloneWithUnchangedPartsReused) {
   }(), "renamed part");
   EXPECT_FALSE(all[3].parts[1].frames[3].translation == all[1].parts[1].frames[3].translation);
   EXPECT_THROW(est.computeLevels(levels, {3, 2}), pcl_animseg::Error);
+  // Only the first two levels (what `animseg --transform-levels 2` asks for): the same motions.
+  const auto first = est.computeLevels(levels, {}, 2);
+  ASSERT_EQ(first.size(), 2u);
+  for (std::size_t l = 0; l < first.size(); ++l)
+    for (std::size_t p = 0; p < first[l].parts.size(); ++p)
+      expectSameMotion(first[l].parts[p], all[l].parts[p],
+                       "first two, level " + std::to_string(l) + " part " + std::to_string(p));
+  // A label vector of the wrong length, in any level, is an error, not a read past the end.
+  auto broken = levels;
+  broken[2][1].pop_back();
+  EXPECT_THROW(est.computeLevels(broken), pcl_animseg::Error);
+  EXPECT_NO_THROW(est.computeLevels(broken, {}, 2));  // the broken level is not asked for
 }

@@ -84,13 +84,19 @@ class RigidMotionEstimation {
    * exactly one part's of the level before (in every frame: a part no merge touched) takes that
    * part's motion without a second ICP, which is what compute() would give it; only merged
    * parts are fitted, those of all levels in one parallel loop. They are large and not rigid:
-   * on 2 threads five levels cost about 5x the finest alone, on 16 about the same. */
+   * on 2 threads five levels cost about 5x the finest alone, on 16 about the same.
+   * max_levels > 0: only the first max_levels levels (finest first), without copying them. */
   std::vector<LevelMotion> computeLevels(
       const std::vector<std::vector<std::vector<int>>>& levels,
-      const std::vector<int>& num_parts = {}) const;
+      const std::vector<int>& num_parts = {}, std::size_t max_levels = 0) const;
 
  private:
-  /** Parts of several labellings (sets[s], num_parts[s] as compute()'s) in one parallel loop;
+  /** Checks one labelling against the input sequence (frame count, labels per frame) and returns
+   * its part count: num_parts if > 0, else its largest label + 1. */
+  int checkedPartCount(const std::vector<std::vector<int>>& labels, int num_parts) const;
+
+  /** Parts of several labellings (sets[s], checked, with num_parts[s] resolved by
+   * checkedPartCount) in one parallel loop;
    * a part with fit[s][part] == 0 is left for the caller (only its id is set). */
   std::vector<std::vector<PartMotion>> computeParts(
       const std::vector<const std::vector<std::vector<int>>*>& sets,
