@@ -9,9 +9,8 @@
 namespace pcl_animseg {
 namespace tools {
 
-/** Adds --motion-threshold, --crease-cost, --border-smoothness, --dissolve-ratio and
- * --joint-weight with the
- * defaults of `d`. */
+/** Adds --motion-threshold, --crease-cost, --border-smoothness, --dissolve-ratio,
+ * --joint-weight and --sliver-fraction with the defaults of `d`. */
 inline void addMotionOptions(boost::program_options::options_description& od,
                              const segmentation::MeanShiftParams& d) {
   namespace po = boost::program_options;
@@ -29,7 +28,10 @@ inline void addMotionOptions(boost::program_options::options_description& od,
      "within this factor of its own motion's residual (0: pairwise merges only)")
     ("joint-weight", po::value<double>()->default_value(d.joint_weight),
      "motion method: cost per point spacing of a joint that a part's motion opens beyond 4 "
-     "spacings from its neighbour's (keeps a finger from jumping onto the next; 0: off)");
+     "spacings from its neighbour's (keeps a finger from jumping onto the next; 0: off)")
+    ("sliver-fraction", po::value<double>()->default_value(d.sliver_fraction),
+     "motion method: a part smaller than this fraction of the mean part size is a sliver: it "
+     "merges into a neighbour and does not count towards --parts (0: off; below 1)");
 }
 
 /** The options into `p`; throws Error (one line) for a value out of range, before any work. */
@@ -40,12 +42,15 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
   p.border_smoothness = vm["border-smoothness"].as<double>();
   p.dissolve_ratio = vm["dissolve-ratio"].as<double>();
   p.joint_weight = vm["joint-weight"].as<double>();
+  p.sliver_fraction = vm["sliver-fraction"].as<double>();
   if (!(p.motion_threshold > 0.0)) throw Error("--motion-threshold must be positive");
   if (!(p.crease_cost >= 0.0)) throw Error("--crease-cost must be >= 0");
   if (!(p.border_smoothness >= 0.0)) throw Error("--border-smoothness must be >= 0");
   if (!(p.dissolve_ratio >= 0.0)) throw Error("--dissolve-ratio must be >= 0");
   if (!(p.joint_weight >= 0.0) || !std::isfinite(p.joint_weight))
     throw Error("--joint-weight must be a number >= 0");
+  if (!(p.sliver_fraction >= 0.0 && p.sliver_fraction < 1.0))
+    throw Error("--sliver-fraction must be in [0, 1)");
 }
 
 }  // namespace tools

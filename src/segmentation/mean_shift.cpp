@@ -79,6 +79,8 @@ void MeanShiftSegmentation::validate() const {
     throw Error("mean shift: dissolve ratio must be a number >= 0");
   if (!(p.joint_weight >= 0.0) || !std::isfinite(p.joint_weight))
     throw Error("mean shift: joint weight must be a number >= 0");
+  if (!(p.sliver_fraction >= 0.0 && p.sliver_fraction < 1.0))
+    throw Error("mean shift: sliver fraction must be in [0, 1)");
   if (!signatures_.empty()) {
     if (signatures_.size() != sequence_->size())
       throw Error("mean shift: " + std::to_string(signatures_.size()) + " signature matrices for " +

@@ -22,6 +22,7 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
   mp.border_smoothness = params.border_smoothness;
   mp.dissolve_ratio = params.dissolve_ratio;
   mp.joint_weight = params.joint_weight;
+  mp.sliver_fraction = params.sliver_fraction;
   mp.target_clusters = params.target_clusters;
   mp.reference_frame = params.reference_frame;
   mp.point_neighbours = params.neighbours;

@@ -166,6 +166,7 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const bool parallel = searchInParallel(src);
   std::vector<int> match(parallel ? static_cast<std::size_t>(src.p.cols()) : 0);
+  Eigen::Matrix3Xd moved(3, src.p.cols());  // the source under T, once per iteration
   auto nearestTo = [&](const Eigen::Vector3d& y) {
     float d2;
     return f.tree.nearest(static_cast<float>(y.x()), static_cast<float>(y.y()),
@@ -174,17 +175,20 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
   for (int it = 0; it < iterations; ++it) {
     const Eigen::Matrix3d R = T.linear();
     Eigen::Vector3d c = Eigen::Vector3d::Zero();
-    for (Eigen::Index i = 0; i < src.p.cols(); ++i) c += T * src.p.col(i);
+    for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
+      moved.col(i) = T * src.p.col(i);
+      c += moved.col(i);
+    }
     c /= static_cast<double>(std::max<Eigen::Index>(1, src.p.cols()));
     Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
     Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
     int used = 0;
     if (parallel) {  // the searches first, the sums below in point order as without
 #pragma omp parallel for schedule(static)
-      for (Eigen::Index i = 0; i < src.p.cols(); ++i) match[i] = nearestTo(T * src.p.col(i));
+      for (Eigen::Index i = 0; i < src.p.cols(); ++i) match[i] = nearestTo(moved.col(i));
     }
     for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
-      const Eigen::Vector3d yw = T * src.p.col(i);
+      const Eigen::Vector3d yw = moved.col(i);
       const int k = parallel ? match[i] : nearestTo(yw);
       if (k < 0) continue;
       const auto& t = (*f.cloud)[k];
@@ -461,6 +465,8 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     throw Error("motion tracking: dissolve ratio must be a number >= 0");
   if (!(params.joint_weight >= 0.0) || !std::isfinite(params.joint_weight))
     throw Error("motion tracking: joint weight must be a number >= 0");
+  if (!(params.sliver_fraction >= 0.0 && params.sliver_fraction < 1.0))
+    throw Error("motion tracking: sliver fraction must be in [0, 1)");
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
   const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, 1000);
@@ -1521,14 +1527,43 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     return best;
   };
   int alive_parts = static_cast<int>(std::count(galive.begin(), galive.end(), 1));
+  // Slivers (MotionTrackingParams::sliver_fraction): parts of fewer than `tiny` reference points
+  // merge into their cheapest neighbour whatever the cost. With a target count they go first and
+  // do not count towards it; without one, once the threshold stops the merges.
+  const double sliver = params.sliver_fraction;
+  std::size_t tiny = params.target_clusters > 0
+                         ? static_cast<std::size_t>(sliver * n0 / params.target_clusters)
+                         : 0;
+  auto cheapestTiny = [&]() {
+    auto best = pedges.end();
+    for (auto it = pedges.begin(); it != pedges.end(); ++it)
+      if ((gpts[it->first.first].size() < tiny || gpts[it->first.second].size() < tiny) &&
+          (best == pedges.end() || it->second.cost < best->second.cost))
+        best = it;
+    return best;
+  };
   while (!pedges.empty()) {
+    if (tiny > 0) {
+      const auto sliver = cheapestTiny();
+      if (sliver != pedges.end()) {
+        const auto [a, b] = sliver->first;
+        mergeParts(a, b);
+        --alive_parts;
+        continue;
+      }
+    }
     const auto best = cheapestPart();
     const int dx = static_cast<int>(std::min_element(dcost.begin(), dcost.end()) - dcost.begin());
     const bool dissolve = dcost[dx] < best->second.cost;
     if (params.target_clusters > 0
             ? alive_parts <= params.target_clusters
-            : std::min(best->second.cost, dcost[dx]) > params.threshold)
+            : std::min(best->second.cost, dcost[dx]) > params.threshold) {
+      if (tiny == 0 && params.target_clusters <= 0 && sliver > 0.0) {
+        tiny = static_cast<std::size_t>(sliver * n0 / std::max(1, alive_parts));
+        if (tiny > 0 && cheapestTiny() != pedges.end()) continue;
+      }
       break;
+    }
     if (dissolve) {
       dissolvePart(dx);
       --alive_parts;

@@ -62,7 +62,7 @@ TEST(MeanShiftCli, BadInputIsOneErrorLine) {
   for (const std::string extra :
        {" --bandwidth 0", " --bandwidth -1", " --weights 1,2,3", " --weights 1,-1,1,1",
         " --method magic", " --backend magic", " --parts -2", " --motion-threshold 0",
-        " --crease-cost -1", " --border-smoothness -1", " --dissolve-ratio -1", " --joint-weight -1", " --no-such-option"}) {
+        " --crease-cost -1", " --border-smoothness -1", " --dissolve-ratio -1", " --joint-weight -1", " --sliver-fraction 1", " --no-such-option"}) {
     const RunResult r = run(base + extra, tmp.dir());
     EXPECT_EQ(r.code, 1) << extra;
     EXPECT_TRUE(isOneErrorLine(r.err)) << extra << ": " << r.err;

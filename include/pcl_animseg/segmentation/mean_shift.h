@@ -121,6 +121,9 @@ struct MeanShiftParams {
    * point spacing, of a joint that a part's motion opens from its solved neighbour's beyond 4
    * spacings; 0: each part's motion by its own fit alone. */
   double joint_weight = 0.1;
+  /** A part smaller than this fraction of the mean part size is a sliver, not a part
+   * (MotionTrackingParams::sliver_fraction); 0: off. */
+  double sliver_fraction = 0.1;
   /** When > 0, merge until exactly this many parts instead (threshold ignored). */
   int target_clusters = 0;
   int icp_iterations = 25;

@@ -86,6 +86,15 @@ struct MotionTrackingParams {
    * finger of the same shape in the frames where they come close (hand, seed 12: pooled ARI
    * 0.897 with 0, 0.944 with 0.1). 0: each part's own fit alone. */
   double joint_weight = 0.1;
+  /** Step 3's part merges: a part of fewer reference points than this fraction of the mean part
+   * size (the reference frame's points over target_clusters, or without a target over the parts
+   * left when the threshold stops the merges) is a sliver that the border rounds left between
+   * two parts, not a part. It merges into its cheapest neighbour whatever the cost, and with a
+   * target it does not count towards it. Counted, slivers of 22, 47 and 22 of 8000 reference
+   * points on a quadruped kept their place among the 12 parts asked for while true parts merged
+   * (pooled ARI 0.785 with 0, 0.943 with 0.1). The smallest true part of the generated plans
+   * has 0.29 of the mean. 0: off. */
+  double sliver_fraction = 0.1;
   /** When > 0, merge until this many parts instead (threshold ignored). */
   int target_clusters = 0;
   /** Final borders between parts: the cost of one surface-graph edge cut across a flat or convex
