@@ -62,6 +62,16 @@ RunResult atTruePartCount(synth::BodyPlan plan, const std::vector<synth::SynthFr
   return runOn(frames, p);
 }
 
+// Points of the smallest part over all frames; `total` gets every labelled point.
+long smallestPart(const RunResult& r, long& total) {
+  std::vector<long> size(static_cast<std::size_t>(std::max(r.clusters, 0)), 0);
+  total = 0;
+  for (const auto& labels : r.result.labels)
+    for (int l : labels)
+      if (l >= 0 && l < r.clusters) ++size[l], ++total;
+  return size.empty() ? 0 : *std::min_element(size.begin(), size.end());
+}
+
 synth::SynthParams sequenceParams(synth::BodyPlan plan, int frames, int points, unsigned seed) {
   synth::SynthParams sp;
   sp.plan = plan;
@@ -473,11 +483,8 @@ TEST(MotionQuality, ManyPointsNoEmptyParts) {
   const auto frames = synth::generate(sequenceParams(plan, 10, 16667, 3));
   const RunResult r = atTruePartCount(plan, frames);
   const int asked = synth::partCount(plan);
-  std::vector<long> size(static_cast<std::size_t>(std::max(r.clusters, 0)), 0);
   long total = 0;
-  for (const auto& labels : r.result.labels)
-    for (int l : labels) ++size[l], ++total;
-  const long smallest = size.empty() ? 0 : *std::min_element(size.begin(), size.end());
+  const long smallest = smallestPart(r, total);
   std::printf("humanoid, 16.7k points per frame: %d parts (asked %d), smallest %.2f%% of the "
               "points, pooled ARI %.3f, %.1f s\n",
               r.clusters, asked, 100.0 * smallest / std::max(total, 1L), r.ari,
@@ -498,11 +505,8 @@ TEST(MotionQuality, SliversDoNotTakeTheirPlaceAmongTheParts) {
   const auto frames = synth::generate(sequenceParams(plan, 20, 8000, 4));
   const RunResult r = atTruePartCount(plan, frames);
   const int asked = synth::partCount(plan);
-  std::vector<long> size(static_cast<std::size_t>(std::max(r.clusters, 0)), 0);
   long total = 0;
-  for (const auto& labels : r.result.labels)
-    for (int l : labels) ++size[l], ++total;
-  const long smallest = size.empty() ? 0 : *std::min_element(size.begin(), size.end());
+  const long smallest = smallestPart(r, total);
   const double neck = topLabel(plan, frames, r, "neck").second;
   seg::MeanShiftParams off;
   off.target_clusters = asked;
