@@ -41,7 +41,8 @@ int main(int argc, char** argv) {
       argc, argv, "animseg_meanshift",
       "animseg_meanshift --input SEQ --output DIR [--bandwidth w] [--weights w1,w2,w3,w4] "
       "[--method motion|paper] [--backend exact|gkdtree] [--parts N] [--motion-threshold T] "
-      "[--crease-cost C] [--border-smoothness S] [--dissolve-ratio R] [--no-features] [--seed S]",
+      "[--crease-cost C] [--border-smoothness S] [--dissolve-ratio R] [--joint-weight J] "
+      "[--sliver-fraction F] [--no-features] [--seed S]",
       od, [&](const pcl_animseg::tools::ToolContext& ctx) {
         pcl_animseg::Progress progress(ctx.quiet, ctx.verbose);
         seg::MeanShiftParams params;
