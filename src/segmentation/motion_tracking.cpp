@@ -1544,9 +1544,9 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   };
   while (!pedges.empty()) {
     if (tiny > 0) {
-      const auto sliver = cheapestTiny();
-      if (sliver != pedges.end()) {
-        const auto [a, b] = sliver->first;
+      const auto edge = cheapestTiny();
+      if (edge != pedges.end()) {
+        const auto [a, b] = edge->first;
         mergeParts(a, b);
         --alive_parts;
         continue;
