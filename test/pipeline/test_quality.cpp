@@ -139,7 +139,8 @@ std::pair<int, double> topLabel(synth::BodyPlan plan, const std::vector<synth::S
 // correspondences) at the hierarchy level with the true part count. The pooled ARI reached is
 // below the 0.90 goal at 2000 points per frame for the quadruped (measured: quadruped 0.888,
 // spider 0.921; 0.857 and 0.918 on 2026-11-24, the same with and without the sliver rule; with
-// --joint-weight 0.2 the quadruped gives 0.808, so the default stays 0.1; before the graph-cut borders 0.84 and 0.84, and the spider had 0.69 while the
+// --joint-weight 0.2 the quadruped gives 0.808, so the default stays 0.1; before the graph-cut
+// borders 0.84 and 0.84, and the spider had 0.69 while the
 // generator let its legs pass through each other); the bounds are the measured numbers minus a
 // margin, so that a regression shows (see docs/mean_shift_experiments.md). A lower leg has ~1.5%
 // of the points: with fewer than ~2000 points per frame it is too small for its own tracked

@@ -97,8 +97,9 @@ TEST(MeanShift, SeparatesTwoBlobsAndFillsEveryField) {
 // every adjacent pair has a saddle, no saddle is denser than either side's mode, and the modes
 // are the densest queried points (so at least as dense as any saddle of theirs). Asked for 3
 // parts, the clustering merges two of the boxes in its first phase (sample level); a sliver
-// of 7 or 15 reference points used to fill the third label, and since slivers no longer count as parts the result
-// has 2 parts (docs/mean_shift_experiments.md, "Slivers do not count as parts").
+// of 7 or 15 reference points used to fill the third label, and since slivers no longer count
+// as parts the result has 2 parts (docs/mean_shift_experiments.md, "Slivers do not count as
+// parts").
 TEST(MeanShift, MotionMethodSaddlesBelowBothModes) {
   const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 1500, false, 5);
   auto seq = std::make_shared<PointCloudSequence>(chain.sequence);
