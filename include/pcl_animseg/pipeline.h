@@ -20,7 +20,9 @@ class Progress;
 struct PipelineParams {
   std::string device = "auto";  ///< auto | cpu | gpu (mean shift backend)
   int levels = 4;               ///< hierarchy levels above level 0, at most
-  bool features = true;         ///< compute scale space, keypoints and signatures
+  /** Compute scale space, keypoints and signatures for the paper method's joint space. The
+   * motion method (the default) uses none of them, and they are skipped for it. */
+  bool features = true;
   bool refine = true;           ///< run the GMM boundary refinement
   bool motions = true;          ///< estimate the rigid motion of every part of every level
   /** Levels whose parts get rigid motions, finest first; 0: all. The coarse levels' merged
@@ -49,8 +51,8 @@ struct PipelineResult {
   std::vector<std::string> notes;   ///< fall-backs and warnings worth keeping in summary.json
 };
 
-/** \brief Runs scale space, keypoints, signatures, mean shift, refinement, hierarchy and rigid
- * motion on a loaded sequence (Fig. 1). Throws Error on bad parameters. Stage times are recorded
+/** \brief Runs scale space, keypoints, signatures (paper method only), mean shift, refinement,
+ * hierarchy and rigid motion on a loaded sequence (Fig. 1). Throws Error on bad parameters. Stage times are recorded
  * in `progress` under the names of DESIGN.md's summary.json. */
 PipelineResult runPipeline(const PointCloudSequence& sequence, const PipelineParams& params,
                            Progress& progress);

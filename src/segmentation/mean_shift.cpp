@@ -1195,6 +1195,15 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     detail::StageTimer timer;
     detail::runMotion(seq, params_, flat, num_clusters, result.merges, progress_);
     timer.lap("motion method");
+    if (!params_.record_densities && (!result.merges.empty() || num_clusters <= 1)) {
+      result.num_clusters = num_clusters;
+      result.mode_density.assign(static_cast<std::size_t>(std::max(num_clusters, 0)), 0.0);
+      const auto offsets = seq.offsets();
+      result.labels.assign(seq.size(), {});
+      for (std::size_t t = 0; t < seq.size(); ++t)
+        result.labels[t].assign(flat.begin() + offsets[t], flat.begin() + offsets[t + 1]);
+      return;
+    }
     // Built after the tracking, so that the joint space (N x d floats) and the k-NN graph do not
     // add to the tracking's peak memory.
     const JointSpace space = detail::buildJointSpace(seq, signatures_, keypoints_, params_);

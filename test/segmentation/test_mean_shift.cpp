@@ -118,6 +118,34 @@ TEST(MeanShift, MotionMethodSaddlesBelowBothModes) {
   for (double d : r.mode_density) EXPECT_GT(d, 0.0);
 }
 
+// The density record is optional for the motion method: without it the labels and the
+// recorded merges are the same, the densities are 0 and there are no modes or saddles.
+TEST(MeanShift, MotionMethodDensityRecordIsOptional) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 1500, false, 5);
+  auto seq = std::make_shared<PointCloudSequence>(chain.sequence);
+  seg::MeanShiftParams p;
+  p.method = seg::MeanShiftMethod::Motion;
+  p.target_clusters = 3;
+  const auto with = run(seq, p);
+  p.record_densities = false;
+  const auto without = run(seq, p);
+  ASSERT_GE(with.num_clusters, 2);
+  EXPECT_EQ(without.num_clusters, with.num_clusters);
+  EXPECT_EQ(without.labels, with.labels);
+  ASSERT_EQ(without.merges.size(), with.merges.size());
+  for (std::size_t m = 0; m < with.merges.size(); ++m) {
+    EXPECT_EQ(without.merges[m].a, with.merges[m].a);
+    EXPECT_EQ(without.merges[m].b, with.merges[m].b);
+    EXPECT_EQ(without.merges[m].cost, with.merges[m].cost);
+  }
+  EXPECT_FALSE(with.saddles.empty());
+  EXPECT_TRUE(without.saddles.empty());
+  EXPECT_EQ(without.modes.rows(), 0);
+  ASSERT_EQ(static_cast<int>(without.mode_density.size()), without.num_clusters);
+  for (double d : without.mode_density) EXPECT_EQ(d, 0.0);
+  for (double d : with.mode_density) EXPECT_GT(d, 0.0);
+}
+
 TEST(MeanShift, DeterministicForASeed) {
   auto seq = twoBlobs(3, 2);
   for (auto backend : {seg::MeanShiftBackend::Exact, seg::MeanShiftBackend::GaussianKdTree})

@@ -49,6 +49,26 @@ TEST(AnimsegCli, WritesEveryOutputInInputOrder) {
     EXPECT_EQ(e.path().filename().string().find(".tmp"), std::string::npos) << e.path();
 }
 
+// The default motion method uses neither the paper's features nor their joint-space densities,
+// so animseg does not compute them (a note says so); --method paper does.
+TEST(AnimsegCli, FeaturesOnlyForThePaperMethod) {
+  TempDir tmp;
+  makeSequence(tmp.dir() / "in");
+  for (const std::string method : {"motion", "paper"}) {
+    const std::string out = tmp.str() + "/out_" + method;
+    const RunResult r = run(tool("animseg") + " --quiet --method " + method + " --input " +
+                                tmp.str() + "/in --output " + out,
+                            tmp.dir());
+    ASSERT_EQ(r.code, 0) << r.err;
+    const std::string summary = slurp(out + "/summary.json");
+    const bool skipped = summary.find("\"scale_space\": null") != std::string::npos;
+    const bool noted = summary.find("features not computed") != std::string::npos;
+    EXPECT_EQ(skipped, method == "motion") << summary;
+    EXPECT_EQ(noted, method == "motion") << summary;
+    EXPECT_NE(summary.find("\"mean_shift\": "), std::string::npos);
+  }
+}
+
 TEST(AnimsegCli, QuietPrintsNothing) {
   TempDir tmp;
   makeSequence(tmp.dir() / "in");
