@@ -1,6 +1,7 @@
 #pragma once
 /** \file kdtree.h A 3-D kd-tree for one-point-at-a-time queries from inside parallel loops. */
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/flat_kdtree.h>
 
 #include <flann/flann.hpp>
 #include <pcl/point_cloud.h>
@@ -27,18 +28,18 @@ void flannFindNeighbors(const FlannIndex& index, ResultSet& result, const float*
   if (n) result.copy(indices.data(), sqr_distances.data(), n, sorted);
 }
 
-/** \brief FLANN's single kd-tree over the xyz of a cloud, with the query interface of
- * pcl::KdTreeFLANN (same index, same leaf size 15, same sorted results), minus its overhead.
+/** \brief A kd-tree over the xyz of a cloud with the query interface of pcl::KdTreeFLANN (same
+ * sorted results), minus its overhead, for the single-point queries that every stage here makes
+ * inside its own OpenMP loops.
  *
- * Written by us only as a thin layer over FLANN: every query of pcl::KdTreeFLANN goes through
- * flann::NNIndex::knnSearch, which opens an OpenMP parallel region (`num_threads(cores)`) for each
- * call and copies the result through heap-allocated matrices. For the single-point queries that
- * every stage here makes inside its own OpenMP loops, that was 3-4x the cost of the search
- * itself (200k 9-NN queries: 2.0 s against 0.55 s on the 2-core machine) and most of the
- * refinement's time went to libgomp and futex calls. This class calls
- * flann::KDTreeSingleIndex::findNeighbors directly. Points with a non-finite coordinate are left
- * out (as pcl::KdTreeFLANN does); results index the input cloud. Queries are const and
- * thread-safe. */
+ * Why not pcl::KdTreeFLANN: every query goes through flann::NNIndex::knnSearch, which opens an
+ * OpenMP parallel region (`num_threads(cores)`) per call and copies the result through
+ * heap-allocated matrices: 3-4x the cost of the search itself (200k 9-NN queries: 2.0 s against
+ * 0.55 s on the 2-core machine). Why not FLANN's KDTreeSingleIndex called directly, as this class
+ * did before: its virtual result-set calls and recursive descent still made 3-D searches 48% of a
+ * whole run; FlatKdTree3 (flat_kdtree.h) answers the same queries with the same points and
+ * distances. Points with a non-finite coordinate are left out (as pcl::KdTreeFLANN does); results
+ * index the input cloud. Queries are const and thread-safe. */
 template <typename PointT>
 class KdTree {
  public:
@@ -50,24 +51,21 @@ class KdTree {
 
   void setInputCloud(const CloudConstPtr& cloud) {
     cloud_ = cloud;
-    index_.reset();
-    data_.clear();
     map_.clear();
-    if (!cloud) return;
-    data_.reserve(3 * cloud->size());
-    map_.reserve(cloud->size());
-    for (std::size_t i = 0; i < cloud->size(); ++i) {
-      const PointT& p = (*cloud)[i];
-      if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z)) continue;
-      data_.push_back(p.x);
-      data_.push_back(p.y);
-      data_.push_back(p.z);
-      map_.push_back(static_cast<int>(i));
+    std::vector<float> data;
+    if (cloud) {
+      data.reserve(3 * cloud->size());
+      map_.reserve(cloud->size());
+      for (std::size_t i = 0; i < cloud->size(); ++i) {
+        const PointT& p = (*cloud)[i];
+        if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z)) continue;
+        data.push_back(p.x);
+        data.push_back(p.y);
+        data.push_back(p.z);
+        map_.push_back(static_cast<int>(i));
+      }
     }
-    if (map_.empty()) return;
-    index_ = std::make_unique<Index>(flann::Matrix<float>(data_.data(), map_.size(), 3),
-                                     flann::KDTreeSingleIndexParams(15));
-    index_->buildIndex();
+    tree_.build(data.data(), map_.size());
   }
 
   const CloudConstPtr& getInputCloud() const { return cloud_; }
@@ -85,33 +83,28 @@ class KdTree {
                      std::vector<float>& sqr_distances) const {
     indices.clear();
     sqr_distances.clear();
-    if (!index_ || k <= 0 || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z))
+    if (map_.empty() || k <= 0 || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z))
       return 0;
-    const std::size_t kk = std::min<std::size_t>(static_cast<std::size_t>(k), map_.size());
     const float q[3] = {x, y, z};
-    std::vector<std::size_t> idx;
-    flann::KNNSimpleResultSet<float> result(kk);
-    flannFindNeighbors(*index_, result, q, params_, idx, sqr_distances, true);
-    indices.resize(idx.size());
-    for (std::size_t i = 0; i < idx.size(); ++i) indices[i] = map_[idx[i]];
+    tree_.knn(q, k, indices, sqr_distances);
+    for (int& i : indices) i = map_[i];
     return static_cast<int>(indices.size());
   }
 
   /** \brief The nearest point within sqrt(`max_sqr_distance`) (inclusive), or -1 when there is
    * none, an empty tree or a non-finite query; its squared distance in `sqr_distance`. The same
-   * point as nearestKSearch(k = 1) whenever that one lies within the bound, without the heap
-   * allocations of a general query, and the bound prunes the search: the motion method's
-   * residuals and ICP make tens of millions of these. */
+   * point as nearestKSearch(k = 1) whenever that one lies within the bound, without allocation,
+   * and the bound prunes the search: the motion method's residuals and ICP make tens of
+   * millions of these. */
   int nearest(float x, float y, float z, float max_sqr_distance, float& sqr_distance) const {
-    if (!index_ || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z) ||
+    if (map_.empty() || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z) ||
         !(max_sqr_distance >= 0.0f))
       return -1;
     const float q[3] = {x, y, z};
-    NearestResult result(std::nextafter(max_sqr_distance, std::numeric_limits<float>::max()));
-    index_->findNeighbors(result, q, params_);
-    if (result.index == kNone) return -1;
-    sqr_distance = result.dist;
-    return map_[result.index];
+    const int row =
+        tree_.nearest(q, std::nextafter(max_sqr_distance, std::numeric_limits<float>::max()),
+                      sqr_distance);
+    return row < 0 ? -1 : map_[row];
   }
 
   /** \brief All points within `radius` (at most `max_nn` of the closest when max_nn > 0),
@@ -120,45 +113,19 @@ class KdTree {
                    std::vector<float>& sqr_distances, unsigned int max_nn = 0) const {
     indices.clear();
     sqr_distances.clear();
-    if (!index_ || !(radius >= 0.0) || !std::isfinite(p.x) || !std::isfinite(p.y) ||
+    if (map_.empty() || !(radius >= 0.0) || !std::isfinite(p.x) || !std::isfinite(p.y) ||
         !std::isfinite(p.z))
       return 0;
     const float q[3] = {p.x, p.y, p.z};
-    const float r2 = static_cast<float>(radius * radius);
-    std::vector<std::size_t> idx;
-    if (max_nn > 0) {
-      const std::size_t cap = std::min<std::size_t>(max_nn, map_.size());
-      flann::KNNRadiusResultSet<float> result(r2, cap);
-      flannFindNeighbors(*index_, result, q, params_, idx, sqr_distances, true);
-    } else {
-      flann::RadiusResultSet<float> result(r2);
-      flannFindNeighbors(*index_, result, q, params_, idx, sqr_distances, true);
-    }
-    indices.resize(idx.size());
-    for (std::size_t i = 0; i < idx.size(); ++i) indices[i] = map_[idx[i]];
+    tree_.radius(q, static_cast<float>(radius * radius), max_nn, indices, sqr_distances);
+    for (int& i : indices) i = map_[i];
     return static_cast<int>(indices.size());
   }
 
  private:
-  using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
-  static constexpr std::size_t kNone = static_cast<std::size_t>(-1);
-  /** One nearest point under a bound: FLANN's result-set interface without a heap buffer
-   * (KNNSimpleResultSet keeps a std::vector); same rule (strictly closer replaces). */
-  struct NearestResult : flann::ResultSet<float> {
-    explicit NearestResult(float bound) : dist(bound) {}
-    bool full() const override { return true; }
-    void addPoint(float d, std::size_t i) override {
-      if (d < dist) dist = d, index = i;
-    }
-    float worstDist() const override { return dist; }
-    float dist;
-    std::size_t index = kNone;
-  };
   CloudConstPtr cloud_;
-  std::vector<float> data_;  ///< xyz of the finite points, the matrix FLANN indexes
-  std::vector<int> map_;     ///< tree row -> index in the cloud
-  std::unique_ptr<Index> index_;
-  flann::SearchParams params_{-1, 0.0f, true};
+  std::vector<int> map_;  ///< tree row -> index in the cloud
+  FlatKdTree3 tree_;
 };
 
 /** \brief A pcl::search::KdTree whose point queries go through KdTree above, for PCL

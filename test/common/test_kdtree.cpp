@@ -1,5 +1,6 @@
-// pcl_animseg::KdTree answers exactly as pcl::KdTreeFLANN (same FLANN index), NaN points left
-// out, queries from several threads; SearchKdTree inside PCL's ICP.
+// pcl_animseg::KdTree answers exactly as pcl::KdTreeFLANN (same points, same distances), NaN
+// points left out, bounded nearest queries against brute force, queries from several threads;
+// SearchKdTree inside PCL's ICP.
 #include <pcl/kdtree/kdtree_flann.h>
 #include <pcl/point_types.h>
 #include <pcl/registration/icp.h>
@@ -7,6 +8,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <limits>
 #include <random>
 
@@ -56,6 +58,73 @@ TEST(KdTree, SameAnswersAsPclKdTreeFlann) {
     EXPECT_EQ(ia, ib);
   }
   for (int i : ib) EXPECT_TRUE(std::isfinite((*cloud)[i].y));
+}
+
+// The bounded query of the motion method: the nearest point within the bound (inclusive) or
+// none, with FLANN's float distance, checked by brute force on queries near and far from a
+// surface-like cloud (as the residuals of good and bad poses make them).
+TEST(KdTree, BoundedNearestAgreesWithBruteForce) {
+  const Cloud::Ptr cloud = randomCloud(4000, 6, true);
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
+  tree.setInputCloud(cloud);
+  std::mt19937 rng(7);
+  std::normal_distribution<float> g(0.0f, 1.0f);
+  auto dist2 = [](const pcl::PointNormal& a, float x, float y, float z) {
+    float r = 0.0f;
+    r += (x - a.x) * (x - a.x);
+    r += (y - a.y) * (y - a.y);
+    r += (z - a.z) * (z - a.z);
+    return r;
+  };
+  int found = 0, none = 0;
+  for (int n = 0; n < 2000; ++n) {
+    const float spread = n % 2 ? 0.05f : 1.0f;  // near the cloud's points, or anywhere
+    const pcl::PointNormal& c = (*cloud)[static_cast<std::size_t>(n) % cloud->size()];
+    const float x = (std::isfinite(c.y) ? c.x : 0.0f) + spread * g(rng);
+    const float y = (std::isfinite(c.y) ? c.y : 0.0f) + spread * g(rng);
+    const float z = (std::isfinite(c.y) ? c.z : 0.0f) + spread * g(rng);
+    const float bound = n % 3 == 0 ? 0.01f : 0.25f;
+    float best = std::numeric_limits<float>::infinity();
+    for (const auto& p : cloud->points)
+      if (std::isfinite(p.y)) best = std::min(best, dist2(p, x, y, z));
+    float d2 = -1.0f;
+    const int i = tree.nearest(x, y, z, bound, d2);
+    if (best <= bound) {
+      ASSERT_GE(i, 0) << n;
+      EXPECT_EQ(d2, best) << n;
+      EXPECT_EQ(dist2((*cloud)[i], x, y, z), best) << n;
+      // Inclusive: the bound set to the nearest distance itself still finds it.
+      EXPECT_EQ(tree.nearest(x, y, z, best, d2), i) << n;
+      ++found;
+    } else {
+      EXPECT_EQ(i, -1) << n;
+      ++none;
+    }
+  }
+  EXPECT_GT(found, 500);  // both outcomes are exercised
+  EXPECT_GT(none, 200);
+  float unused = 0.0f;
+  EXPECT_EQ(tree.nearest(std::numeric_limits<float>::quiet_NaN(), 0.0f, 0.0f, 1.0f, unused), -1);
+}
+
+// Several points at exactly the same place (duplicates in merged scans): every one of them is
+// returned by the k-NN and radius queries, and the nearest is one of them.
+TEST(KdTree, DuplicatePoints) {
+  Cloud::Ptr cloud = randomCloud(300, 8, false);
+  for (int r = 0; r < 40; ++r) cloud->push_back((*cloud)[17]);
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
+  tree.setInputCloud(cloud);
+  std::vector<int> idx;
+  std::vector<float> d2;
+  ASSERT_EQ(tree.nearestKSearch((*cloud)[17], 41, idx, d2), 41);
+  for (float d : d2) EXPECT_EQ(d, 0.0f);
+  EXPECT_TRUE(std::is_sorted(idx.begin(), idx.end()));  // equal distances: lower index first
+  EXPECT_EQ(idx.front(), 17);
+  ASSERT_EQ(tree.radiusSearch((*cloud)[17], 1e-6, idx, d2), 41);
+  float d = -1.0f;
+  const int i = tree.nearest((*cloud)[17].x, (*cloud)[17].y, (*cloud)[17].z, 0.0f, d);
+  EXPECT_TRUE(i == 17 || i >= 300) << i;
+  EXPECT_EQ(d, 0.0f);
 }
 
 TEST(KdTree, EdgeCases) {
