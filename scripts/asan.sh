@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Builds the io, common, evaluation and synth tests with AddressSanitizer + UndefinedBehaviorSanitizer
-# (GCC, build directory build-asan or $ASAN_BUILD_DIR) and runs them; fails on any test failure or
+# Builds the io, common (the hand-written kd-tree too), evaluation and synth tests with
+# AddressSanitizer + UndefinedBehaviorSanitizer (GCC, build directory build-asan or
+# $ASAN_BUILD_DIR) and runs them; fails on any test failure or
 # sanitizer report. A subset of the suite: the modules that parse untrusted files and do index
 # arithmetic, at a CI cost of a few minutes on 2 cores.
 set -euo pipefail
@@ -8,7 +9,7 @@ cd "$(dirname "$0")/.."
 BUILD=${ASAN_BUILD_DIR:-build-asan}
 JOBS=${JOBS:-2}
 TESTS=(test_sequence test_io_writers test_sequence_io test_regressions test_metrics test_articulated
-       test_write_sequence)
+       test_write_sequence test_kdtree)
 cmake -S . -B "$BUILD" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPCL_ANIMSEG_SANITIZE=ON \
   -DPCL_ANIMSEG_WITH_CUDA=OFF -DPCL_ANIMSEG_BUILD_BENCHMARKS=OFF >/dev/null
 present=()
