@@ -23,6 +23,12 @@ struct ClusterMerge {
   double cost = 0.0;
 };
 
+/** \brief The same merge at exactly the same cost. */
+inline bool operator==(const ClusterMerge& x, const ClusterMerge& y) {
+  return x.a == y.a && x.b == y.b && x.cost == y.cost;
+}
+inline bool operator!=(const ClusterMerge& x, const ClusterMerge& y) { return !(x == y); }
+
 /** \brief Result of clustering a whole sequence jointly.
  *
  * Labels are 0..num_clusters-1 and mean the same part in every frame. `labels[t][j]` is the
