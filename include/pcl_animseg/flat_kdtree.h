@@ -2,7 +2,7 @@
 /** \file flat_kdtree.h An exact 3-D kd-tree for single-point queries in hot loops. */
 #include <algorithm>
 #include <cmath>
-#include <cstdint>
+#include <cstddef>
 #include <limits>
 #include <numeric>
 #include <utility>
@@ -31,18 +31,14 @@ class FlatKdTree3 {
    * finite). The data are copied. */
   void build(const float* xyz, std::size_t n) {
     nodes_.clear();
-    pts_.assign(xyz, xyz + 3 * n);
     rows_.resize(n);
     std::iota(rows_.begin(), rows_.end(), 0);
-    if (n == 0) return;
-    std::vector<float> scratch(pts_);
-    // Points are permuted into leaf order; pts_ is rewritten in that order at the end.
+    // The splits permute rows_ into leaf order; the points are then copied in that order.
     nodes_.reserve(2 * (n / kLeafSize + 1));
-    buildNode(scratch, 0, static_cast<int>(n));
-    std::vector<float> ordered(3 * n);
+    if (n > 0) buildNode(xyz, 0, static_cast<int>(n));
+    pts_.resize(3 * n);
     for (std::size_t i = 0; i < n; ++i)
-      for (int d = 0; d < 3; ++d) ordered[3 * i + d] = scratch[3 * rows_[i] + d];
-    pts_.swap(ordered);
+      for (int d = 0; d < 3; ++d) pts_[3 * i + d] = xyz[3 * static_cast<std::size_t>(rows_[i]) + d];
   }
 
   std::size_t size() const { return rows_.size(); }
@@ -198,7 +194,7 @@ class FlatKdTree3 {
 
   /** Node over rows_[begin, end) (indices into `xyz`, the points in input order); returns its
    * index. Split on the widest side of the points' box, at the median. */
-  int buildNode(const std::vector<float>& xyz, int begin, int end) {
+  int buildNode(const float* xyz, int begin, int end) {
     const int id = static_cast<int>(nodes_.size());
     nodes_.emplace_back();
     if (end - begin <= kLeafSize) {
