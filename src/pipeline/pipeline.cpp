@@ -55,7 +55,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   // paper method's joint space; the motion method (the default) clusters by rigid motion and
   // uses none of them, nor the joint-space densities and saddles they would feed (its hierarchy
   // follows its own merges), so neither is computed for it: same labels, levels and motions,
-  // 25% less time on a 200k-point humanoid (15.7 s -> 11.8 s, 2 cores).
+  // 27% less time on a 200k-point humanoid (15.7 s -> 11.5 s, 2 cores).
   const bool motion_method = params.mean_shift.method == segmentation::MeanShiftMethod::Motion;
   SequenceFeatures features;
   if (params.features && motion_method) {

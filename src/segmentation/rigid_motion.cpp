@@ -12,7 +12,6 @@
 #include <cmath>
 #include <cstdio>
 #include <iomanip>
-#include <numeric>
 #include <sstream>
 
 namespace pcl_animseg {
@@ -188,19 +187,15 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
   // ICPs run to the iteration cap), and started last they ran alone on an idle machine (800k
   // humanoid, --parts 15, 2 cores: rigid motions 17.8 s -> 13.7 s; same results, each part's
   // fit is independent of the others).
-  {
-    std::vector<std::size_t> size(jobs.size(), 0);
-    for (std::size_t j = 0; j < jobs.size(); ++j)
-      for (int l : (*sets[jobs[j].first])[0]) size[j] += l == jobs[j].second;
-    std::vector<std::size_t> order(jobs.size());
-    std::iota(order.begin(), order.end(), 0);
-    std::stable_sort(order.begin(), order.end(),
-                     [&](std::size_t x, std::size_t y) { return size[x] > size[y]; });
-    std::vector<std::pair<std::size_t, int>> sorted;
-    sorted.reserve(jobs.size());
-    for (std::size_t j : order) sorted.push_back(jobs[j]);
-    jobs.swap(sorted);
+  std::vector<std::vector<std::size_t>> frame0_points(sets.size());
+  for (std::size_t s = 0; s < sets.size(); ++s) {
+    frame0_points[s].assign(static_cast<std::size_t>(num_parts[s]), 0);
+    for (int l : (*sets[s])[0])
+      if (l >= 0 && l < num_parts[s]) ++frame0_points[s][l];
   }
+  std::stable_sort(jobs.begin(), jobs.end(), [&](const auto& x, const auto& y) {
+    return frame0_points[x.first][x.second] > frame0_points[y.first][y.second];
+  });
   const RigidMotionParams p = params_;
 #pragma omp parallel for schedule(dynamic)
   for (std::size_t job = 0; job < jobs.size(); ++job) {
@@ -210,7 +205,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     motion.frames.assign(frames, RigidTransform());
     for (RigidTransform& r : motion.frames) r.rms = -1.0;
     Cloud::Ptr source = partCloud(*sequence_->frame(0), labels[0], part, p.max_points);
-    for (int l : labels[0]) motion.points_frame0 += (l == part);
+    motion.points_frame0 = frame0_points[jobs[job].first][part];
     if (static_cast<int>(source->size()) < p.min_points) continue;
     motion.frames[0].valid = true;
     motion.frames[0].rms = 0.0;
