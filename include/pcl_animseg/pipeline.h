@@ -52,8 +52,8 @@ struct PipelineResult {
 };
 
 /** \brief Runs scale space, keypoints, signatures (paper method only), mean shift, refinement,
- * hierarchy and rigid motion on a loaded sequence (Fig. 1). Throws Error on bad parameters. Stage times are recorded
- * in `progress` under the names of DESIGN.md's summary.json. */
+ * hierarchy and rigid motion on a loaded sequence (Fig. 1). Throws Error on bad parameters.
+ * Stage times are recorded in `progress` under the names of DESIGN.md's summary.json. */
 PipelineResult runPipeline(const PointCloudSequence& sequence, const PipelineParams& params,
                            Progress& progress);
 

@@ -111,6 +111,14 @@ std::uint64_t pairKey(int a, int b) {
 }
 int pairFirst(std::uint64_t key) { return static_cast<int>(key >> 32); }
 int pairSecond(std::uint64_t key) { return static_cast<int>(key & 0xffffffffu); }
+/** Labels of the whole sequence (frames one after the other) cut into frames at `offsets`. */
+std::vector<std::vector<int>> splitByFrame(const std::vector<int>& flat,
+                                           const std::vector<std::size_t>& offsets) {
+  std::vector<std::vector<int>> labels(offsets.size() - 1);
+  for (std::size_t t = 0; t + 1 < offsets.size(); ++t)
+    labels[t].assign(flat.begin() + offsets[t], flat.begin() + offsets[t + 1]);
+  return labels;
+}
 }  // namespace
 
 StageTimer::StageTimer() : on_(std::getenv("ANIMSEG_MS_TIMING") != nullptr) { restart(); }
@@ -445,14 +453,12 @@ namespace {
 using DensityFn =
     std::function<void(const Eigen::MatrixXf&, const std::vector<char>&, Eigen::MatrixXf&)>;
 void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
-                const std::vector<int>& graph, int k, const PointCloudSequence& seq,
-                bool modes_known, const DensityFn& dens, const Eigen::MatrixXf& f,
-                SegmentationResult& result);
+                const std::vector<int>& graph, int k, bool modes_known, const DensityFn& dens,
+                const Eigen::MatrixXf& f, SegmentationResult& result);
 }  // namespace
 
 void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
-                  const std::vector<int>& graph, int k, const PointCloudSequence& seq,
-                  const JointKernelSum& sums,
+                  const std::vector<int>& graph, int k, const JointKernelSum& sums,
                   const Eigen::VectorXf& point_density, SegmentationResult& result) {
   const int v = sums.valueCount();
   DensityFn dens = [&](const Eigen::MatrixXf& q, const std::vector<char>& qk, Eigen::MatrixXf& o) {
@@ -462,13 +468,12 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
     sums.evaluate(q, rows, qk, all);
     o = all.col(v - 1);
   };
-  finishWith(space, flat, num_clusters, graph, k, seq, true, dens, point_density, result);
+  finishWith(space, flat, num_clusters, graph, k, true, dens, point_density, result);
 }
 
 void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
                   const std::vector<int>& graph, int k, const MeanShiftParams& params,
-                  const PointCloudSequence& seq, bool modes_known, SegmentationResult& result,
-                  MeanShiftDeviceBackend* device) {
+                  bool modes_known, SegmentationResult& result, MeanShiftDeviceBackend* device) {
   const Eigen::Index n = space.z.rows();
   // Density (Eq. 4) at the points and, when known, at the modes: on the device or the CPU.
   DensityFn dens;
@@ -566,14 +571,13 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
       queryAndClimb(rows);
     }
   }
-  finishWith(space, flat, num_clusters, graph, k, seq, modes_known, dens, f, result);
+  finishWith(space, flat, num_clusters, graph, k, modes_known, dens, f, result);
 }
 
 namespace {
 void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
-                const std::vector<int>& graph, int k, const PointCloudSequence& seq,
-                bool modes_known, const DensityFn& dens, const Eigen::MatrixXf& f,
-                SegmentationResult& result) {
+                const std::vector<int>& graph, int k, bool modes_known, const DensityFn& dens,
+                const Eigen::MatrixXf& f, SegmentationResult& result) {
   const Eigen::Index n = space.z.rows();
   result.num_clusters = num_clusters;
   if (!modes_known) {
@@ -623,9 +627,7 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
                               static_cast<double>(cross[g - 1].second)});
     e = g;
   }
-  result.labels.assign(seq.size(), {});
-  for (std::size_t t = 0; t < seq.size(); ++t)
-    result.labels[t].assign(flat.begin() + space.offsets[t], flat.begin() + space.offsets[t + 1]);
+  result.labels = splitByFrame(flat, space.offsets);
 }
 }  // namespace
 
@@ -1184,10 +1186,10 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     timer.restart();
     guarded([&](MeanShiftDeviceBackend* d) {
       if (!d && sums) {
-        detail::finishResult(space, flat, num_clusters, graph, k, seq, *sums, point_density,
+        detail::finishResult(space, flat, num_clusters, graph, k, *sums, point_density,
                              result);
       } else {
-        detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, true, result, d);
+        detail::finishResult(space, flat, num_clusters, graph, k, params_, true, result, d);
       }
     });
     timer.lap("densities + saddles");
@@ -1198,10 +1200,7 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     if (!params_.record_densities && (!result.merges.empty() || num_clusters <= 1)) {
       result.num_clusters = num_clusters;
       result.mode_density.assign(static_cast<std::size_t>(std::max(num_clusters, 0)), 0.0);
-      const auto offsets = seq.offsets();
-      result.labels.assign(seq.size(), {});
-      for (std::size_t t = 0; t < seq.size(); ++t)
-        result.labels[t].assign(flat.begin() + offsets[t], flat.begin() + offsets[t + 1]);
+      result.labels = detail::splitByFrame(flat, seq.offsets());
       return;
     }
     // Built after the tracking, so that the joint space (N x d floats) and the k-NN graph do not
@@ -1211,7 +1210,7 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     const std::vector<int> graph = detail::knnGraph(seq, k);
     timer.lap("k-NN graph");
     guarded([&](MeanShiftDeviceBackend* d) {
-      detail::finishResult(space, flat, num_clusters, graph, k, params_, seq, false, result, d);
+      detail::finishResult(space, flat, num_clusters, graph, k, params_, false, result, d);
     });
     timer.lap("densities + saddles");
   }

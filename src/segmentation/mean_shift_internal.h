@@ -86,13 +86,12 @@ std::vector<int> knnGraph(const PointCloudSequence& seq, int k);
  * and saddles from the point labels (flattened, 0..C-1); densities on `device` when given. */
 void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, int num_clusters,
                   const std::vector<int>& graph, int k, const MeanShiftParams& params,
-                  const PointCloudSequence& seq, bool modes_known, SegmentationResult& result,
+                  bool modes_known, SegmentationResult& result,
                   MeanShiftDeviceBackend* device = nullptr);
 /** The same, reusing the kernel sums of the iteration (their last value column is the density,
  * the homogeneous coordinate of Eq. 10) and the density already known at every point. */
 void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, int num_clusters,
-                  const std::vector<int>& graph, int k, const PointCloudSequence& seq,
-                  const JointKernelSum& sums,
+                  const std::vector<int>& graph, int k, const JointKernelSum& sums,
                   const Eigen::VectorXf& point_density, SegmentationResult& result);
 
 /** The motion method; fills result.labels, num_clusters and merges. */
