@@ -62,6 +62,30 @@ TEST(GMMRefinement, ElbowBoundaryErrorDropsPerFrame) {
   EXPECT_GE(o.ari_after, o.ari_before);
 }
 
+// The iterating path (the default is one pass): a boundary shifted by 5 spacings is beyond one
+// band's reach (L_r 4), so later passes, with bands rebuilt from the new labels, must go on
+// moving it and stop by themselves before the cap.
+TEST(GMMRefinement, SeveralPassesReachFurtherThanOne) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0}, {1.0}, 4, 6000, 5.0, 5);
+  RefinementParams one;
+  RefinementParams many;
+  many.max_iterations = 12;
+  const Outcome o1 = run(chain, one, 2);
+  GMMBoundaryRefinement refine;
+  refine.setInputSequence(&chain.sequence);
+  refine.setParams(many);
+  SegmentationResult in, out;
+  in.labels = chain.shifted;
+  in.num_clusters = 2;
+  refine.refine(in, out);
+  const double e_many = animseg_test::boundaryError(chain.sequence, chain.truth, out.labels);
+  std::cout << "one pass " << o1.error_after << ", " << refine.getStats().iterations
+            << " passes " << e_many << std::endl;
+  EXPECT_GT(refine.getStats().iterations, 1);
+  EXPECT_LT(refine.getStats().iterations, many.max_iterations);
+  EXPECT_LT(e_many, o1.error_after);
+}
+
 // Three and four parts: joints bent different ways, boundaries shifted toward different sides.
 TEST(GMMRefinement, ChainOfFourParts) {
   const auto chain =
