@@ -1,13 +1,11 @@
 // GMM boundary refinement on a generated articulated sequence (issue: the refinement must never
 // lower the pooled ARI). Lives with the pipeline tests because it needs the synth module.
 #include <gtest/gtest.h>
+#include <pcl/kdtree/kdtree_flann.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
-#include <pcl/kdtree/kdtree_flann.h>
 #include <pcl_animseg/synth/articulated.h>
-
-#include "segmentation/synthetic_parts.h"
 
 #include <cstdio>
 #include <cstdlib>
@@ -15,9 +13,10 @@
 #include <memory>
 #include <string>
 
+#include "segmentation/synthetic_parts.h"
+
 namespace seg = pcl_animseg::segmentation;
 namespace synth = pcl_animseg::synth;
-
 
 // The true labels of a galloping quadruped (parts overlap at the joints, like a real body, so the
 // two sides of a hip or shoulder have alike normals). Refining labels that are already right must
@@ -67,6 +66,72 @@ std::vector<std::vector<int>> toTruthIds(const std::vector<std::vector<int>>& la
   return out;
 }
 
+// The default motion segmentation of a generated sequence at its true part count, refined.
+struct Refined {
+  std::shared_ptr<pcl_animseg::PointCloudSequence> seq;
+  std::vector<std::vector<int>> truth;
+  seg::SegmentationResult in, out;
+  int passes = 0;
+  double error_before = 0.0, error_after = 0.0;  // boundary error (synthetic_parts.h)
+  double ari_before = 0.0, ari_after = 0.0;      // pooled
+};
+
+Refined refineMotionLabels(const synth::SynthParams& sp, const seg::RefinementParams& rp) {
+  Refined r;
+  const auto frames = synth::generate(sp);
+  r.seq = std::make_shared<pcl_animseg::PointCloudSequence>(synth::toSequence(frames));
+  for (const auto& f : frames) r.truth.push_back(f.labels);
+  seg::MeanShiftSegmentation ms;
+  ms.setInputSequence(r.seq);
+  seg::MeanShiftParams mp;
+  mp.target_clusters = synth::partCount(sp.plan);
+  ms.setParams(mp);
+  ms.segment(r.in);
+  seg::GMMBoundaryRefinement refine;
+  refine.setInputSequence(r.seq.get());
+  refine.setParams(rp);
+  refine.refine(r.in, r.out);
+  r.passes = refine.getStats().iterations;
+  r.error_before = animseg_test::boundaryError(*r.seq, r.truth, toTruthIds(r.in.labels, r.truth));
+  r.error_after = animseg_test::boundaryError(*r.seq, r.truth, toTruthIds(r.out.labels, r.truth));
+  r.ari_before = pcl_animseg::evaluation::evaluate(r.in.labels, r.truth).pooled_ari;
+  r.ari_after = pcl_animseg::evaluation::evaluate(r.out.labels, r.truth).pooled_ari;
+  return r;
+}
+
+// Where the wrong points near a true boundary lie: a histogram of their distance to the border
+// the refinement started from, before and after it.
+void printWrongByDistance(const Refined& r) {
+  const auto tin = toTruthIds(r.in.labels, r.truth), tout = toTruthIds(r.out.labels, r.truth);
+  long hist_in[6] = {0}, hist_out[6] = {0};
+  std::vector<int> idx;
+  std::vector<float> d2;
+  for (std::size_t t = 0; t < r.seq->size(); ++t) {
+    const auto& f = r.seq->frame(t);
+    const double s = pcl_animseg::meanSpacing(*f);
+    pcl::KdTreeFLANN<pcl::PointNormal> tree, true_border, start_border;
+    tree.setInputCloud(f);
+    true_border.setInputCloud(animseg_test::boundaryPoints(f, tree, r.truth[t], s));
+    start_border.setInputCloud(animseg_test::boundaryPoints(f, tree, r.in.labels[t], s));
+    for (std::size_t j = 0; j < f->size(); ++j) {
+      true_border.nearestKSearch((*f)[j], 1, idx, d2);
+      if (std::sqrt(d2[0]) > 3 * s) continue;
+      start_border.nearestKSearch((*f)[j], 1, idx, d2);
+      const double d = std::sqrt(d2[0]) / s;
+      const int bin = d < 2 ? 0 : d < 4 ? 1 : d < 6 ? 2 : d < 10 ? 3 : d < 20 ? 4 : 5;
+      hist_in[bin] += tin[t][j] != r.truth[t][j];
+      hist_out[bin] += tout[t][j] != r.truth[t][j];
+    }
+  }
+  std::printf(
+      "  wrong near a true boundary, by distance to the unrefined boundary "
+      "(<2 <4 <6 <10 <20 >=20 spacings):\n  before");
+  for (long h : hist_in) std::printf(" %ld", h);
+  std::printf("\n  after ");
+  for (long h : hist_out) std::printf(" %ld", h);
+  std::printf("\n");
+}
+
 }  // namespace
 
 // The motion method's labels of a walking humanoid (3000 points per frame, seed 6), refined with
@@ -81,40 +146,35 @@ TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
   sp.points = 3000;
   sp.point_variation = 0.2;
   sp.seed = 6;
-  const auto frames = synth::generate(sp);
-  auto seq = std::make_shared<pcl_animseg::PointCloudSequence>(synth::toSequence(frames));
-  std::vector<std::vector<int>> truth;
-  for (const auto& f : frames) truth.push_back(f.labels);
-  seg::MeanShiftSegmentation ms;
-  ms.setInputSequence(seq);
-  seg::MeanShiftParams mp;
-  mp.target_clusters = synth::partCount(sp.plan);
-  ms.setParams(mp);
-  seg::SegmentationResult in, out;
-  ms.segment(in);
-  seg::GMMBoundaryRefinement refine;
-  refine.setInputSequence(seq.get());
-  refine.refine(in, out);
-  const double e0 = animseg_test::boundaryError(*seq, truth, toTruthIds(in.labels, truth));
-  const double e1 = animseg_test::boundaryError(*seq, truth, toTruthIds(out.labels, truth));
-  const double a0 = pcl_animseg::evaluation::evaluate(in.labels, truth).pooled_ari;
-  const double a1 = pcl_animseg::evaluation::evaluate(out.labels, truth).pooled_ari;
-  std::printf("boundary error %.4f -> %.4f, pooled ARI %.4f -> %.4f, %d pass(es)\n", e0, e1, a0,
-              a1, refine.getStats().iterations);
-  EXPECT_GT(e0, 0.05);  // there is something to refine
-  EXPECT_LE(e1, e0);
-  EXPECT_GE(a1, a0 - 0.001);
+  const Refined r = refineMotionLabels(sp, seg::RefinementParams());
+  std::printf("boundary error %.4f -> %.4f, pooled ARI %.4f -> %.4f, %d pass(es)\n", r.error_before,
+              r.error_after, r.ari_before, r.ari_after, r.passes);
+  EXPECT_GT(r.error_before, 0.05);  // there is something to refine
+  EXPECT_LE(r.error_after, r.error_before);
+  EXPECT_GE(r.ari_after, r.ari_before - 0.001);
 }
 
 // Measurement (docs/mean_shift_experiments.md): the boundary error (points within 3 spacings of a
 // true boundary with a wrong label) and the pooled ARI of the default motion segmentation at the
 // true part count, before and after the refinement. PLANS (comma-separated), POINTS, SEED; and
-// NARROW, OUTER, TOLERANCE, RATIO, SPATIAL, ITERATIONS for the refinement's parameters.
+// NARROW, OUTER, TOLERANCE, RATIO, SPATIAL, ITERATIONS for the refinement's parameters; DIAG=1
+// adds where the wrong points lie.
 TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
   const char* plans = std::getenv("PLANS");
   const std::string list = plans ? plans : "quadruped,humanoid,spider,hand";
   const char* points = std::getenv("POINTS");
   const char* seed = std::getenv("SEED");
+  auto env = [](const char* name, double fallback) {
+    const char* v = std::getenv(name);
+    return v ? std::atof(v) : fallback;
+  };
+  seg::RefinementParams rp;
+  rp.narrow_band = env("NARROW", rp.narrow_band);
+  rp.outer_band = env("OUTER", rp.outer_band);
+  rp.motion_tolerance = env("TOLERANCE", rp.motion_tolerance);
+  rp.min_log_ratio = env("RATIO", rp.min_log_ratio);
+  rp.spatial_weight = env("SPATIAL", rp.spatial_weight);
+  rp.max_iterations = static_cast<int>(env("ITERATIONS", rp.max_iterations));
   std::size_t pos = 0;
   while (pos < list.size()) {
     const std::size_t comma = std::min(list.find(',', pos), list.size());
@@ -125,79 +185,11 @@ TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
     sp.points = points ? std::atoi(points) : 2000;
     sp.point_variation = 0.2;
     sp.seed = seed ? static_cast<unsigned>(std::atoi(seed)) : 3u;
-    const auto frames = synth::generate(sp);
-    auto seq = std::make_shared<pcl_animseg::PointCloudSequence>(synth::toSequence(frames));
-    std::vector<std::vector<int>> truth;
-    for (const auto& f : frames) truth.push_back(f.labels);
-    seg::MeanShiftSegmentation ms;
-    ms.setInputSequence(seq);
-    seg::MeanShiftParams mp;
-    mp.target_clusters = synth::partCount(sp.plan);
-    ms.setParams(mp);
-    seg::SegmentationResult in, out;
-    ms.segment(in);
-    seg::GMMBoundaryRefinement refine;
-    refine.setInputSequence(seq.get());
-    seg::RefinementParams rp;
-    auto env = [](const char* name, double fallback) {
-      const char* v = std::getenv(name);
-      return v ? std::atof(v) : fallback;
-    };
-    rp.narrow_band = env("NARROW", rp.narrow_band);
-    rp.outer_band = env("OUTER", rp.outer_band);
-    rp.motion_tolerance = env("TOLERANCE", rp.motion_tolerance);
-    rp.min_log_ratio = env("RATIO", rp.min_log_ratio);
-    rp.spatial_weight = env("SPATIAL", rp.spatial_weight);
-    rp.max_iterations = static_cast<int>(env("ITERATIONS", rp.max_iterations));
-    refine.setParams(rp);
-    refine.refine(in, out);
-    const double e0 = animseg_test::boundaryError(*seq, truth, toTruthIds(in.labels, truth));
-    const double e1 = animseg_test::boundaryError(*seq, truth, toTruthIds(out.labels, truth));
+    const Refined r = refineMotionLabels(sp, rp);
     std::printf("%-10s %d pts: boundary error %.3f -> %.3f (%.0f%% fewer), ARI %.3f -> %.3f\n",
-                synth::toString(sp.plan).c_str(), sp.points, e0, e1, 100.0 * (1.0 - e1 / e0),
-                pcl_animseg::evaluation::evaluate(in.labels, truth).pooled_ari,
-                pcl_animseg::evaluation::evaluate(out.labels, truth).pooled_ari);
+                synth::toString(sp.plan).c_str(), sp.points, r.error_before, r.error_after,
+                100.0 * (1.0 - r.error_after / r.error_before), r.ari_before, r.ari_after);
+    if (std::getenv("DIAG")) printWrongByDistance(r);
     std::fflush(stdout);
-    if (std::getenv("DIAG")) {
-      const auto tin = toTruthIds(in.labels, truth), tout = toTruthIds(out.labels, truth);
-      long hist_in[6] = {0}, hist_out[6] = {0};
-      for (std::size_t t = 0; t < seq->size(); ++t) {
-        const auto& f = seq->frame(t);
-        const double s = pcl_animseg::meanSpacing(*f);
-        pcl::KdTreeFLANN<pcl::PointNormal> tree;
-        tree.setInputCloud(f);
-        std::vector<int> idx;
-        std::vector<float> d2;
-        auto boundaryOf = [&](const std::vector<int>& lab) {
-          pcl::PointCloud<pcl::PointNormal>::Ptr b(new pcl::PointCloud<pcl::PointNormal>);
-          for (std::size_t j = 0; j < f->size(); ++j) {
-            tree.nearestKSearch((*f)[j], 8, idx, d2);
-            for (std::size_t k = 1; k < idx.size(); ++k)
-              if (lab[idx[k]] != lab[j] && d2[k] < 9 * s * s) { b->push_back((*f)[j]); break; }
-          }
-          return b;
-        };
-        auto tb = boundaryOf(truth[t]);
-        auto pb = boundaryOf(in.labels[t]);
-        pcl::KdTreeFLANN<pcl::PointNormal> ttree, ptree;
-        ttree.setInputCloud(tb);
-        ptree.setInputCloud(pb);
-        for (std::size_t j = 0; j < f->size(); ++j) {
-          ttree.nearestKSearch((*f)[j], 1, idx, d2);
-          if (std::sqrt(d2[0]) > 3 * s) continue;
-          ptree.nearestKSearch((*f)[j], 1, idx, d2);
-          const double d = std::sqrt(d2[0]) / s;
-          const int bin = d < 2 ? 0 : d < 4 ? 1 : d < 6 ? 2 : d < 10 ? 3 : d < 20 ? 4 : 5;
-          if (tin[t][j] != truth[t][j]) ++hist_in[bin];
-          if (tout[t][j] != truth[t][j]) ++hist_out[bin];
-        }
-      }
-      std::printf("  wrong near a true boundary, by distance to the unrefined boundary "
-                  "(<2 <4 <6 <10 <20 >=20 spacings):\n  before");
-      for (long h : hist_in) std::printf(" %ld", h);
-      std::printf("\n  after ");
-      for (long h : hist_out) std::printf(" %ld", h);
-      std::printf("\n");
-    }
   }
 }

@@ -96,6 +96,25 @@ inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::ve
   return out;
 }
 
+/** The points of frame `f` with one of their 7 nearest neighbours, closer than 3 spacings `s`,
+ * in another part of `labels`. */
+inline Cloud::Ptr boundaryPoints(const Cloud::Ptr& f,
+                                 const pcl::KdTreeFLANN<pcl::PointNormal>& tree,
+                                 const std::vector<int>& labels, double s) {
+  Cloud::Ptr boundary(new Cloud);
+  std::vector<int> idx;
+  std::vector<float> d2;
+  for (std::size_t j = 0; j < f->size(); ++j) {
+    tree.nearestKSearch((*f)[j], 8, idx, d2);
+    for (std::size_t k = 1; k < idx.size(); ++k)
+      if (labels[idx[k]] != labels[j] && d2[k] < 9 * s * s) {
+        boundary->push_back((*f)[j]);
+        break;
+      }
+  }
+  return boundary;
+}
+
 /** Fraction of points within `radius_spacings` spacings of a true boundary whose label is wrong. */
 inline double boundaryError(const pcl_animseg::PointCloudSequence& seq,
                             const std::vector<std::vector<int>>& truth,
@@ -107,20 +126,12 @@ inline double boundaryError(const pcl_animseg::PointCloudSequence& seq,
     const double s = pcl_animseg::meanSpacing(*f);
     pcl::KdTreeFLANN<pcl::PointNormal> tree;
     tree.setInputCloud(f);
-    Cloud::Ptr boundary(new Cloud);
-    std::vector<int> idx;
-    std::vector<float> d2;
-    for (std::size_t j = 0; j < f->size(); ++j) {
-      tree.nearestKSearch((*f)[j], 8, idx, d2);
-      for (std::size_t k = 1; k < idx.size(); ++k)
-        if (truth[t][idx[k]] != truth[t][j] && d2[k] < 9 * s * s) {
-          boundary->push_back((*f)[j]);
-          break;
-        }
-    }
+    const Cloud::Ptr boundary = boundaryPoints(f, tree, truth[t], s);
     if (boundary->empty()) continue;
     pcl::KdTreeFLANN<pcl::PointNormal> btree;
     btree.setInputCloud(boundary);
+    std::vector<int> idx;
+    std::vector<float> d2;
     for (std::size_t j = 0; j < f->size(); ++j) {
       btree.nearestKSearch((*f)[j], 1, idx, d2);
       if (std::sqrt(d2[0]) <= radius_spacings * s) {

@@ -79,8 +79,8 @@ TEST(GMMRefinement, SeveralPassesReachFurtherThanOne) {
   in.num_clusters = 2;
   refine.refine(in, out);
   const double e_many = animseg_test::boundaryError(chain.sequence, chain.truth, out.labels);
-  std::cout << "one pass " << o1.error_after << ", " << refine.getStats().iterations
-            << " passes " << e_many << std::endl;
+  std::cout << "one pass " << o1.error_after << ", " << refine.getStats().iterations << " passes "
+            << e_many << std::endl;
   EXPECT_GT(refine.getStats().iterations, 1);
   EXPECT_LT(refine.getStats().iterations, many.max_iterations);
   EXPECT_LT(e_many, o1.error_after);
