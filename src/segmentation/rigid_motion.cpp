@@ -48,17 +48,23 @@ RigidTransform fromMatrix(const Eigen::Matrix4f& m) {
   return t;
 }
 
-Cloud::Ptr partCloud(const Cloud& frame, const std::vector<int>& labels, int part,
-                     std::size_t max_points) {
+// The indices of a part's points, evenly subsampled to at most max_points (0: all;
+// deterministic, spread over the whole part).
+std::vector<int> partIndices(const std::vector<int>& labels, int part, std::size_t max_points) {
   std::vector<int> idx;
   for (std::size_t j = 0; j < labels.size(); ++j)
     if (labels[j] == part) idx.push_back(static_cast<int>(j));
-  Cloud::Ptr out(new Cloud);
   const std::size_t n = idx.size();
   const std::size_t keep = max_points > 0 ? std::min(n, max_points) : n;
-  out->reserve(keep);
-  // Even subsampling over the part's points (deterministic, spread over the whole part).
-  for (std::size_t k = 0; k < keep; ++k) out->push_back(frame[idx[k * n / keep]]);
+  std::vector<int> out(keep);
+  for (std::size_t k = 0; k < keep; ++k) out[k] = idx[k * n / keep];
+  return out;
+}
+
+Cloud::Ptr partCloud(const Cloud& frame, const std::vector<int>& labels, int part,
+                     std::size_t max_points) {
+  Cloud::Ptr out(new Cloud);
+  for (int j : partIndices(labels, part, max_points)) out->push_back(frame[j]);
   return out;
 }
 
@@ -71,6 +77,140 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
   const Eigen::Vector3f ev = es.eigenvalues();  // ascending
   return {es.eigenvectors().col(2).cast<double>(),
           ev[1] > 0.0f ? static_cast<double>(ev[2] / ev[1]) : 1e9};
+}
+
+// ICP of a part's frame-0 points (source) onto the part in frame t (target) from `start`, with an
+// annealed rejection distance: wide first passes capture a large motion between frames, the last
+// pass uses a few point spacings so that neighbouring parts' points (mislabelled near a
+// boundary) do not pull. The wide passes are point-to-point: point-to-plane's linear system is
+// nearly singular on a limb (a tube slides along and spins about its axis) and can throw the
+// estimate far off while correspondences are still poor. Returns the transform; `rms` its RMS
+// nearest-point distance.
+Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
+                            const Eigen::Matrix4f& start, double spacing, double part_diag,
+                            const RigidMotionParams& p, double& rms) {
+  const double fine = p.max_correspondence_spacings * spacing;
+  const double coarse = std::max(fine, p.coarse_distance * part_diag);
+  const double passes[2] = {coarse, std::max(fine, coarse / 6.0)};
+  Eigen::Matrix4f m = start;
+  Cloud aligned;
+  // One tree of the target for every pass (PCL would build one per ICP object), queried
+  // without pcl::KdTreeFLANN's per-query overhead (see kdtree.h).
+  auto tree = std::make_shared<SearchKdTree<pcl::PointNormal>>();
+  tree->setInputCloud(target);
+  pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> p2p;
+  p2p.setInputSource(source);
+  p2p.setInputTarget(target);
+  p2p.setSearchMethodTarget(tree, true);
+  // Converged when an iteration moves the part by less than a hundredth of a spacing (PCL
+  // compares the squared translation) or the mean squared error stops improving.
+  p2p.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing, 2));
+  p2p.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
+  for (double distance : passes) {
+    p2p.setMaxCorrespondenceDistance(distance);
+    p2p.setMaximumIterations(std::max(1, p.max_iterations / 2));
+    p2p.align(aligned, m);
+    if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
+  }
+  p2p.setMaxCorrespondenceDistance(fine);
+  p2p.setMaximumIterations(p.max_iterations);
+  p2p.align(aligned, m);
+  if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
+  rms = std::sqrt(p2p.getFitnessScore());
+  // Final point-to-plane pass (sub-spacing accuracy on sampled surfaces); kept only when it
+  // lowers the residual, so a degenerate part cannot make the estimate worse.
+  pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
+  icp.setInputSource(source);
+  icp.setInputTarget(target);
+  icp.setSearchMethodTarget(tree, true);
+  icp.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing, 2));
+  icp.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
+  icp.setMaxCorrespondenceDistance(fine);
+  icp.setMaximumIterations(p.max_iterations);
+  icp.align(aligned, m);
+  if (icp.getFinalTransformation().allFinite()) {
+    const double rms_plane = std::sqrt(icp.getFitnessScore());
+    if (rms_plane <= rms) {
+      m = icp.getFinalTransformation();
+      rms = rms_plane;
+    }
+  }
+  return m;
+}
+
+// The motions of merged parts of a nested level from those of the level below (children), each
+// frame on its own: the ICP passes of a chained fit (alignPasses) start from the least-squares
+// rigid map (Umeyama, Eigen) of the part's frame-0 points onto where their children's motions
+// carry them, instead of from the previous frame's result. `merged` lists the parts of `cur` to
+// fit; every one of their points is labelled in `prev` with a part of `children` (or unlabelled,
+// then unused).
+void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
+                     const std::vector<double>& spacing, const std::vector<std::vector<int>>& prev,
+                     const std::vector<std::vector<int>>& cur,
+                     const std::vector<PartMotion>& children, const std::vector<int>& merged,
+                     const std::vector<std::size_t>& frame0_points, std::vector<PartMotion>& out) {
+  const std::size_t frames = seq.size();
+  std::vector<Cloud::Ptr> sources(merged.size());
+  std::vector<std::vector<int>> source_child(merged.size());
+  for (std::size_t k = 0; k < merged.size(); ++k) {
+    const int b = merged[k];
+    PartMotion& motion = out[b];
+    motion.frames.assign(frames, RigidTransform());
+    for (RigidTransform& r : motion.frames) r.rms = -1.0;
+    motion.points_frame0 = frame0_points[b];
+    sources[k].reset(new Cloud);
+    for (int j : partIndices(cur[0], b, p.max_points)) {
+      sources[k]->push_back((*seq.frame(0))[j]);
+      source_child[k].push_back(prev[0][j]);
+    }
+    if (static_cast<int>(sources[k]->size()) < p.min_points) continue;
+    motion.frames[0].valid = true;
+    motion.frames[0].rms = 0.0;
+  }
+  // Every (part, frame) on its own: no chain along the sequence, so the frames run in parallel
+  // (the chained ICPs of a coarse level's few large parts were one long serial job each).
+  const int jobs = static_cast<int>(merged.size() * (frames - 1));
+#pragma omp parallel for schedule(dynamic)
+  for (int job = 0; job < jobs; ++job) {
+    const std::size_t k = static_cast<std::size_t>(job) / (frames - 1);
+    const std::size_t t = static_cast<std::size_t>(job) % (frames - 1) + 1;
+    PartMotion& motion = out[merged[k]];
+    if (!motion.frames[0].valid) continue;
+    const Cloud& source = *sources[k];
+    Cloud::Ptr target = partCloud(*seq.frame(t), cur[t], merged[k], 0);
+    if (static_cast<int>(target->size()) < p.min_points) continue;
+    Eigen::Matrix3Xd from(3, source.size()), to(3, source.size());
+    Eigen::Index n = 0;
+    for (std::size_t i = 0; i < source.size(); ++i) {
+      const int a = source_child[k][i];
+      if (a < 0 || a >= static_cast<int>(children.size())) continue;
+      const std::vector<RigidTransform>& ca = children[a].frames;
+      if (ca.size() != frames || !ca[t].valid) continue;
+      from.col(n) = source[i].getVector3fMap().cast<double>();
+      to.col(n) = ca[t].apply(from.col(n));
+      ++n;
+    }
+    if (n < 3) continue;
+    const Eigen::Matrix4f start =
+        Eigen::umeyama(from.leftCols(n), to.leftCols(n), false).cast<float>();
+    pcl::PointNormal mn, mx;
+    pcl::getMinMax3D(source, mn, mx);
+    const double part_diag = (mx.getVector3fMap() - mn.getVector3fMap()).norm();
+    double rms = 0.0;
+    const Eigen::Matrix4f m = alignPasses(sources[k], target, start, spacing[t], part_diag, p, rms);
+    RigidTransform& result = motion.frames[t];
+    result = fromMatrix(m);
+    result.rms = rms;
+    result.valid = std::isfinite(rms);
+  }
+  // As for chained fits, a frame without an estimate carries the last valid one.
+  for (int b : merged)
+    for (std::size_t t = 1; t < frames; ++t)
+      if (!out[b].frames[t].valid) {
+        out[b].frames[t] = out[b].frames[t - 1];
+        out[b].frames[t].valid = false;
+        out[b].frames[t].rms = -1.0;
+      }
 }
 
 }  // namespace
@@ -99,11 +239,11 @@ std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::ve
 }
 
 std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
-    const std::vector<std::vector<std::vector<int>>>& all_levels,
-    const std::vector<int>& num_parts, std::size_t max_levels) const {
+    const std::vector<std::vector<std::vector<int>>>& all_levels, const std::vector<int>& num_parts,
+    std::size_t max_levels) const {
   // The first max_levels levels (0: all), by pointer: no copy of the labels.
-  const std::size_t nl = max_levels > 0 ? std::min(max_levels, all_levels.size())
-                                        : all_levels.size();
+  const std::size_t nl =
+      max_levels > 0 ? std::min(max_levels, all_levels.size()) : all_levels.size();
   if (!num_parts.empty() && num_parts.size() != all_levels.size())
     throw Error("rigid motion: " + std::to_string(num_parts.size()) + " part counts for " +
                 std::to_string(all_levels.size()) + " levels");
@@ -120,6 +260,7 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
   // such a part is not fitted but copied (levels in order, so a chain of copies resolves).
   std::vector<std::vector<int>> source(nl);
   std::vector<std::vector<char>> fit(nl);
+  std::vector<std::vector<int>> merged(nl);  // parts fitted from their children's motions
   for (std::size_t l = 1; l < nl; ++l) {
     const auto& prev = levels(l - 1);
     const auto& cur = levels(l);
@@ -150,8 +291,16 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
     if (same_shape)
       for (int b = 0; b < nb; ++b)
         if (from[b] >= 0 && to[from[b]] == b) source[l][b] = from[b], fit[l][b] = 0;
+    // A nested level (every part of the level before lies within one part of this one, as the
+    // hierarchy's levels do): its merged parts start from their children's motions instead of
+    // a chained ICP of their own (fitFromChildren), after the level before is done.
+    const bool nested =
+        same_shape && std::none_of(to.begin(), to.end(), [](int m) { return m == -3; });
+    for (int b = 0; nested && b < nb; ++b)
+      if (fit[l][b]) merged[l].push_back(b), fit[l][b] = 0;
   }
   std::vector<std::vector<PartMotion>> parts = computeParts(sets, np, fit);
+  std::vector<double> spacing;
   std::vector<LevelMotion> out(nl);
   for (std::size_t l = 0; l < nl; ++l) {
     out[l].level = static_cast<int>(l);
@@ -161,6 +310,15 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
         out[l].parts[b] = out[l - 1].parts[source[l][b]];
         out[l].parts[b].part = static_cast<int>(b);
       }
+    if (merged[l].empty()) continue;
+    if (spacing.empty())
+      for (std::size_t t = 0; t < sequence_->size(); ++t)
+        spacing.push_back(meanSpacing(*sequence_->frame(t)));
+    std::vector<std::size_t> frame0_points(static_cast<std::size_t>(np[l]), 0);
+    for (int b : levels(l)[0])
+      if (b >= 0 && b < np[l]) ++frame0_points[b];
+    fitFromChildren(*sequence_, params_, spacing, levels(l - 1), levels(l), out[l - 1].parts,
+                    merged[l], frame0_points, out[l].parts);
   }
   return out;
 }
@@ -242,57 +400,9 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
       guess.translation =
           ct.head<3>().cast<double>() - guess.rotation * c0.head<3>().cast<double>();
 
-      // Annealed rejection distance: wide first passes capture a large motion between frames,
-      // the last pass uses a few point spacings so that neighbouring parts' points (mislabelled
-      // near a boundary) do not pull. The wide passes are point-to-point: point-to-plane's
-      // linear system is nearly singular on a limb (a tube slides along and spins about its
-      // axis) and can throw the estimate far off while correspondences are still poor.
-      const double fine = p.max_correspondence_spacings * spacing[t];
-      const double coarse = std::max(fine, p.coarse_distance * part_diag);
-      const double passes[2] = {coarse, std::max(fine, coarse / 6.0)};
-      Eigen::Matrix4f m = toMatrix(guess);
-      Cloud aligned;
-      // One tree of the target for every pass (PCL would build one per ICP object), queried
-      // without pcl::KdTreeFLANN's per-query overhead (see kdtree.h).
-      auto tree = std::make_shared<SearchKdTree<pcl::PointNormal>>();
-      tree->setInputCloud(target);
-      pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> p2p;
-      p2p.setInputSource(source);
-      p2p.setInputTarget(target);
-      p2p.setSearchMethodTarget(tree, true);
-      // Converged when an iteration moves the part by less than a hundredth of a spacing (PCL
-      // compares the squared translation) or the mean squared error stops improving.
-      p2p.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing[t], 2));
-      p2p.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
-      for (double distance : passes) {
-        p2p.setMaxCorrespondenceDistance(distance);
-        p2p.setMaximumIterations(std::max(1, p.max_iterations / 2));
-        p2p.align(aligned, m);
-        if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
-      }
-      p2p.setMaxCorrespondenceDistance(fine);
-      p2p.setMaximumIterations(p.max_iterations);
-      p2p.align(aligned, m);
-      if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
-      double rms = std::sqrt(p2p.getFitnessScore());
-      // Final point-to-plane pass (sub-spacing accuracy on sampled surfaces); kept only when it
-      // lowers the residual, so a degenerate part cannot make the estimate worse.
-      pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
-      icp.setInputSource(source);
-      icp.setInputTarget(target);
-      icp.setSearchMethodTarget(tree, true);
-      icp.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing[t], 2));
-      icp.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
-      icp.setMaxCorrespondenceDistance(fine);
-      icp.setMaximumIterations(p.max_iterations);
-      icp.align(aligned, m);
-      if (icp.getFinalTransformation().allFinite()) {
-        const double rms_plane = std::sqrt(icp.getFitnessScore());
-        if (rms_plane <= rms) {
-          m = icp.getFinalTransformation();
-          rms = rms_plane;
-        }
-      }
+      double rms = 0.0;
+      const Eigen::Matrix4f m =
+          alignPasses(source, target, toMatrix(guess), spacing[t], part_diag, p, rms);
       result = fromMatrix(m);
       result.rms = rms;
       result.valid = std::isfinite(result.rms);

@@ -82,13 +82,18 @@ class RigidMotionEstimation {
   /** \brief Motions of the parts of every level: levels[l][t][j] as in compute(); num_parts[l]
    * as compute()'s num_parts (empty: max label + 1 of each level). A part whose points are
    * exactly one part's of the level before (in every frame: a part no merge touched) takes that
-   * part's motion without a second ICP, which is what compute() would give it; only merged
-   * parts are fitted, those of all levels in one parallel loop. They are large and not rigid:
-   * on 2 threads five levels cost about 5x the finest alone, on 16 about the same.
+   * part's motion without a second ICP, which is what compute() would give it. A merged part of
+   * a nested level (every part of the level before lies within one of its parts, as the
+   * hierarchy's levels do) is fitted in each frame on its own: the same ICP passes as a chained
+   * fit, started from the least-squares rigid map of its frame-0 points onto where its
+   * children's motions carry them instead of from the previous frame (so its frames run in
+   * parallel: the coarse levels' few large parts had been one long serial chain each; not the
+   * same bits as compute(), about as good a fit). Other parts are chained fits, those of all
+   * levels in one parallel loop.
    * max_levels > 0: only the first max_levels levels (finest first), without copying them. */
-  std::vector<LevelMotion> computeLevels(
-      const std::vector<std::vector<std::vector<int>>>& levels,
-      const std::vector<int>& num_parts = {}, std::size_t max_levels = 0) const;
+  std::vector<LevelMotion> computeLevels(const std::vector<std::vector<std::vector<int>>>& levels,
+                                         const std::vector<int>& num_parts = {},
+                                         std::size_t max_levels = 0) const;
 
  private:
   /** Checks one labelling against the input sequence (frame count, labels per frame) and returns
