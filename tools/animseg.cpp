@@ -101,6 +101,8 @@ int main(int argc, char** argv) {
      "refinement: L_r, width of the band W (point spacings)")
     ("outer-band", po::value<double>()->default_value(defaults.refinement.outer_band),
      "refinement: L_R, outer width of the bands F and B (point spacings)")
+    ("refine-iterations", po::value<int>()->default_value(defaults.refinement.max_iterations),
+     "refinement: passes at most (bands rebuilt from the new labels each time)")
     ("rp-step", po::value<double>()->default_value(defaults.hierarchy.step),
      "hierarchy: raise of the region-persistence threshold per level (0.05-0.1)")
     ("png", po::value<std::string>()->implicit_value(""),
@@ -141,6 +143,7 @@ int main(int argc, char** argv) {
         params.multiscale.signature_h = vm["signature-h"].as<double>();
         params.refinement.narrow_band = vm["narrow-band"].as<double>();
         params.refinement.outer_band = vm["outer-band"].as<double>();
+        params.refinement.max_iterations = vm["refine-iterations"].as<int>();
         params.hierarchy.step = vm["rp-step"].as<double>();
         params.features = !vm.count("no-features");
         params.refine = !vm.count("no-refine");

@@ -72,6 +72,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     throw Error("GMM refinement: need 0 < narrow band L_r < outer band L_R (got " +
                 std::to_string(p.narrow_band) + ", " + std::to_string(p.outer_band) + ")");
   if (p.boundary_k < 2) throw Error("GMM refinement: boundary_k must be >= 2");
+  if (p.max_iterations < 1)
+    throw Error("GMM refinement: iterations must be >= 1 (got " +
+                std::to_string(p.max_iterations) + ")");
   if (!(p.fold_angle_deg >= 0.0 && p.fold_angle_deg < 180.0))
     throw Error("GMM refinement: fold_angle_deg must be in [0, 180) (got " +
                 std::to_string(p.fold_angle_deg) + ")");
@@ -165,7 +168,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   const double candidate_reach = p.narrow_band + p.boundary_max_distance + 1.0;
   const bool restrict_scan = p.outer_band >= candidate_reach;
 
-  for (int iter = 0; iter < std::max(1, p.max_iterations); ++iter) {
+  for (int iter = 0; iter < p.max_iterations; ++iter) {
     // 1. Boundary points and bands, frame by frame (labels are joint, so pair ids agree).
     std::map<std::pair<int, int>, int> pair_id;
     std::vector<Pair> pairs;

@@ -125,6 +125,10 @@ TEST(GMMRefinement, RejectsInconsistentInput) {
   bad.fold_angle_deg = 180.0;
   refine.setParams(bad);
   EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
+  bad = RefinementParams();
+  bad.max_iterations = 0;
+  refine.setParams(bad);
+  EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
   // A single part has no boundary: nothing changes.
   for (auto& f : in.labels) std::fill(f.begin(), f.end(), 0);
   in.num_clusters = 1;

@@ -136,6 +136,8 @@ INSTANTIATE_TEST_SUITE_P(
                       BadCase{"short_weights", "--input {in} --output {out} --weights 0.5,1"},
                       BadCase{"bad_device", "--input {in} --output {out} --device tpu"},
                       BadCase{"negative_transform_levels", "--input {in} --output {out} --transform-levels -1"},
+                      BadCase{"zero_refine_iterations", "--input {in} --output {out} --refine-iterations 0"},
+                      BadCase{"narrow_band_past_outer", "--input {in} --output {out} --narrow-band 12"},
                       BadCase{"unknown_config_key", "--config {tmp}/badcfg.json --input {in} --output {out}"},
                       BadCase{"broken_config", "--config {tmp}/brokencfg.json --input {in} --output {out}"},
                       BadCase{"missing_config", "--config {tmp}/none.json --input {in} --output {out}"}),
