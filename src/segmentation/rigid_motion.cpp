@@ -152,6 +152,7 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
   const std::size_t frames = seq.size();
   std::vector<Cloud::Ptr> sources(merged.size());
   std::vector<std::vector<int>> source_child(merged.size());
+  std::vector<double> part_diag(merged.size(), 0.0);
   for (std::size_t k = 0; k < merged.size(); ++k) {
     const int b = merged[k];
     PartMotion& motion = out[b];
@@ -166,6 +167,9 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     if (static_cast<int>(sources[k]->size()) < p.min_points) continue;
     motion.frames[0].valid = true;
     motion.frames[0].rms = 0.0;
+    pcl::PointNormal mn, mx;
+    pcl::getMinMax3D(*sources[k], mn, mx);
+    part_diag[k] = (mx.getVector3fMap() - mn.getVector3fMap()).norm();
   }
   // Every (part, frame) on its own: no chain along the sequence, so the frames run in parallel
   // (the chained ICPs of a coarse level's few large parts were one long serial job each).
@@ -193,11 +197,10 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     if (n < 3) continue;
     const Eigen::Matrix4f start =
         Eigen::umeyama(from.leftCols(n), to.leftCols(n), false).cast<float>();
-    pcl::PointNormal mn, mx;
-    pcl::getMinMax3D(source, mn, mx);
-    const double part_diag = (mx.getVector3fMap() - mn.getVector3fMap()).norm();
+    if (!start.allFinite()) continue;
     double rms = 0.0;
-    const Eigen::Matrix4f m = alignPasses(sources[k], target, start, spacing[t], part_diag, p, rms);
+    const Eigen::Matrix4f m =
+        alignPasses(sources[k], target, start, spacing[t], part_diag[k], p, rms);
     RigidTransform& result = motion.frames[t];
     result = fromMatrix(m);
     result.rms = rms;
