@@ -156,15 +156,19 @@ TEST(RigidMotion, MergedRigidPartMatchesKabschFromCorrespondences) {
   const animseg_test::BoxChain chain = animseg_test::makeBoxChain(8, 6000, true, 3);
   const Cloud& f0 = *chain.sequence.frame(0);
   std::vector<std::vector<std::vector<int>>> levels(2, chain.truth);
-  // Level 0: box 0's points with an odd index (the same in every frame: mesh mode) become part 3.
-  for (auto& f : levels[0])
-    for (std::size_t j = 0; j < f.size(); ++j)
-      if (f[j] == 0 && j % 2 == 1) f[j] = 3;
+  // Level 0: box 0's points with an odd index (the same in every frame: mesh mode) become part 3,
+  // except in frame 2, where part 3 has no points (no motion there: the merged part must do with
+  // part 0's).
+  for (std::size_t t = 0; t < levels[0].size(); ++t)
+    for (std::size_t j = 0; j < levels[0][t].size(); ++j)
+      if (levels[0][t][j] == 0 && j % 2 == 1 && t != 2) levels[0][t][j] = 3;
   RigidMotionEstimation est;
   est.setInputSequence(&chain.sequence);
   const auto all = est.computeLevels(levels);
   ASSERT_EQ(all.size(), 2u);
   ASSERT_EQ(all[1].parts.size(), 3u);
+  ASSERT_EQ(all[0].parts.size(), 4u);
+  EXPECT_FALSE(all[0].parts[3].frames[2].valid);
   const double diag = pcl_animseg::boundingBoxDiagonal(f0);
   std::vector<int> idx;
   for (std::size_t j = 0; j < f0.size(); ++j)
