@@ -138,7 +138,7 @@ void printWrongByDistance(const Refined& r) {
 // the default parameters: the boundary error must not grow and the pooled ARI must not drop.
 // With the four passes the refinement used to make, later passes pushed borders on into the
 // side they had entered: boundary error 0.115 -> 0.125 and ARI 0.932 -> 0.923; one pass gives
-// 0.115 -> 0.113 and 0.932 -> 0.932.
+// 0.115 -> 0.107 and 0.932 -> 0.936.
 TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
   synth::SynthParams sp;
   sp.plan = synth::BodyPlan::Humanoid;
@@ -157,7 +157,8 @@ TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
 // Measurement (docs/mean_shift_experiments.md): the boundary error (points within 3 spacings of a
 // true boundary with a wrong label) and the pooled ARI of the default motion segmentation at the
 // true part count, before and after the refinement. PLANS (comma-separated), POINTS, SEED; and
-// NARROW, OUTER, TOLERANCE, RATIO, SPATIAL, ITERATIONS for the refinement's parameters; DIAG=1
+// NARROW, OUTER, TOLERANCE, RATIO, SPATIAL, ITERATIONS, PATCH, PATCH_RADIUS, TRAINING_MIN and
+// COMPONENTS for the refinement's parameters; DIAG=1
 // adds where the wrong points lie.
 TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
   const char* plans = std::getenv("PLANS");
@@ -175,6 +176,10 @@ TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
   rp.min_log_ratio = env("RATIO", rp.min_log_ratio);
   rp.spatial_weight = env("SPATIAL", rp.spatial_weight);
   rp.max_iterations = static_cast<int>(env("ITERATIONS", rp.max_iterations));
+  rp.patch_size = env("PATCH", rp.patch_size);
+  rp.patch_radius = env("PATCH_RADIUS", rp.patch_radius);
+  rp.training_min_distance = env("TRAINING_MIN", rp.training_min_distance);
+  rp.components = static_cast<int>(env("COMPONENTS", rp.components));
   std::size_t pos = 0;
   while (pos < list.size()) {
     const std::size_t comma = std::min(list.find(',', pos), list.size());

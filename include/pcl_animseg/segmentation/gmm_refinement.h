@@ -19,8 +19,13 @@ struct RefinementParams {
    * width for F and B. */
   double outer_band = 10.0;
   /** Only F/B points farther than this from the boundary train the GMMs ("5 points" in the
-   * paper), so that the initial boundary's errors do not leak into the models. */
-  double training_min_distance = 5.0;
+   * paper), so that the initial boundary's errors do not leak into the models. F and B start at
+   * L_r anyway; 4 (all of F and B) instead of 5, with the smaller patches below, measured on
+   * generated sequences after the motion method (8000 points, seeds 3-6, one pass; mean
+   * boundary-error drop quadruped / humanoid / spider / hand): 12 / 16 / 5: 24.5% / 10% / 28% /
+   * 12%; 8 / 10 / 4: 27% / 14% / 32.5% / 13.5%, the pooled ARI after refinement higher on 14 of
+   * the 16 runs, the same on one and lower on one (spider seed 4: 0.979 -> 0.976). */
+  double training_min_distance = 4.0;
   /** A point is on a boundary when one of its `boundary_k` nearest neighbours, closer than
    * `boundary_max_distance`, carries another label. */
   int boundary_k = 8;
@@ -32,9 +37,10 @@ struct RefinementParams {
   int gmm_max_iterations = 50;
   /** Local models: the boundary of each pair of parts is cut into patches of about this size, each
    * with its own F and B GMMs trained within `patch_radius` of the patch (the paper: "the GMM is
-   * computed on the neighbouring band of point x, not the whole band"). */
-  double patch_size = 12.0;
-  double patch_radius = 16.0;
+   * computed on the neighbouring band of point x, not the whole band"). 8 and 10 (were 12 and
+   * 16): see training_min_distance. */
+  double patch_size = 8.0;
+  double patch_radius = 10.0;
   /** A patch model needs this many training points, otherwise the pair-wide model is used. */
   int min_training_points = 24;
   /** Training points of a model are evenly subsampled to at most this many (speed). */
@@ -79,10 +85,10 @@ struct RefinementParams {
    * passes moved the boundaries on into the wrong side more often than back. Boundary error drop
    * (points within 3 spacings of a true boundary with a wrong label) and pooled ARI, generated
    * sequences of 20 frames, 8000 points, seeds 3-6, quadruped / humanoid / spider / hand, mean
-   * over the seeds: 1 pass 24.5% / 10% / 28% / 12%, ARI never lower than unrefined; 4 passes 23% /
-   * 2% / 14% / 11%, the humanoid's ARI lower than unrefined at seeds 4 (0.966 -> 0.957) and 6
-   * (0.948 -> 0.942). One pass is also 1.7x faster (800k-point humanoid, 2 cores: 4.9 s ->
-   * 2.7 s). */
+   * over the seeds, with the patches of 12 / 16 spacings of the time: 1 pass 24.5% / 10% / 28% /
+   * 12%, ARI never lower than unrefined; 4 passes 23% / 2% / 14% / 11%, the humanoid's ARI lower
+   * than unrefined at seeds 4 (0.966 -> 0.957) and 6 (0.948 -> 0.942). One pass is also 1.7x
+   * faster (800k-point humanoid, 2 cores: 4.9 s -> 2.7 s). */
   int max_iterations = 1;
   double min_changed_fraction = 1e-4;
   /** Build the bands and models jointly over all frames (temporal coherence, Sect. 4): each part's
