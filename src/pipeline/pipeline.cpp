@@ -23,14 +23,9 @@ void validate(const PipelineParams& p) {
   if (p.levels < 0) throw Error("levels must be >= 0 (got " + std::to_string(p.levels) + ")");
   if (p.motion_levels < 0)
     throw Error("transform levels must be >= 0 (got " + std::to_string(p.motion_levels) + ")");
-  // The refinement checks these too, but only after the mean shift: a typo should not cost a run.
-  const auto& rp = p.refinement;
-  if (p.refine && (!(rp.narrow_band > 0.0) || !(rp.outer_band > rp.narrow_band)))
-    throw Error("refinement: need 0 < narrow band < outer band (got " +
-                std::to_string(rp.narrow_band) + ", " + std::to_string(rp.outer_band) + ")");
-  if (p.refine && rp.max_iterations < 1)
-    throw Error("refinement iterations must be >= 1 (got " + std::to_string(rp.max_iterations) +
-                "; --no-refine skips the stage)");
+  // The refinement checks its parameters itself, but only after the mean shift: a typo should
+  // not cost a run.
+  if (p.refine) segmentation::validate(p.refinement);
 }
 
 namespace {

@@ -65,9 +65,7 @@ std::vector<int> subsample(const std::vector<int>& idx, int cap) {
 
 }  // namespace
 
-void GMMBoundaryRefinement::refine(const SegmentationResult& input, SegmentationResult& output) {
-  if (!sequence_ || sequence_->empty()) throw Error("GMM refinement: no input sequence");
-  const RefinementParams& p = params_;
+void validate(const RefinementParams& p) {
   if (!(p.narrow_band > 0.0) || !(p.outer_band > p.narrow_band))
     throw Error("GMM refinement: need 0 < narrow band L_r < outer band L_R (got " +
                 std::to_string(p.narrow_band) + ", " + std::to_string(p.outer_band) + ")");
@@ -81,6 +79,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   if (!(p.motion_tolerance >= 0.0) || !(p.motion_cap > 0.0))
     throw Error("GMM refinement: need motion_tolerance >= 0 and motion_cap > 0 (got " +
                 std::to_string(p.motion_tolerance) + ", " + std::to_string(p.motion_cap) + ")");
+}
+
+void GMMBoundaryRefinement::refine(const SegmentationResult& input, SegmentationResult& output) {
+  if (!sequence_ || sequence_->empty()) throw Error("GMM refinement: no input sequence");
+  const RefinementParams& p = params_;
+  validate(p);
   const std::size_t frames = sequence_->size();
   if (input.labels.size() != frames)
     throw Error("GMM refinement: labels for " + std::to_string(input.labels.size()) +

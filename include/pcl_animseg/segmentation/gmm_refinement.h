@@ -99,6 +99,10 @@ struct RefinementParams {
   unsigned seed = 0;
 };
 
+/** \brief Throws pcl_animseg::Error for inconsistent parameters (what refine() checks first;
+ * a pipeline can check them before its earlier stages run). */
+void validate(const RefinementParams& params);
+
 /** \brief What happened during refine(). */
 struct RefinementStats {
   int iterations = 0;
