@@ -71,8 +71,8 @@ void validate(const RefinementParams& p) {
                 std::to_string(p.narrow_band) + ", " + std::to_string(p.outer_band) + ")");
   if (p.boundary_k < 2) throw Error("GMM refinement: boundary_k must be >= 2");
   if (p.max_iterations < 1)
-    throw Error("GMM refinement: iterations must be >= 1 (got " +
-                std::to_string(p.max_iterations) + ")");
+    throw Error("GMM refinement: iterations must be >= 1 (got " + std::to_string(p.max_iterations) +
+                ")");
   if (!(p.fold_angle_deg >= 0.0 && p.fold_angle_deg < 180.0))
     throw Error("GMM refinement: fold_angle_deg must be in [0, 180) (got " +
                 std::to_string(p.fold_angle_deg) + ")");
