@@ -79,6 +79,27 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
           ev[1] > 0.0f ? static_cast<double>(ev[2] / ev[1]) : 1e9};
 }
 
+// A part's motion before any frame is fitted: no estimate anywhere, frame 0 the identity when the
+// part has enough source points (returned).
+bool startMotion(PartMotion& motion, std::size_t frames, std::size_t points_frame0,
+                 const Cloud& source, int min_points) {
+  motion.frames.assign(frames, RigidTransform());
+  for (RigidTransform& r : motion.frames) r.rms = -1.0;
+  motion.points_frame0 = points_frame0;
+  if (static_cast<int>(source.size()) < min_points) return false;
+  motion.frames[0].valid = true;
+  motion.frames[0].rms = 0.0;
+  return true;
+}
+
+// The transform of an ICP result with its residual; valid when the residual is finite.
+RigidTransform fitted(const Eigen::Matrix4f& m, double rms) {
+  RigidTransform r = fromMatrix(m);
+  r.rms = rms;
+  r.valid = std::isfinite(rms);
+  return r;
+}
+
 // ICP of a part's frame-0 points (source) onto the part in frame t (target) from `start`, with an
 // annealed rejection distance: wide first passes capture a large motion between frames, the last
 // pass uses a few point spacings so that neighbouring parts' points (mislabelled near a
@@ -98,14 +119,17 @@ Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
   // without pcl::KdTreeFLANN's per-query overhead (see kdtree.h).
   auto tree = std::make_shared<SearchKdTree<pcl::PointNormal>>();
   tree->setInputCloud(target);
+  // Both ICPs: converged when an iteration moves the part by less than a hundredth of a spacing
+  // (PCL compares the squared translation) or the mean squared error stops improving.
+  auto setUp = [&](auto& icp) {
+    icp.setInputSource(source);
+    icp.setInputTarget(target);
+    icp.setSearchMethodTarget(tree, true);
+    icp.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing, 2));
+    icp.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
+  };
   pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> p2p;
-  p2p.setInputSource(source);
-  p2p.setInputTarget(target);
-  p2p.setSearchMethodTarget(tree, true);
-  // Converged when an iteration moves the part by less than a hundredth of a spacing (PCL
-  // compares the squared translation) or the mean squared error stops improving.
-  p2p.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing, 2));
-  p2p.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
+  setUp(p2p);
   for (double distance : passes) {
     p2p.setMaxCorrespondenceDistance(distance);
     p2p.setMaximumIterations(std::max(1, p.max_iterations / 2));
@@ -120,11 +144,7 @@ Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
   // Final point-to-plane pass (sub-spacing accuracy on sampled surfaces); kept only when it
   // lowers the residual, so a degenerate part cannot make the estimate worse.
   pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
-  icp.setInputSource(source);
-  icp.setInputTarget(target);
-  icp.setSearchMethodTarget(tree, true);
-  icp.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing, 2));
-  icp.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
+  setUp(icp);
   icp.setMaxCorrespondenceDistance(fine);
   icp.setMaximumIterations(p.max_iterations);
   icp.align(aligned, m);
@@ -155,21 +175,13 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
   std::vector<double> part_diag(merged.size(), 0.0);
   for (std::size_t k = 0; k < merged.size(); ++k) {
     const int b = merged[k];
-    PartMotion& motion = out[b];
-    motion.frames.assign(frames, RigidTransform());
-    for (RigidTransform& r : motion.frames) r.rms = -1.0;
-    motion.points_frame0 = frame0_points[b];
     sources[k].reset(new Cloud);
     for (int j : partIndices(cur[0], b, p.max_points)) {
       sources[k]->push_back((*seq.frame(0))[j]);
       source_child[k].push_back(prev[0][j]);
     }
-    if (static_cast<int>(sources[k]->size()) < p.min_points) continue;
-    motion.frames[0].valid = true;
-    motion.frames[0].rms = 0.0;
-    pcl::PointNormal mn, mx;
-    pcl::getMinMax3D(*sources[k], mn, mx);
-    part_diag[k] = (mx.getVector3fMap() - mn.getVector3fMap()).norm();
+    if (startMotion(out[b], frames, frame0_points[b], *sources[k], p.min_points))
+      part_diag[k] = boundingBoxDiagonal(*sources[k]);
   }
   // Every (part, frame) on its own: no chain along the sequence, so the frames run in parallel
   // (the chained ICPs of a coarse level's few large parts were one long serial job each).
@@ -201,10 +213,7 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     double rms = 0.0;
     const Eigen::Matrix4f m =
         alignPasses(sources[k], target, start, spacing[t], part_diag[k], p, rms);
-    RigidTransform& result = motion.frames[t];
-    result = fromMatrix(m);
-    result.rms = rms;
-    result.valid = std::isfinite(rms);
+    motion.frames[t] = fitted(m, rms);
   }
   // As for chained fits, a frame without an estimate carries the last valid one.
   for (int b : merged)
@@ -363,18 +372,12 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     const std::vector<std::vector<int>>& labels = *sets[jobs[job].first];
     const int part = jobs[job].second;
     PartMotion& motion = out[jobs[job].first][part];
-    motion.frames.assign(frames, RigidTransform());
-    for (RigidTransform& r : motion.frames) r.rms = -1.0;
     Cloud::Ptr source = partCloud(*sequence_->frame(0), labels[0], part, p.max_points);
-    motion.points_frame0 = frame0_points[jobs[job].first][part];
-    if (static_cast<int>(source->size()) < p.min_points) continue;
-    motion.frames[0].valid = true;
-    motion.frames[0].rms = 0.0;
+    if (!startMotion(motion, frames, frame0_points[jobs[job].first][part], *source, p.min_points))
+      continue;
     Eigen::Vector4f c0;
     pcl::compute3DCentroid(*source, c0);
-    pcl::PointNormal mn, mx;
-    pcl::getMinMax3D(*source, mn, mx);
-    const double part_diag = (mx.getVector3fMap() - mn.getVector3fMap()).norm();
+    const double part_diag = boundingBoxDiagonal(*source);
 
     RigidTransform prev = motion.frames[0];
     const auto [axis0, prev_ratio] = principalAxis(*source);
@@ -406,9 +409,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
       double rms = 0.0;
       const Eigen::Matrix4f m =
           alignPasses(source, target, toMatrix(guess), spacing[t], part_diag, p, rms);
-      result = fromMatrix(m);
-      result.rms = rms;
-      result.valid = std::isfinite(result.rms);
+      result = fitted(m, rms);
       if (result.valid) prev = result;
     }
   }
