@@ -79,6 +79,21 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
           ev[1] > 0.0f ? static_cast<double>(ev[2] / ev[1]) : 1e9};
 }
 
+// Each frame's mean point spacing (the ICPs' distances are in these units).
+std::vector<double> frameSpacings(const PointCloudSequence& seq) {
+  std::vector<double> spacing(seq.size());
+  for (std::size_t t = 0; t < seq.size(); ++t) spacing[t] = meanSpacing(*seq.frame(t));
+  return spacing;
+}
+
+// Points of each of a labelling's parts in frame 0.
+std::vector<std::size_t> frame0Counts(const std::vector<std::vector<int>>& labels, int parts) {
+  std::vector<std::size_t> counts(static_cast<std::size_t>(parts), 0);
+  for (int l : labels[0])
+    if (l >= 0 && l < parts) ++counts[l];
+  return counts;
+}
+
 // A part's motion before any frame is fitted: no estimate anywhere, frame 0 the identity when the
 // part has enough source points (returned).
 bool startMotion(PartMotion& motion, std::size_t frames, std::size_t points_frame0,
@@ -247,7 +262,9 @@ int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>&
 
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
                                                        int num_parts) const {
-  return computeParts({&labels}, {checkedPartCount(labels, num_parts)}, {{}}).front();
+  const int np = checkedPartCount(labels, num_parts);
+  return computeParts({&labels}, {np}, {{}}, frameSpacings(*sequence_), {frame0Counts(labels, np)})
+      .front();
 }
 
 std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
@@ -311,8 +328,11 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
     for (int b = 0; nested && b < nb; ++b)
       if (fit[l][b]) merged[l].push_back(b), fit[l][b] = 0;
   }
-  std::vector<std::vector<PartMotion>> parts = computeParts(sets, np, fit);
-  std::vector<double> spacing;
+  // Computed once, for the chained fits and the fits from children alike.
+  const std::vector<double> spacing = frameSpacings(*sequence_);
+  std::vector<std::vector<std::size_t>> frame0_points(nl);
+  for (std::size_t l = 0; l < nl; ++l) frame0_points[l] = frame0Counts(levels(l), np[l]);
+  std::vector<std::vector<PartMotion>> parts = computeParts(sets, np, fit, spacing, frame0_points);
   std::vector<LevelMotion> out(nl);
   for (std::size_t l = 0; l < nl; ++l) {
     out[l].level = static_cast<int>(l);
@@ -323,21 +343,17 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
         out[l].parts[b].part = static_cast<int>(b);
       }
     if (merged[l].empty()) continue;
-    if (spacing.empty())
-      for (std::size_t t = 0; t < sequence_->size(); ++t)
-        spacing.push_back(meanSpacing(*sequence_->frame(t)));
-    std::vector<std::size_t> frame0_points(static_cast<std::size_t>(np[l]), 0);
-    for (int b : levels(l)[0])
-      if (b >= 0 && b < np[l]) ++frame0_points[b];
     fitFromChildren(*sequence_, params_, spacing, levels(l - 1), levels(l), out[l - 1].parts,
-                    merged[l], frame0_points, out[l].parts);
+                    merged[l], frame0_points[l], out[l].parts);
   }
   return out;
 }
 
 std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     const std::vector<const std::vector<std::vector<int>>*>& sets,
-    const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit) const {
+    const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit,
+    const std::vector<double>& spacing,
+    const std::vector<std::vector<std::size_t>>& frame0_points) const {
   const std::size_t frames = sequence_->size();
   std::vector<std::vector<PartMotion>> out(sets.size());
   // (labelling, part) pairs to fit: the parts of every labelling in one parallel loop, so that a
@@ -351,18 +367,10 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
       if (fit[s].empty() || fit[s][part]) jobs.push_back({s, part});  // else the caller's
     }
   }
-  std::vector<double> spacing(frames);
-  for (std::size_t t = 0; t < frames; ++t) spacing[t] = meanSpacing(*sequence_->frame(t));
   // Largest parts first: the coarse levels' merged parts are few, large and not rigid (their
   // ICPs run to the iteration cap), and started last they ran alone on an idle machine (800k
   // humanoid, --parts 15, 2 cores: rigid motions 17.8 s -> 13.7 s; same results, each part's
   // fit is independent of the others).
-  std::vector<std::vector<std::size_t>> frame0_points(sets.size());
-  for (std::size_t s = 0; s < sets.size(); ++s) {
-    frame0_points[s].assign(static_cast<std::size_t>(num_parts[s]), 0);
-    for (int l : (*sets[s])[0])
-      if (l >= 0 && l < num_parts[s]) ++frame0_points[s][l];
-  }
   std::stable_sort(jobs.begin(), jobs.end(), [&](const auto& x, const auto& y) {
     return frame0_points[x.first][x.second] > frame0_points[y.first][y.second];
   });

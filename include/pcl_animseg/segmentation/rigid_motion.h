@@ -102,10 +102,13 @@ class RigidMotionEstimation {
 
   /** Parts of several labellings (sets[s], checked, with num_parts[s] resolved by
    * checkedPartCount) in one parallel loop;
-   * a part with fit[s][part] == 0 is left for the caller (only its id is set). */
+   * a part with fit[s][part] == 0 is left for the caller (only its id is set). spacing[t]: frame
+   * t's mean point spacing; frame0_points[s][part]: the part's points in frame 0. */
   std::vector<std::vector<PartMotion>> computeParts(
       const std::vector<const std::vector<std::vector<int>>*>& sets,
-      const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit) const;
+      const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit,
+      const std::vector<double>& spacing,
+      const std::vector<std::vector<std::size_t>>& frame0_points) const;
 
   const PointCloudSequence* sequence_ = nullptr;
   RigidMotionParams params_;
