@@ -3,9 +3,11 @@
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <fstream>
 #include <sstream>
+#include <string>
 
 #include "synthetic_parts.h"
 
@@ -28,6 +30,36 @@ double maxDeviation(const Cloud& frame0, const std::vector<int>& labels, int par
   return worst;
 }
 
+// Mesh mode (shared vertex order): in every frame, `motion` (of the true part `part`) must map
+// the part's frame-0 points to within 1% of the frame-0 bounding-box diagonal of where the Kabsch
+// fit from the known correspondences maps them, with a residual under 0.5% of it.
+void expectMatchesKabsch(const animseg_test::BoxChain& chain, int part, const PartMotion& motion,
+                         const std::string& what) {
+  const Cloud& f0 = *chain.sequence.frame(0);
+  const double diag = pcl_animseg::boundingBoxDiagonal(f0);
+  std::vector<int> idx;
+  for (std::size_t j = 0; j < f0.size(); ++j)
+    if (chain.truth[0][j] == part) idx.push_back(static_cast<int>(j));
+  Eigen::Matrix3Xd src(3, idx.size());
+  for (std::size_t k = 0; k < idx.size(); ++k)
+    src.col(k) = f0[idx[k]].getVector3fMap().cast<double>();
+  ASSERT_TRUE(motion.frames[0].valid) << what;
+  for (std::size_t t = 1; t < chain.sequence.size(); ++t) {
+    const Cloud& ft = *chain.sequence.frame(t);
+    Eigen::Matrix3Xd dst(3, idx.size());
+    for (std::size_t k = 0; k < idx.size(); ++k)
+      dst.col(k) = ft[idx[k]].getVector3fMap().cast<double>();
+    const auto fit = pcl_animseg::evaluation::kabsch(src, dst);
+    const auto& m = motion.frames[t];
+    ASSERT_TRUE(m.valid) << what << " frame " << t;
+    EXPECT_LT(maxDeviation(f0, chain.truth[0], part, m.rotation, m.translation, fit.rotation,
+                           fit.translation),
+              0.01 * diag)
+        << what << " frame " << t;
+    EXPECT_LT(m.rms, 0.005 * diag) << what << " frame " << t;
+  }
+}
+
 }  // namespace
 
 TEST(RigidMotion, MeshModeMatchesKabschFromCorrespondences) {
@@ -36,31 +68,8 @@ TEST(RigidMotion, MeshModeMatchesKabschFromCorrespondences) {
   est.setInputSequence(&chain.sequence);
   const std::vector<PartMotion> motion = est.compute(chain.truth);
   ASSERT_EQ(motion.size(), 3u);
-  const Cloud& f0 = *chain.sequence.frame(0);
-  const double diag = pcl_animseg::boundingBoxDiagonal(f0);
-  for (int part = 0; part < 3; ++part) {
-    Eigen::Matrix3Xd src(3, 0);
-    std::vector<int> idx;
-    for (std::size_t j = 0; j < f0.size(); ++j)
-      if (chain.truth[0][j] == part) idx.push_back(static_cast<int>(j));
-    src.resize(3, idx.size());
-    for (std::size_t k = 0; k < idx.size(); ++k)
-      src.col(k) = f0[idx[k]].getVector3fMap().cast<double>();
-    ASSERT_TRUE(motion[part].frames[0].valid);
-    for (std::size_t t = 1; t < chain.sequence.size(); ++t) {
-      const Cloud& ft = *chain.sequence.frame(t);
-      Eigen::Matrix3Xd dst(3, idx.size());
-      for (std::size_t k = 0; k < idx.size(); ++k)
-        dst.col(k) = ft[idx[k]].getVector3fMap().cast<double>();
-      const auto fit = pcl_animseg::evaluation::kabsch(src, dst);
-      const auto& icp = motion[part].frames[t];
-      ASSERT_TRUE(icp.valid) << "part " << part << " frame " << t;
-      const double dev = maxDeviation(f0, chain.truth[0], part, icp.rotation, icp.translation,
-                                      fit.rotation, fit.translation);
-      EXPECT_LT(dev, 0.01 * diag) << "part " << part << " frame " << t;
-      EXPECT_LT(icp.rms, 0.005 * diag);
-    }
-  }
+  for (int part = 0; part < 3; ++part)
+    expectMatchesKabsch(chain, part, motion[part], "part " + std::to_string(part));
 }
 
 TEST(RigidMotion, PointModeRecoversTrueMotionWithoutCorrespondences) {
@@ -154,7 +163,6 @@ void expectSameMotion(const PartMotion& a, const PartMotion& b, const std::strin
 // correspondences (mesh mode), like a chained fit.
 TEST(RigidMotion, MergedRigidPartMatchesKabschFromCorrespondences) {
   const animseg_test::BoxChain chain = animseg_test::makeBoxChain(8, 6000, true, 3);
-  const Cloud& f0 = *chain.sequence.frame(0);
   std::vector<std::vector<std::vector<int>>> levels(2, chain.truth);
   // Level 0: box 0's points with an odd index (the same in every frame: mesh mode) become part 3,
   // except in frame 2, where part 3 has no points (no motion there: the merged part must do with
@@ -169,29 +177,10 @@ TEST(RigidMotion, MergedRigidPartMatchesKabschFromCorrespondences) {
   ASSERT_EQ(all[1].parts.size(), 3u);
   ASSERT_EQ(all[0].parts.size(), 4u);
   EXPECT_FALSE(all[0].parts[3].frames[2].valid);
-  const double diag = pcl_animseg::boundingBoxDiagonal(f0);
-  std::vector<int> idx;
-  for (std::size_t j = 0; j < f0.size(); ++j)
-    if (chain.truth[0][j] == 0) idx.push_back(static_cast<int>(j));
-  Eigen::Matrix3Xd src(3, idx.size());
-  for (std::size_t k = 0; k < idx.size(); ++k)
-    src.col(k) = f0[idx[k]].getVector3fMap().cast<double>();
-  const PartMotion& merged = all[1].parts[0];
-  EXPECT_EQ(merged.points_frame0, idx.size());
-  for (std::size_t t = 1; t < chain.sequence.size(); ++t) {
-    const Cloud& ft = *chain.sequence.frame(t);
-    Eigen::Matrix3Xd dst(3, idx.size());
-    for (std::size_t k = 0; k < idx.size(); ++k)
-      dst.col(k) = ft[idx[k]].getVector3fMap().cast<double>();
-    const auto fit = pcl_animseg::evaluation::kabsch(src, dst);
-    const auto& m = merged.frames[t];
-    ASSERT_TRUE(m.valid) << "frame " << t;
-    EXPECT_LT(maxDeviation(f0, chain.truth[0], 0, m.rotation, m.translation, fit.rotation,
-                           fit.translation),
-              0.01 * diag)
-        << "frame " << t;
-    EXPECT_LT(m.rms, 0.005 * diag) << "frame " << t;
-  }
+  const std::size_t box0_points =
+      static_cast<std::size_t>(std::count(chain.truth[0].begin(), chain.truth[0].end(), 0));
+  EXPECT_EQ(all[1].parts[0].points_frame0, box0_points);
+  expectMatchesKabsch(chain, 0, all[1].parts[0], "merged box");
 }
 
 namespace {
