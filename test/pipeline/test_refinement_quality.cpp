@@ -111,8 +111,11 @@ void printWrongByDistance(const Refined& r) {
     const double s = pcl_animseg::meanSpacing(*f);
     pcl::KdTreeFLANN<pcl::PointNormal> tree, true_border, start_border;
     tree.setInputCloud(f);
-    true_border.setInputCloud(animseg_test::boundaryPoints(f, tree, r.truth[t], s));
-    start_border.setInputCloud(animseg_test::boundaryPoints(f, tree, r.in.labels[t], s));
+    const auto true_points = animseg_test::boundaryPoints(f, tree, r.truth[t], s);
+    const auto start_points = animseg_test::boundaryPoints(f, tree, r.in.labels[t], s);
+    if (true_points->empty() || start_points->empty()) continue;  // nothing to measure from
+    true_border.setInputCloud(true_points);
+    start_border.setInputCloud(start_points);
     for (std::size_t j = 0; j < f->size(); ++j) {
       true_border.nearestKSearch((*f)[j], 1, idx, d2);
       if (std::sqrt(d2[0]) > 3 * s) continue;
