@@ -3,6 +3,7 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/progress.h>
+#include <pcl_animseg/segmentation/chained_fit.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 
 #include <pcl/segmentation/grabcut_segmentation.h>
@@ -851,6 +852,28 @@ void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evalu
   for (int o : nbrs) edges[{std::min(a, o), std::max(a, o)}] = evaluate(a, o);
 }
 
+/** rewireEdges with the former neighbours' edges scored together: `evaluate` takes the list of
+ * pairs and returns their edges. */
+template <class Edge, class EvaluateAll>
+void rewireEdgesBatch(std::map<std::pair<int, int>, Edge>& edges, int a, int b,
+                      EvaluateAll evaluate) {
+  std::set<int> nbrs;
+  for (auto it = edges.begin(); it != edges.end();) {
+    const auto [x, y] = it->first;
+    if (x == a || x == b || y == a || y == b) {
+      const int o = (x == a || x == b) ? y : x;
+      if (o != a && o != b) nbrs.insert(o);
+      it = edges.erase(it);
+    } else {
+      ++it;
+    }
+  }
+  std::vector<std::pair<int, int>> list;
+  for (int o : nbrs) list.push_back({std::min(a, o), std::max(a, o)});
+  const std::vector<Edge> scored = evaluate(list);
+  for (std::size_t i = 0; i < list.size(); ++i) edges[list[i]] = scored[i];
+}
+
 /** Motions of the parts of `label` (a part per reference point, -1: none; parts 0..nc-1), tracked
  * along the sequence as an articulated body: the frames in order away from the reference, the
  * parts of a frame in breadth-first order over the part adjacency (surface-graph edges and
@@ -1208,31 +1231,28 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
                      const std::vector<Pose>* ib) {
     const Source src = sourceOf(rc, pts, kPartPoints);
-    std::vector<Pose> fit(T, Pose::Identity());
     // Frames in order away from the reference, so that the fit of the previous frame is a start
-    // too: a part that a sample lost in one frame is found again from its own motion. The two
-    // directions share only the reference frame's identity, so they run side by side when
-    // called on their own (a merge's fit).
-#pragma omp parallel for schedule(static, 1) num_threads(2) if (!omp_in_parallel())
-    for (int d = 0; d < 2; ++d) {
-      const int dir = d == 0 ? +1 : -1;
-      for (int t = ref + dir; t >= 0 && t < T; t += dir) {
-        std::vector<Pose> starts{ia[t], fit[t - dir]};
-        if (ib) starts.push_back((*ib)[t]);
-        const int tpp = t - 2 * dir;
-        if (tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
-          starts.push_back(fit[t - dir] * fit[tpp].inverse() * fit[t - dir]);
-        Pose init = starts[0];
-        double r0 = std::numeric_limits<double>::max();
-        for (const Pose& st : starts) {
-          const double r = residual(src, st, frames[t]);
-          if (r < r0) r0 = r, init = st;
-        }
-        const Pose cand = icp(src, init, frames[t], kPartIcp, 4.0 * frames[t].spacing);
-        fit[t] = residual(src, cand, frames[t]) <= r0 ? cand : init;
-      }
-    }
-    return fit;
+    // too: a part that a sample lost in one frame is found again from its own motion. The starts
+    // of frame t: ia[t], the previous frame's fit, ib[t], a constant-velocity guess.
+    auto starts = [&](int t, int dir, const std::vector<Pose>* fit) {
+      std::vector<ChainStart<Pose>> s{{ia[t], false}};
+      if (fit) s.push_back({(*fit)[t - dir], true});
+      if (ib) s.push_back({(*ib)[t], false});
+      const int tpp = t - 2 * dir;
+      if (fit && tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
+        s.push_back({(*fit)[t - dir] * (*fit)[tpp].inverse() * (*fit)[t - dir], true});
+      return s;
+    };
+    auto score = [&](int t, const Pose& P) { return residual(src, P, frames[t]); };
+    // ICP; the better of start and result kept.
+    auto fitFrom = [&](int t, const Pose& init, double r0) {
+      const Pose cand = icp(src, init, frames[t], kPartIcp, 4.0 * frames[t].spacing);
+      return residual(src, cand, frames[t]) <= r0 ? cand : init;
+    };
+    // A call of its own (a merge's or a dissolve's fit) runs the frames in parallel; the initial
+    // fits of all parts run in a loop over parts.
+    return fitAlongChain(T, ref, Pose(Pose::Identity()), starts, score, fitFrom,
+                         !omp_in_parallel() && omp_get_max_threads() > 1);
   };
 #pragma omp parallel for schedule(dynamic, 1)
   for (int g = 0; g < G; ++g) gpose[g] = fitPart(gpts[g], gpose[g], nullptr);
@@ -1289,35 +1309,49 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   // a small relative motion there (a pelvis under a torso) must not merge before the pieces of one
   // part do. A part rigidly attached across a crease (a hat on a head) merges as usual.
   const double crease_min = kCreaseMotion * params.threshold;
-  auto evaluatePair = [&](int a, int b) {
-    PartEdge e;
-    const Source sa = sourceOf(rc, gpts[a], kPartPoints);
-    const Source sb = sourceOf(rc, gpts[b], kPartPoints);
-    std::vector<double> cost(T, 0.0);
-#pragma omp parallel for schedule(static) if (!omp_in_parallel())
-    for (int t = 0; t < T; ++t) {
+  // Several pairs at once: their frames form one parallel loop, so that a merge's handful of
+  // neighbours keeps many cores busy (before, each pair's frames ran as a loop of their own, and
+  // inside a loop over pairs one after the other).
+  auto evaluatePairs = [&](const std::vector<std::pair<int, int>>& list) {
+    const std::size_t np = list.size();
+    std::vector<Source> sa(np), sb(np);
+    for (std::size_t i = 0; i < np; ++i) {
+      sa[i] = sourceOf(rc, gpts[list[i].first], kPartPoints);
+      sb[i] = sourceOf(rc, gpts[list[i].second], kPartPoints);
+    }
+    std::vector<double> cost(np * T, 0.0);
+#pragma omp parallel for schedule(dynamic, 1) if (!omp_in_parallel())
+    for (std::size_t it = 0; it < np * T; ++it) {
+      const std::size_t i = it / T;
+      const int t = static_cast<int>(it % T);
       if (t == ref) continue;
-      const double ca =
-          std::max(residual(sa, gpose[a][t], frames[t]), residual(sb, gpose[a][t], frames[t]));
-      const double cb =
-          std::max(residual(sa, gpose[b][t], frames[t]), residual(sb, gpose[b][t], frames[t]));
-      cost[t] = std::min(ca, cb);
+      const auto [a, b] = list[i];
+      const double ca = std::max(residual(sa[i], gpose[a][t], frames[t]),
+                                 residual(sb[i], gpose[a][t], frames[t]));
+      const double cb = std::max(residual(sa[i], gpose[b][t], frames[t]),
+                                 residual(sb[i], gpose[b][t], frames[t]));
+      cost[it] = std::min(ca, cb);
     }
-    for (int t = 0; t < T; ++t) e.cost = std::max(e.cost, cost[t]);
-    if (has_surface) {
-      const int small = gpts[a].size() <= gpts[b].size() ? a : b;
-      const int other = small == a ? b : a;
-      for (std::size_t k = 0; k < gpts[small].size() && !e.joined; ++k)
-        for (int j : tr.surface[gpts[small][k]])
-          if (part_of[j] == other) {
-            e.joined = true;
-            break;
-          }
-      if (params.crease_cost > 0.0 && e.cost < params.crease_cost && e.cost >= crease_min &&
-          !e.joined)
-        e.cost = params.crease_cost;
+    std::vector<PartEdge> out(np);
+    for (std::size_t i = 0; i < np; ++i) {
+      PartEdge& e = out[i];
+      const auto [a, b] = list[i];
+      for (int t = 0; t < T; ++t) e.cost = std::max(e.cost, cost[i * T + t]);
+      if (has_surface) {
+        const int small = gpts[a].size() <= gpts[b].size() ? a : b;
+        const int other = small == a ? b : a;
+        for (std::size_t k = 0; k < gpts[small].size() && !e.joined; ++k)
+          for (int j : tr.surface[gpts[small][k]])
+            if (part_of[j] == other) {
+              e.joined = true;
+              break;
+            }
+        if (params.crease_cost > 0.0 && e.cost < params.crease_cost && e.cost >= crease_min &&
+            !e.joined)
+          e.cost = params.crease_cost;
+      }
     }
-    return e;
+    return out;
   };
   std::map<std::pair<int, int>, PartEdge> pedges;
   {
@@ -1334,11 +1368,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
         if (gid[s] != gid[o] && !gpts[gid[s]].empty() && !gpts[gid[o]].empty())
           pairs.insert({std::min(gid[s], gid[o]), std::max(gid[s], gid[o])});
     const std::vector<std::pair<int, int>> list(pairs.begin(), pairs.end());
-    std::vector<PartEdge> c(list.size());
-#pragma omp parallel for schedule(dynamic, 1)
-    for (std::size_t i = 0; i < list.size(); ++i)
-      c[i] = evaluatePair(list[i].first, list[i].second);
-    for (std::size_t i = 0; i < list.size(); ++i) pedges[list[i]] = std::move(c[i]);
+    const std::vector<PartEdge> c = evaluatePairs(list);
+    for (std::size_t i = 0; i < list.size(); ++i) pedges[list[i]] = c[i];
   }
   timer.lap("clustering: part edges");
   std::vector<char> galive(G, 1);
@@ -1370,9 +1401,14 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // it about as well as its own does. A short true part between two joints (a neck, a
     // pelvis) fits its own motion far better (measured: 2.3 to 7.6 times) than the ends of
     // its neighbours' (each end fits, the middle does not); pieces straddling a joint 1.0-1.5.
-    double own = 0.0;
+    // Called on its own (a dissolve's or a merge's neighbours scored again), the frames and then
+    // blocks of points run in parallel; the result is the same as one after the other.
+    const bool parallel = !omp_in_parallel() && omp_get_max_threads() > 1;
+    std::vector<double> own_t(T, 0.0);
+#pragma omp parallel for schedule(static) if (parallel)
     for (int t = 0; t < T; ++t)
-      if (t != ref) own = std::max(own, residual(sx, gpose[x][t], frames[t]));
+      if (t != ref) own_t[t] = residual(sx, gpose[x][t], frames[t]);
+    const double own = *std::max_element(own_t.begin(), own_t.end());
     const double limit = params.dissolve_ratio * own;
     // The worst frame's mean is at least the mean over frames, so the running sum of each
     // point's best total bounds the cost from below: most parts are rejected early.
@@ -1380,9 +1416,9 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // err[(k * nb + y) * T + t]
     std::vector<double> err(static_cast<std::size_t>(m) * nb.size() * T, 0.0);
     std::vector<int> pick(m, 0);
-    double lower = 0.0;
-    for (Eigen::Index k = 0; k < m; ++k) {
-      double best = std::numeric_limits<double>::max();
+    std::vector<double> best(m, 0.0);
+    auto scorePoint = [&](Eigen::Index k) {
+      best[k] = std::numeric_limits<double>::max();
       for (std::size_t y = 0; y < nb.size(); ++y) {
         double sum = 0.0;
         for (int t = 0; t < T; ++t) {
@@ -1392,9 +1428,18 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
           err[(k * nb.size() + y) * T + t] = e;
           sum += e;
         }
-        if (sum < best) best = sum, pick[k] = static_cast<int>(y);
+        if (sum < best[k]) best[k] = sum, pick[k] = static_cast<int>(y);
       }
-      lower += best;
+    };
+    // The bound is checked after each block, in point order: the same parts are rejected (the
+    // terms are >= 0, so a partial sum passes the bound exactly when the whole one does).
+    const Eigen::Index block = parallel ? 4 * omp_get_max_threads() : 1;
+    double lower = 0.0;
+    for (Eigen::Index k0 = 0; k0 < m; k0 += block) {
+      const Eigen::Index k1 = std::min(m, k0 + block);
+#pragma omp parallel for schedule(static) if (parallel)
+      for (Eigen::Index k = k0; k < k1; ++k) scorePoint(k);
+      for (Eigen::Index k = k0; k < k1; ++k) lower += best[k];
       if (lower > give_up) return kNoDissolve;
     }
     // A piece never dissolves into parts that together are smaller than it (a torso into its
@@ -1421,7 +1466,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     if (galive[g]) dcost[g] = dissolveCost(g);
   auto refreshDissolve = [&](const std::set<int>& parts) {
     const std::vector<int> list(parts.begin(), parts.end());
-#pragma omp parallel for schedule(dynamic, 1)
+    // A handful of parts (the usual case) leaves most of many cores idle when each is scored by
+    // one thread: then they are scored one after the other, each in parallel.
+    const bool by_part = static_cast<int>(list.size()) >= omp_get_max_threads();
+#pragma omp parallel for schedule(dynamic, 1) if (by_part)
     for (std::size_t i = 0; i < list.size(); ++i)
       dcost[list[i]] = galive[list[i]] ? dissolveCost(list[i]) : kNoDissolve;
   };
@@ -1466,7 +1514,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       std::set_union(gpts[rec[r]].begin(), gpts[rec[r]].end(), add.begin(), add.end(),
                      std::back_inserter(grown[r]));
     }
-#pragma omp parallel for schedule(dynamic, 1)
+    // One after the other, each over the frames in parallel (fitPart): a dissolve has two or three
+    // receivers, too few to keep many cores busy.
     for (std::size_t r = 0; r < rec.size(); ++r)
       gpose[rec[r]] = fitPart(grown[r], gpose[rec[r]], nullptr);
     for (std::size_t r = 0; r < rec.size(); ++r) gpts[rec[r]].swap(grown[r]);
@@ -1484,10 +1533,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
         }
     }
     const std::vector<std::pair<int, int>> list(redo.begin(), redo.end());
-    std::vector<PartEdge> ec(list.size());
-#pragma omp parallel for schedule(dynamic, 1)
-    for (std::size_t i = 0; i < list.size(); ++i)
-      ec[i] = evaluatePair(list[i].first, list[i].second);
+    const std::vector<PartEdge> ec = evaluatePairs(list);
     for (std::size_t i = 0; i < list.size(); ++i) pedges[list[i]] = ec[i];
     for (int r : rec) {
       affected.insert(r);
@@ -1509,7 +1555,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     for (int i : gpts[b]) part_of[i] = a;
     gpts[b].clear();
     galive[b] = 0;
-    rewireEdges(pedges, a, b, evaluatePair);
+    rewireEdgesBatch(pedges, a, b, evaluatePairs);
     if (refresh_dissolve) {
       // a's motion changed: a and the parts that touch it are scored again.
       const std::vector<int> touching = neighboursOf(a);

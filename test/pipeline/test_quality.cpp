@@ -251,11 +251,12 @@ struct TrackingRun {
   int parts = 0;
   std::vector<seg::ClusterMerge> merges;
 };
-TrackingRun runTracking(const pcl_animseg::PointCloudSequence& seq, int threads = 0) {
+TrackingRun runTracking(const pcl_animseg::PointCloudSequence& seq, int threads = 0,
+                        const seg::MotionTrackingParams& params = seg::MotionTrackingParams()) {
   const int before = omp_get_max_threads();
   if (threads > 0) omp_set_num_threads(threads);
   TrackingRun r;
-  seg::segmentByTracking(seq, seg::MotionTrackingParams(), r.labels, r.parts, r.merges);
+  seg::segmentByTracking(seq, params, r.labels, r.parts, r.merges);
   omp_set_num_threads(before);
   return r;
 }
@@ -273,14 +274,20 @@ TEST(MotionQuality, SameSeedSameLabels) {
 }
 
 // The merges, the tracking's whole-body ICPs and the part motions split their work over frames
-// and (part, start) pairs, each result written to its own slot and reduced in a fixed order: the
-// labels, merges and costs must not depend on how many threads ran them.
+// and (part, start) pairs, each result written to its own slot and reduced in a fixed order; a
+// merged part's motion is fitted in every frame at once and then checked against the chain of
+// frames (fitPart): the labels, merges and costs must not depend on how many threads ran them.
+// The reference frame first (the default: one chain of frames) and in the middle (two chains).
 TEST(MotionQuality, SameLabelsOnAnyThreadCount) {
   const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Humanoid, 8, 1500, 4));
   const auto seq = synth::toSequence(frames);
-  const TrackingRun one = runTracking(seq, 1);
-  EXPECT_GT(one.parts, 5);  // a humanoid, not one blob: the merges ran
-  expectSameRun(one, runTracking(seq, 5));
+  for (int reference : {-1, 4}) {
+    seg::MotionTrackingParams mp;
+    mp.reference_frame = reference;
+    const TrackingRun one = runTracking(seq, 1, mp);
+    EXPECT_GT(one.parts, 5) << "reference " << reference;  // a humanoid: the merges ran
+    expectSameRun(one, runTracking(seq, 5, mp));
+  }
 }
 
 TEST(MotionQuality, RejectsBadParameters) {

@@ -1,0 +1,115 @@
+// fitAlongChain: frames fitted in parallel must give what the serial chain gives, whichever start
+// wins (chained or not, ties included), for a reference frame first, last or in the middle.
+#include <pcl_animseg/segmentation/chained_fit.h>
+
+#include <gtest/gtest.h>
+#include <omp.h>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+namespace seg = pcl_animseg::segmentation;
+
+namespace {
+
+/** A toy tracking problem on the real line: the pose of frame t is a number, target[t] the true
+ * one. Two unchained guesses per frame (good in most frames, both lost in some) and two chained
+ * starts (the previous fit and a constant-velocity guess), in the motion method's order. Scores
+ * are rounded so that ties happen; the fit moves halfway to the target and keeps the better of
+ * start and result, as the ICP fits do. */
+struct Toy {
+  std::vector<double> target, a, b;
+  int chained_wins = 0;  // counted by the serial run
+
+  Toy(int T, unsigned seed) {
+    std::mt19937 rng(seed);
+    std::normal_distribution<double> step(0.0, 1.0), noise(0.0, 0.3);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    double x = 0.0;
+    for (int t = 0; t < T; ++t) {
+      x += step(rng);
+      target.push_back(x);
+      const bool lost = u(rng) < 0.35;
+      a.push_back(x + (lost ? 5.0 + 5.0 * u(rng) : noise(rng)));
+      b.push_back(u(rng) < 0.5 ? a.back() : x + (lost ? -6.0 : noise(rng)));
+    }
+  }
+  double score(int t, double p) const { return std::round(4.0 * std::fabs(p - target[t])) / 4.0; }
+  double fitFrom(int t, double p, double r0) const {
+    const double q = p + 0.5 * (target[t] - p);
+    return score(t, q) <= r0 ? q : p;
+  }
+  std::vector<double> run(int ref, bool parallel, int* wins = nullptr) const {
+    const int T = static_cast<int>(target.size());
+    auto starts = [&](int t, int dir, const std::vector<double>* fit) {
+      std::vector<seg::ChainStart<double>> s{{a[t], false}};
+      if (fit) s.push_back({(*fit)[t - dir], true});
+      s.push_back({b[t], false});
+      const int tpp = t - 2 * dir;
+      if (fit && tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
+        s.push_back({2.0 * (*fit)[t - dir] - (*fit)[tpp], true});
+      if (wins && fit) {  // serial run: which start wins (the first of the lowest score)
+        std::size_t best = 0;
+        for (std::size_t k = 1; k < s.size(); ++k)
+          if (score(t, s[k].pose) < score(t, s[best].pose)) best = k;
+        *wins += s[best].chained;
+      }
+      return s;
+    };
+    auto sc = [&](int t, double p) { return score(t, p); };
+    auto fit = [&](int t, double p, double r0) { return fitFrom(t, p, r0); };
+    return seg::fitAlongChain(T, ref, 0.0, starts, sc, fit, parallel);
+  }
+};
+
+}  // namespace
+
+TEST(ChainedFit, ParallelEqualsSerialWhicheverStartWins) {
+  const int before = omp_get_max_threads();
+  omp_set_num_threads(4);
+  int total_wins = 0;
+  for (unsigned seed = 1; seed <= 20; ++seed) {
+    const Toy toy(48, seed);
+    for (int ref : {0, 23, 47}) {
+      int wins = 0;
+      const std::vector<double> serial = toy.run(ref, false, &wins);
+      total_wins += wins;
+      const std::vector<double> parallel = toy.run(ref, true);
+      ASSERT_EQ(serial.size(), 48u);
+      EXPECT_EQ(serial[ref], 0.0) << "the reference frame keeps the identity";
+      for (int t = 0; t < 48; ++t)
+        EXPECT_EQ(serial[t], parallel[t]) << "seed " << seed << " ref " << ref << " frame " << t;
+    }
+  }
+  omp_set_num_threads(before);
+  // The chained starts won in many frames (the lost ones): the check pass was exercised.
+  EXPECT_GT(total_wins, 100);
+}
+
+TEST(ChainedFit, ChainedStartsRecoverLostFrames) {
+  // Without the chain (unchained starts only) a lost frame stays lost; with it, it is found.
+  const Toy toy(48, 7);
+  const std::vector<double> fit = toy.run(0, true);
+  int lost_unchained = 0, lost_chained = 0;
+  for (int t = 1; t < 48; ++t) {
+    const double best_guess = std::min(toy.score(t, toy.a[t]), toy.score(t, toy.b[t]));
+    lost_unchained += best_guess > 3.0;
+    lost_chained += toy.score(t, fit[t]) > 3.0;
+  }
+  EXPECT_GT(lost_unchained, 5);
+  EXPECT_LT(lost_chained, lost_unchained);
+}
+
+TEST(ChainedFit, SingleFrameAndEmptySequence) {
+  auto starts = [](int, int, const std::vector<double>*) {
+    return std::vector<seg::ChainStart<double>>{{1.0, false}};
+  };
+  auto score = [](int, double p) { return p; };
+  auto fit = [](int, double p, double) { return p; };
+  for (bool parallel : {false, true}) {
+    EXPECT_EQ(seg::fitAlongChain(1, 0, 0.0, starts, score, fit, parallel),
+              std::vector<double>{0.0});
+    EXPECT_TRUE(seg::fitAlongChain(0, 0, 0.0, starts, score, fit, parallel).empty());
+  }
+}
