@@ -1251,7 +1251,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     };
     // A call of its own (a merge's or a dissolve's fit) runs the frames in parallel; the initial
     // fits of all parts run in a loop over parts.
-    return fitAlongChain(T, ref, Pose(Pose::Identity()), starts, score, fitFrom,
+    auto same = [](const Pose& p, const Pose& q) { return p.matrix() == q.matrix(); };
+    return fitAlongChain(T, ref, Pose(Pose::Identity()), starts, score, fitFrom, same,
                          !omp_in_parallel() && omp_get_max_threads() > 1);
   };
 #pragma omp parallel for schedule(dynamic, 1)

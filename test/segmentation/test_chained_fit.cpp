@@ -59,7 +59,8 @@ struct Toy {
     };
     auto sc = [&](int t, double p) { return score(t, p); };
     auto fit = [&](int t, double p, double r0) { return fitFrom(t, p, r0); };
-    return seg::fitAlongChain(T, ref, 0.0, starts, sc, fit, parallel);
+    auto same = [](double p, double q) { return p == q; };
+    return seg::fitAlongChain(T, ref, 0.0, starts, sc, fit, same, parallel);
   }
 };
 
@@ -107,9 +108,10 @@ TEST(ChainedFit, SingleFrameAndEmptySequence) {
   };
   auto score = [](int, double p) { return p; };
   auto fit = [](int, double p, double) { return p; };
+  auto same = [](double p, double q) { return p == q; };
   for (bool parallel : {false, true}) {
-    EXPECT_EQ(seg::fitAlongChain(1, 0, 0.0, starts, score, fit, parallel),
+    EXPECT_EQ(seg::fitAlongChain(1, 0, 0.0, starts, score, fit, same, parallel),
               std::vector<double>{0.0});
-    EXPECT_TRUE(seg::fitAlongChain(0, 0, 0.0, starts, score, fit, parallel).empty());
+    EXPECT_TRUE(seg::fitAlongChain(0, 0, 0.0, starts, score, fit, same, parallel).empty());
   }
 }

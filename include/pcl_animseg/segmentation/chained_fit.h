@@ -19,23 +19,46 @@ struct ChainStart {
  * score.
  *
  * - `starts(t, dir, fits)` returns frame t's starts in their order (a std::vector of
- *   ChainStart<Pose>; at least one). With `fits` null it must return only the unchained ones (the same poses in
- *   the same relative order); otherwise `(*fits)[t - dir]`, `(*fits)[t - 2 * dir]`, ... are final
- *   and the chained starts may use them.
+ *   ChainStart<Pose>; at least one). With `fits` null it must return only the unchained ones (the
+ *   same poses in the same relative order); otherwise the chained ones may use
+ *   `(*fits)[t - dir]` and `(*fits)[t - 2 * dir]` (final when called), and no other fit.
  * - `score(t, pose)` scores a start (lower is better).
  * - `fitFrom(t, pose, score)` returns the fit from the winning start and its score.
+ * - `same(p, q)`: whether two poses are equal (bit for bit).
  *
  * With `parallel` (and score and fitFrom pure functions of their arguments) the result is the
- * same, computed with the frames side by side: every frame is first fitted from the best of its
- * unchained starts, in parallel; then, frame by frame along the chain, the chained starts are
- * scored too, and only a frame whose winner is a chained start is fitted again. A chain is
- * otherwise serial: in the motion method a merged part's 48 frames were one thread's work while
- * the other cores waited. Written by us: the speculation is specific to this fit. */
-template <class Pose, class Starts, class Score, class FitFrom>
+ * same, computed with the frames side by side. A chain is otherwise serial: in the motion method
+ * a merged part's 48 frames were one thread's work while the other cores waited.
+ * 1. Every frame is fitted from the best of its unchained starts (in parallel).
+ * 2. Every frame's chained starts are built from those fits of the frames before it, scored, and
+ *    where one wins, the frame is fitted from it (in parallel).
+ * 3. Frame by frame along the chain, the result of step 2 stands where the fits of the two
+ *    frames before it are the ones it assumed (most frames); otherwise the frame's chained
+ *    starts are scored, and it is fitted, again.
+ * Written by us: the speculation is specific to this fit. */
+template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts starts, Score score,
-                                FitFrom fitFrom, bool parallel) {
+                                FitFrom fitFrom, Same same, bool parallel) {
   std::vector<Pose> fit(T > 0 ? T : 0, identity);
   constexpr double kNone = std::numeric_limits<double>::max();
+  // Frame t's winner among its starts (the first of the lowest score), with the unchained ones
+  // scored already: the best of them is index `spec_k` among the unchained, scored `spec_r`.
+  // An unchained start that lost to it cannot win: it scores above it, or the same and later.
+  constexpr double kLost = std::numeric_limits<double>::infinity();
+  auto winner = [&](int t, const std::vector<ChainStart<Pose>>& s, std::size_t spec_k,
+                    double spec_r, double& r0) {
+    std::size_t best = 0, unchained = 0;
+    r0 = kNone;
+    for (std::size_t k = 0; k < s.size(); ++k) {
+      double r;
+      if (s[k].chained)
+        r = score(t, s[k].pose);
+      else
+        r = unchained++ == spec_k ? spec_r : kLost;
+      if (r < r0) r0 = r, best = k;
+    }
+    return best;
+  };
   if (!parallel) {
     for (int dir : {+1, -1})
       for (int t = ref + dir; t >= 0 && t < T; t += dir) {
@@ -50,7 +73,7 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
       }
     return fit;
   }
-  // Frame t's fit from its best unchained start (spec_k among the unchained, scored spec_r).
+  // Step 1.
   std::vector<Pose> spec(fit.size(), identity);
   std::vector<double> spec_r(fit.size(), kNone);
   std::vector<std::size_t> spec_k(fit.size(), 0);
@@ -65,22 +88,31 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
     }
     spec[t] = fitFrom(t, s[spec_k[t]].pose, spec_r[t]);
   }
-  // An unchained start that lost to spec_k cannot win against it: it scores above it, or the same
-  // and later in the order.
-  constexpr double kLost = std::numeric_limits<double>::infinity();
+  // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
+  std::vector<Pose> guess(fit.size(), identity);
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int t = 0; t < T; ++t) {
+    if (t == ref) continue;
+    const auto s = starts(t, t > ref ? +1 : -1, &spec);
+    double r0;
+    const std::size_t best = winner(t, s, spec_k[t], spec_r[t], r0);
+    guess[t] = s[best].chained ? fitFrom(t, s[best].pose, r0) : spec[t];
+  }
+  // Step 3. spec[ref] is the identity, as fit[ref] is.
   for (int dir : {+1, -1})
     for (int t = ref + dir; t >= 0 && t < T; t += dir) {
-      const auto s = starts(t, dir, &fit);
-      std::size_t best = 0, unchained = 0;
-      double r0 = kNone;
-      for (std::size_t k = 0; k < s.size(); ++k) {
-        double r;
-        if (s[k].chained)
-          r = score(t, s[k].pose);
-        else
-          r = unchained++ == spec_k[t] ? spec_r[t] : kLost;
-        if (r < r0) r0 = r, best = k;
+      // The frames that frame t's chained starts may use: t - dir, and t - 2 dir where it is on
+      // this side of the reference (the other side's fits are not final yet).
+      const int t1 = t - dir, t2 = t - 2 * dir;
+      const bool t2_used = t2 >= 0 && t2 < T && (t2 - ref) * dir >= 0;
+      const bool as_assumed = same(fit[t1], spec[t1]) && (!t2_used || same(fit[t2], spec[t2]));
+      if (as_assumed) {
+        fit[t] = guess[t];
+        continue;
       }
+      const auto s = starts(t, dir, &fit);
+      double r0;
+      const std::size_t best = winner(t, s, spec_k[t], spec_r[t], r0);
       fit[t] = s[best].chained ? fitFrom(t, s[best].pose, r0) : spec[t];
     }
   return fit;
