@@ -119,6 +119,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
 
   // 3. Boundary refinement (Sect. 4), built over all frames jointly.
   segmentation::SegmentationResult refined;
+  std::vector<segmentation::PartMotion> refinement_motions;
   if (params.refine && clusters.num_clusters > 1) {
     progress.begin("refine");
     segmentation::GMMBoundaryRefinement gmm;
@@ -127,6 +128,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     rp.seed = msp.seed;
     gmm.setParams(rp);
     gmm.refine(clusters, refined);
+    refinement_motions = gmm.getMotions();
     std::size_t changed = 0;
     for (std::size_t c : gmm.getStats().changed) changed += c;
     progress.end(std::to_string(changed) + " points relabelled");
@@ -154,6 +156,9 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     segmentation::RigidMotionEstimation rme;
     rme.setInputSequence(&seq);
     rme.setParams(params.rigid_motion);
+    // Level 0's parts are the refinement's input parts with refined borders: their motions,
+    // which the refinement fitted, start each frame's fit, and the frames run in parallel.
+    rme.setInitialMotions(refinement_motions);
     r.motions = rme.computeLevels(r.levels, {},
                                   static_cast<std::size_t>(std::max(0, params.motion_levels)));
     progress.end();

@@ -99,6 +99,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   }
   output = input;
   stats_ = RefinementStats();
+  motions_.clear();
   std::vector<std::vector<int>>& labels = output.labels;
   std::size_t total_points = sequence_->totalPoints();
 
@@ -132,6 +133,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (int l = 0; l < num_labels; ++l)
         for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
   }
+  motions_ = parts;
   // Motion residual of point j of frame t under part l's rigid motion: the point is carried to
   // every other frame and scored by its distance to that frame's surface (point-to-plane, blind to
   // the different sampling of the frames, or what the point-to-point distance exceeds a spacing,

@@ -3,8 +3,12 @@
 #include <pcl/registration/icp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
+#include <pcl_animseg/flat_kdtree.h>
 #include <pcl_animseg/kdtree.h>
+#include <pcl_animseg/segmentation/chained_fit.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
+
+#include <omp.h>
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
@@ -12,7 +16,9 @@
 #include <cmath>
 #include <cstdio>
 #include <iomanip>
+#include <limits>
 #include <sstream>
+#include <tuple>
 
 namespace pcl_animseg {
 namespace segmentation {
@@ -70,8 +76,9 @@ Cloud::Ptr partCloud(const Cloud& frame, const std::vector<int>& labels, int par
 
 // Dominant axis of a part (unit, sign arbitrary) and how dominant it is (λ1 / λ2).
 std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
-  Eigen::Vector4f c;
-  Eigen::Matrix3f cov;
+  // Zero for an empty cloud, which PCL leaves unwritten.
+  Eigen::Vector4f c = Eigen::Vector4f::Zero();
+  Eigen::Matrix3f cov = Eigen::Matrix3f::Zero();
   pcl::computeMeanAndCovarianceMatrix(cloud, cov, c);
   Eigen::SelfAdjointEigenSolver<Eigen::Matrix3f> es(cov);
   const Eigen::Vector3f ev = es.eigenvalues();  // ascending
@@ -107,6 +114,25 @@ bool startMotion(PartMotion& motion, std::size_t frames, std::size_t points_fram
   return true;
 }
 
+// Frame t's start from the previous frame's motion, re-centred on this frame's part centroid: the
+// rotation changes little between frames, the translation can change a lot. An elongated part
+// (a limb) can turn a lot between frames; turning the previous estimate so that the part's long
+// axis matches the new frame's gives ICP a start in the right basin (the roll about the axis is
+// left to ICP). Blob-like parts skip this. c0, axis0, ratio0: the source's centroid and principal
+// axis; ct, axis, ratio: the target's.
+RigidTransform chainedGuess(const RigidTransform& prev, const Eigen::Vector3d& c0,
+                            const Eigen::Vector3d& axis0, double ratio0, const Eigen::Vector3d& ct,
+                            const Eigen::Vector3d& axis, double ratio) {
+  RigidTransform guess = prev;
+  if (ratio > 2.0 && ratio0 > 2.0) {
+    const Eigen::Vector3d from = prev.rotation * axis0;
+    const Eigen::Vector3d to = from.dot(axis) >= 0.0 ? axis : Eigen::Vector3d(-axis);
+    guess.rotation = Eigen::Quaterniond::FromTwoVectors(from, to).toRotationMatrix() * prev.rotation;
+  }
+  guess.translation = ct - guess.rotation * c0;
+  return guess;
+}
+
 // The transform of an ICP result with its residual; valid when the residual is finite.
 RigidTransform fitted(const Eigen::Matrix4f& m, double rms) {
   RigidTransform r = fromMatrix(m);
@@ -124,7 +150,7 @@ RigidTransform fitted(const Eigen::Matrix4f& m, double rms) {
 // nearest-point distance.
 Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
                             const Eigen::Matrix4f& start, double spacing, double part_diag,
-                            const RigidMotionParams& p, double& rms) {
+                            const RigidMotionParams& p, double& rms, bool wide = true) {
   const double fine = p.max_correspondence_spacings * spacing;
   const double coarse = std::max(fine, p.coarse_distance * part_diag);
   const double passes[2] = {coarse, std::max(fine, coarse / 6.0)};
@@ -146,6 +172,7 @@ Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
   pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> p2p;
   setUp(p2p);
   for (double distance : passes) {
+    if (!wide) break;
     p2p.setMaxCorrespondenceDistance(distance);
     p2p.setMaximumIterations(std::max(1, p.max_iterations / 2));
     p2p.align(aligned, m);
@@ -171,6 +198,106 @@ Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
     }
   }
   return m;
+}
+
+// A part's chained fit with one more start in every frame, init.frames[t] (when valid): frame t
+// starts from the better of the chained guess and init[t], by the RMS nearest-point distance of
+// (up to kScorePoints of) the source under each. With good starts in every frame (the motions of
+// nearly the same labels) the chain is rarely needed, so the frames run in parallel
+// (fitAlongChain: the same result as one frame after the other).
+void fitSeeded(const PointCloudSequence& seq, const RigidMotionParams& p,
+               const std::vector<std::vector<int>>& labels, int part,
+               const std::vector<double>& spacing, std::size_t points_frame0,
+               const PartMotion& init, PartMotion& motion) {
+  const std::size_t frames = seq.size();
+  const Cloud::Ptr source = partCloud(*seq.frame(0), labels[0], part, p.max_points);
+  if (!startMotion(motion, frames, points_frame0, *source, p.min_points)) return;
+  Eigen::Vector4f c0f;
+  pcl::compute3DCentroid(*source, c0f);
+  const Eigen::Vector3d c0 = c0f.head<3>().cast<double>();
+  const double part_diag = boundingBoxDiagonal(*source);
+  const auto [axis0, ratio0] = principalAxis(*source);
+  constexpr std::size_t kScorePoints = 500;
+  std::vector<Eigen::Vector3d> probe;
+  for (std::size_t k = 0, n = source->size(), m = std::min(n, kScorePoints); k < m; ++k) {
+    const auto& q = (*source)[k * n / m];
+    probe.emplace_back(q.x, q.y, q.z);
+  }
+  struct Target {
+    Cloud::Ptr cloud;
+    bool usable = false;
+    Eigen::Vector3d centroid = Eigen::Vector3d::Zero(), axis = Eigen::Vector3d::UnitX();
+    double ratio = 1.0;
+    FlatKdTree3 tree;
+  };
+  std::vector<Target> targets(frames);
+#pragma omp parallel for schedule(dynamic)
+  for (std::size_t t = 1; t < frames; ++t) {
+    Target& g = targets[t];
+    g.cloud = partCloud(*seq.frame(t), labels[t], part, 0);
+    g.usable = static_cast<int>(g.cloud->size()) >= p.min_points;
+    if (!g.usable) continue;
+    Eigen::Vector4f ct;
+    pcl::compute3DCentroid(*g.cloud, ct);
+    g.centroid = ct.head<3>().cast<double>();
+    std::tie(g.axis, g.ratio) = principalAxis(*g.cloud);
+    std::vector<float> xyz;
+    xyz.reserve(3 * g.cloud->size());
+    for (const auto& q : *g.cloud) xyz.insert(xyz.end(), {q.x, q.y, q.z});
+    g.tree.build(xyz.data(), g.cloud->size());
+  }
+  const bool seeded = init.frames.size() == frames;
+  auto starts = [&](int t, int, const std::vector<RigidTransform>* fits) {
+    std::vector<ChainStart<RigidTransform>> s;
+    if (seeded && init.frames[t].valid) s.push_back({init.frames[t], false});
+    if (fits) {
+      const Target& g = targets[t];
+      s.push_back({g.usable ? chainedGuess((*fits)[t - 1], c0, axis0, ratio0, g.centroid,
+                                           g.axis, g.ratio)
+                            : (*fits)[t - 1],
+                   true});
+    }
+    return s;
+  };
+  auto score = [&](int t, const RigidTransform& x) {
+    const Target& g = targets[t];
+    if (!g.usable) return 0.0;
+    double sum = 0.0;
+    for (const Eigen::Vector3d& q : probe) {
+      const Eigen::Vector3f y = x.apply(q).cast<float>();
+      float d2 = 0.0f;
+      g.tree.nearest(y.data(), std::numeric_limits<float>::infinity(), d2);
+      sum += d2;
+    }
+    return std::sqrt(sum / static_cast<double>(probe.size()));
+  };
+  // A frame without enough points, or whose ICP fails, carries its start's pose for the next
+  // frame's guess and has no estimate (as in the chained fit, which carries the last valid one).
+  auto fitFrom = [&](int t, const RigidTransform& start, double) {
+    RigidTransform r;
+    const Target& g = targets[t];
+    if (g.usable) {
+      double rms = 0.0;
+      const bool from_init = seeded && init.frames[t].valid &&
+                             start.rotation == init.frames[t].rotation &&
+                             start.translation == init.frames[t].translation;
+      const Eigen::Matrix4f m = alignPasses(source, g.cloud, toMatrix(start), spacing[t],
+                                            part_diag, p, rms, !from_init);
+      r = fitted(m, rms);  // after alignPasses has set rms: two statements
+      if (r.valid) return r;
+    }
+    r = start;
+    r.valid = false;
+    r.rms = -1.0;
+    return r;
+  };
+  auto same = [](const RigidTransform& a, const RigidTransform& b) {
+    return a.rotation == b.rotation && a.translation == b.translation && a.valid == b.valid;
+  };
+  std::vector<RigidTransform> fit =
+      fitAlongChain(static_cast<int>(frames), 0, motion.frames[0], starts, score, fitFrom, same,
+                    !omp_in_parallel() && omp_get_max_threads() > 1);
+  for (std::size_t t = 1; t < frames; ++t) motion.frames[t] = fit[t];
 }
 
 // The motions of merged parts of a nested level from those of the level below (children), each
@@ -375,6 +502,19 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     return frame0_points[x.first][x.second] > frame0_points[y.first][y.second];
   });
   const RigidMotionParams p = params_;
+  // The first labelling's parts with a start of their own in every frame (setInitialMotions) run
+  // one after the other, each with its frames in parallel (fitSeeded); the others side by side.
+  std::vector<std::pair<std::size_t, int>> seeded;
+  if (!init_.empty() && !sets.empty()) {
+    auto first = [&](const std::pair<std::size_t, int>& j) {
+      return j.first == 0 && static_cast<std::size_t>(j.second) < init_.size();
+    };
+    std::copy_if(jobs.begin(), jobs.end(), std::back_inserter(seeded), first);
+    jobs.erase(std::remove_if(jobs.begin(), jobs.end(), first), jobs.end());
+  }
+  for (const auto& [s, part] : seeded)
+    fitSeeded(*sequence_, p, *sets[s], part, spacing, frame0_points[s][part], init_[part],
+              out[s][part]);
 #pragma omp parallel for schedule(dynamic)
   for (std::size_t job = 0; job < jobs.size(); ++job) {
     const std::vector<std::vector<int>>& labels = *sets[jobs[job].first];
@@ -396,24 +536,12 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
       result.valid = false;
       result.rms = -1.0;
       if (static_cast<int>(target->size()) < p.min_points) continue;
-      // Start from the previous frame's motion, re-centred on this frame's part centroid: the
-      // rotation changes little between frames, the translation can change a lot.
       Eigen::Vector4f ct;
       pcl::compute3DCentroid(*target, ct);
-      RigidTransform guess = prev;
-      // An elongated part (a limb) can turn a lot between frames; turning the previous estimate
-      // so that the part's long axis matches the new frame's gives ICP a start in the right
-      // basin (the roll about the axis is left to ICP). Blob-like parts skip this.
       const auto [axis, ratio] = principalAxis(*target);
-      if (ratio > 2.0 && prev_ratio > 2.0) {
-        const Eigen::Vector3d from = prev.rotation * axis0;
-        const Eigen::Vector3d to = from.dot(axis) >= 0.0 ? axis : Eigen::Vector3d(-axis);
-        guess.rotation =
-            Eigen::Quaterniond::FromTwoVectors(from, to).toRotationMatrix() * prev.rotation;
-      }
-      guess.translation =
-          ct.head<3>().cast<double>() - guess.rotation * c0.head<3>().cast<double>();
-
+      const RigidTransform guess =
+          chainedGuess(prev, c0.head<3>().cast<double>(), axis0, prev_ratio,
+                       ct.head<3>().cast<double>(), axis, ratio);
       double rms = 0.0;
       const Eigen::Matrix4f m =
           alignPasses(source, target, toMatrix(guess), spacing[t], part_diag, p, rms);

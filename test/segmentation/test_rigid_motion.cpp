@@ -3,7 +3,11 @@
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
+#include <omp.h>
+
+#include <Eigen/Geometry>
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <sstream>
@@ -249,4 +253,58 @@ TEST(RigidMotion, EveryLevelFittedWithUnchangedPartsReused) {
   broken[2][1].pop_back();
   EXPECT_THROW(est.computeLevels(broken), pcl_animseg::Error);
   EXPECT_NO_THROW(est.computeLevels(broken, {}, 2));  // the broken level is not asked for
+}
+
+// Starts of their own in every frame (setInitialMotions, as the pipeline passes the refinement's
+// motions): a part's frames are fitted in parallel, from the better of that start and the
+// previous frame's motion. The result must match the Kabsch fit from the known correspondences
+// as the chained fit does; be the same bits on 1 and 4 threads; recover where the given starts
+// are wrong (the chained start wins there); and leave parts beyond the given ones chained.
+TEST(RigidMotion, InitialMotionsStartEachFrame) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(8, 6000, true, 3);
+  RigidMotionEstimation est;
+  est.setInputSequence(&chain.sequence);
+  const std::vector<PartMotion> chained = est.compute(chain.truth);
+  ASSERT_EQ(chained.size(), 3u);
+
+  // Starts from nearly the same labels: the motions of a coarser subsample.
+  RigidMotionEstimation coarse;
+  coarse.setInputSequence(&chain.sequence);
+  pcl_animseg::segmentation::RigidMotionParams cp;
+  cp.max_points = 300;
+  coarse.setParams(cp);
+  std::vector<PartMotion> init = coarse.compute(chain.truth);
+  // Wrong starts in every other frame of part 1 (turned by 90 degrees and shifted), and none
+  // for part 2.
+  for (std::size_t t = 1; t < init[1].frames.size(); t += 2) {
+    init[1].frames[t].rotation =
+        Eigen::AngleAxisd(M_PI / 2, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
+        init[1].frames[t].rotation;
+    init[1].frames[t].translation += Eigen::Vector3d(0.3, -0.2, 0.1);
+  }
+  init.resize(2);
+  est.setInitialMotions(init);
+  ASSERT_EQ(est.getInitialMotions().size(), 2u);
+
+  const int before = omp_get_max_threads();
+  omp_set_num_threads(1);
+  const std::vector<PartMotion> one = est.compute(chain.truth);
+  omp_set_num_threads(4);
+  const std::vector<PartMotion> four = est.compute(chain.truth);
+  omp_set_num_threads(before);
+  ASSERT_EQ(one.size(), 3u);
+  for (int part = 0; part < 3; ++part) {
+    const std::string what = "part " + std::to_string(part);
+    expectMatchesKabsch(chain, part, one[part], what);
+    expectSameMotion(one[part], four[part], what + ", 1 vs 4 threads");
+  }
+  // Part 2 had no starts: chained, as without them.
+  expectSameMotion(one[2], chained[2], "part 2 without starts");
+  // computeLevels takes them for level 0 as well.
+  const auto levels = est.computeLevels({chain.truth});
+  for (int part = 0; part < 3; ++part)
+    expectSameMotion(levels[0].parts[part], one[part], "level 0 part " + std::to_string(part));
+  // Cleared: chained again.
+  est.setInitialMotions({});
+  expectSameMotion(est.compute(chain.truth)[1], chained[1], "part 1 after clearing");
 }

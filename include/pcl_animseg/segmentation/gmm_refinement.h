@@ -1,5 +1,6 @@
 #pragma once
 /** \file gmm_refinement.h Boundary smoothing by local normal-space GMMs (Sect. 4 of the paper). */
+#include <pcl_animseg/segmentation/rigid_motion.h>
 #include <pcl_animseg/segmentation/segmentation_result.h>
 #include <pcl_animseg/sequence.h>
 
@@ -135,10 +136,17 @@ class GMMBoundaryRefinement {
 
   const RefinementStats& getStats() const { return stats_; }
 
+  /** \brief The rigid motion of each part of refine()'s input labels (frame 0 -> frame t, up to
+   * 500 points per part), which pooled the frames and checked the motions; empty when neither
+   * ran. A good start for the motions of the refined labels
+   * (RigidMotionEstimation::setInitialMotions): the refinement moves only the borders. */
+  const std::vector<PartMotion>& getMotions() const { return motions_; }
+
  private:
   const PointCloudSequence* sequence_ = nullptr;
   RefinementParams params_;
   RefinementStats stats_;
+  std::vector<PartMotion> motions_;
 };
 
 }  // namespace segmentation

@@ -14,6 +14,7 @@
 #include <Eigen/Core>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace pcl_animseg {
@@ -74,6 +75,17 @@ class RigidMotionEstimation {
   void setParams(const RigidMotionParams& params) { params_ = params; }
   const RigidMotionParams& getParams() const { return params_; }
 
+  /** \brief Starts for the fits of the first labelling's parts (compute()'s labels, or level 0 of
+   * computeLevels()): part p's motion in frame t also starts from `init[p].frames[t]` where that
+   * is valid, whichever of it and the previous frame's motion fits the part better (RMS
+   * nearest-point distance). Meant for the motions of nearly the same labels, such as those the
+   * refinement computed for its input (GMMBoundaryRefinement::getMotions(); the refinement moves
+   * only the borders): then a part's frames are fitted in parallel, with the same result as one
+   * after the other. Parts beyond init's size, and every other labelling, are fitted as without.
+   * An empty vector (the default) clears them. */
+  void setInitialMotions(std::vector<PartMotion> init) { init_ = std::move(init); }
+  const std::vector<PartMotion>& getInitialMotions() const { return init_; }
+
   /** \brief Motions of parts 0..num_parts-1 given labels[t][j] (kept-point order, -1 ignored).
    * `num_parts` <= 0 means max label + 1. Parts run in parallel (OpenMP). */
   std::vector<PartMotion> compute(const std::vector<std::vector<int>>& labels,
@@ -112,6 +124,7 @@ class RigidMotionEstimation {
 
   const PointCloudSequence* sequence_ = nullptr;
   RigidMotionParams params_;
+  std::vector<PartMotion> init_;
 };
 
 /** \brief Writes transforms.json (atomically):
