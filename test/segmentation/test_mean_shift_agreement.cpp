@@ -171,3 +171,32 @@ TEST(MeanShiftAgreement, DISABLED_Sweep) {
         std::fflush(stdout);
       }
 }
+
+TEST(MeanShiftAgreement, DISABLED_ExactSensitivity) {
+  std::vector<int> truth;
+  auto seq = walkingFigure(10, 700, 0.3, 0.03, 11, truth);
+  for (double bandwidth : {0.1, 0.2}) {
+    seg::MeanShiftParams p;
+    p.bandwidth = bandwidth;
+    p.max_iterations = 300;
+    const auto ref = runPaper(seq, seg::MeanShiftBackend::Exact, p);
+    std::printf("bw %.2f exact: %d clusters, truth ARI %.4f\n", bandwidth, ref.num_clusters,
+                pcl_animseg::evaluation::adjustedRandIndex(pooled(ref), truth));
+    for (double f : {0.99, 1.01, 0.98, 1.02}) {
+      seg::MeanShiftParams q = p;
+      q.bandwidth = bandwidth * f;
+      const auto r = runPaper(seq, seg::MeanShiftBackend::Exact, q);
+      std::printf("  x%.2f: %d clusters, ARI to exact %.4f, truth %.4f\n", f, r.num_clusters,
+                  pcl_animseg::evaluation::adjustedRandIndex(pooled(ref), pooled(r)),
+                  pcl_animseg::evaluation::adjustedRandIndex(pooled(r), truth));
+      std::fflush(stdout);
+    }
+    seg::MeanShiftParams g = p;
+    g.max_iterations = 60;
+    const auto gkd = runPaper(seq, seg::MeanShiftBackend::GaussianKdTree, g);
+    std::printf("  gkdtree: %d clusters, ARI to exact %.4f, truth %.4f\n", gkd.num_clusters,
+                pcl_animseg::evaluation::adjustedRandIndex(pooled(ref), pooled(gkd)),
+                pcl_animseg::evaluation::adjustedRandIndex(pooled(gkd), truth));
+    std::fflush(stdout);
+  }
+}
