@@ -1391,6 +1391,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   };
   auto dissolveCandidates = [&](int x) { return neighboursOf(x, true); };
   constexpr double kNoDissolve = std::numeric_limits<double>::infinity();
+  // A part's worst-frame residual under its own motion, kept while its points and motion stay
+  // (a merge or a dissolve next to it scores it again, but only its neighbours changed).
+  std::vector<double> own_residual(G, 0.0);
+  std::vector<char> own_known(G, 0);
   auto dissolveCost = [&](int x) {
     const std::vector<int> nb = dissolveCandidates(x);
     if (nb.size() < 2 || !has_surface || !(params.dissolve_ratio > 0.0)) return kNoDissolve;
@@ -1402,10 +1406,14 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // it about as well as its own does. A short true part between two joints (a neck, a
     // pelvis) fits its own motion far better (measured: 2.3 to 7.6 times) than the ends of
     // its neighbours' (each end fits, the middle does not); pieces straddling a joint 1.0-1.5.
-    double own = 0.0;
-    for (int t = 0; t < T; ++t)
-      if (t != ref) own = std::max(own, residual(sx, gpose[x][t], frames[t]));
-    const double limit = params.dissolve_ratio * own;
+    if (!own_known[x]) {
+      double own = 0.0;
+      for (int t = 0; t < T; ++t)
+        if (t != ref) own = std::max(own, residual(sx, gpose[x][t], frames[t]));
+      own_residual[x] = own;
+      own_known[x] = 1;
+    }
+    const double limit = params.dissolve_ratio * own_residual[x];
     // The worst frame's mean is at least the mean over frames, so the running sum of each
     // point's best total bounds the cost from below: most parts are rejected early.
     const double give_up = limit * limit * static_cast<double>(m) * frames_scored;
@@ -1498,12 +1506,14 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       std::set_union(gpts[rec[r]].begin(), gpts[rec[r]].end(), add.begin(), add.end(),
                      std::back_inserter(grown[r]));
     }
-    // The receivers side by side, each fit a chain of frames: on 16 cores this took half the
-    // time of one receiver after the other, each over its frames in parallel (fitPart).
-#pragma omp parallel for schedule(dynamic, 1)
+    // One receiver after the other, each with its frames in parallel (fitPart): a dissolve has
+    // two or three receivers, too few to keep many cores busy.
     for (std::size_t r = 0; r < rec.size(); ++r)
       gpose[rec[r]] = fitPart(grown[r], gpose[rec[r]], nullptr);
-    for (std::size_t r = 0; r < rec.size(); ++r) gpts[rec[r]].swap(grown[r]);
+    for (std::size_t r = 0; r < rec.size(); ++r) {
+      gpts[rec[r]].swap(grown[r]);
+      own_known[rec[r]] = 0;
+    }
     gpts[x].clear();
     galive[x] = 0;
     // The receivers' motions changed: their edges are scored again, and receivers that now
@@ -1537,6 +1547,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
                    std::back_inserter(u));
     gpose[a] = fitPart(u, gpose[a], &gpose[b]);
     gpts[a].swap(u);
+    own_known[a] = 0;
     for (int i : gpts[b]) part_of[i] = a;
     gpts[b].clear();
     galive[b] = 0;
