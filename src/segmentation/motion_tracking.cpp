@@ -832,12 +832,10 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
   return changed;
 }
 
-/** After b joined a: drops every edge that touches a or b and scores the edges between a and its
- * former neighbours again, one after the other: each score runs over the frames in parallel (a
- * merge has a handful of neighbours and a sequence tens of frames, so the frames keep many cores
- * busy where the neighbours did not: 16 threads were slower than 8). */
-template <class Edge, class Evaluate>
-void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evaluate evaluate) {
+/** After b joined a: drops every edge that touches a or b; returns a's and b's other former
+ * neighbours. */
+template <class Edge>
+std::set<int> detachEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b) {
   std::set<int> nbrs;
   for (auto it = edges.begin(); it != edges.end();) {
     const auto [x, y] = it->first;
@@ -849,7 +847,16 @@ void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evalu
       ++it;
     }
   }
-  for (int o : nbrs) edges[{std::min(a, o), std::max(a, o)}] = evaluate(a, o);
+  return nbrs;
+}
+
+/** After b joined a: scores the edges between a and its former neighbours again, one after the
+ * other: each score runs over the frames in parallel (a merge has a handful of neighbours and a
+ * sequence tens of frames, so the frames keep many cores busy where the neighbours did not: 16
+ * threads were slower than 8). */
+template <class Edge, class Evaluate>
+void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evaluate evaluate) {
+  for (int o : detachEdges(edges, a, b)) edges[{std::min(a, o), std::max(a, o)}] = evaluate(a, o);
 }
 
 /** rewireEdges with the former neighbours' edges scored together: `evaluate` takes the list of
@@ -857,19 +864,8 @@ void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evalu
 template <class Edge, class EvaluateAll>
 void rewireEdgesBatch(std::map<std::pair<int, int>, Edge>& edges, int a, int b,
                       EvaluateAll evaluate) {
-  std::set<int> nbrs;
-  for (auto it = edges.begin(); it != edges.end();) {
-    const auto [x, y] = it->first;
-    if (x == a || x == b || y == a || y == b) {
-      const int o = (x == a || x == b) ? y : x;
-      if (o != a && o != b) nbrs.insert(o);
-      it = edges.erase(it);
-    } else {
-      ++it;
-    }
-  }
   std::vector<std::pair<int, int>> list;
-  for (int o : nbrs) list.push_back({std::min(a, o), std::max(a, o)});
+  for (int o : detachEdges(edges, a, b)) list.push_back({std::min(a, o), std::max(a, o)});
   const std::vector<Edge> scored = evaluate(list);
   for (std::size_t i = 0; i < list.size(); ++i) edges[list[i]] = scored[i];
 }
