@@ -200,26 +200,33 @@ Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
   return m;
 }
 
-// A part's chained fit with one more start in every frame, init.frames[t] (when valid): frame t
-// starts from the better of the chained guess and init[t], by the RMS nearest-point distance of
-// (up to kScorePoints of) the source under each. With good starts in every frame (the motions of
-// nearly the same labels) the chain is rarely needed, so the frames run in parallel
-// (fitAlongChain: the same result as one frame after the other).
-void fitSeeded(const PointCloudSequence& seq, const RigidMotionParams& p,
-               const std::vector<std::vector<int>>& labels, int part,
-               const std::vector<double>& spacing, std::size_t points_frame0,
-               const PartMotion& init, PartMotion& motion) {
+// A part's motion along the sequence, frame t from frame t-1: the ICP passes (alignPasses) start
+// from the last valid estimate re-centred and turned onto the part in frame t (chainedGuess). A
+// frame without enough points, or whose ICP fails, has no estimate and passes the last valid
+// one on. With `init` (its frames[t] where valid) there is one more start in every frame: the
+// better of the two by the RMS nearest-point distance of (up to kScorePoints of) the source
+// under each, and a start from init skips the wide passes. With good starts in every frame (the
+// motions of nearly the same labels) the chain is rarely needed, so the frames run in parallel
+// (fitAlongChain: the same result as one frame after the other), unless called inside a
+// parallel loop.
+void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
+                const std::vector<std::vector<int>>& labels, int part,
+                const std::vector<double>& spacing, std::size_t points_frame0,
+                const PartMotion* init, PartMotion& motion) {
   const std::size_t frames = seq.size();
   const Cloud::Ptr source = partCloud(*seq.frame(0), labels[0], part, p.max_points);
   if (!startMotion(motion, frames, points_frame0, *source, p.min_points)) return;
+  const bool seeded = init && init->frames.size() == frames;
   Eigen::Vector4f c0f;
   pcl::compute3DCentroid(*source, c0f);
   const Eigen::Vector3d c0 = c0f.head<3>().cast<double>();
   const double part_diag = boundingBoxDiagonal(*source);
   const auto [axis0, ratio0] = principalAxis(*source);
+  // Scoring is needed only to choose between two starts.
   constexpr std::size_t kScorePoints = 500;
   std::vector<Eigen::Vector3d> probe;
-  for (std::size_t k = 0, n = source->size(), m = std::min(n, kScorePoints); k < m; ++k) {
+  for (std::size_t k = 0, n = source->size(), m = seeded ? std::min(n, kScorePoints) : 0; k < m;
+       ++k) {
     const auto& q = (*source)[k * n / m];
     probe.emplace_back(q.x, q.y, q.z);
   }
@@ -241,63 +248,69 @@ void fitSeeded(const PointCloudSequence& seq, const RigidMotionParams& p,
     pcl::compute3DCentroid(*g.cloud, ct);
     g.centroid = ct.head<3>().cast<double>();
     std::tie(g.axis, g.ratio) = principalAxis(*g.cloud);
+    if (!seeded) continue;
     std::vector<float> xyz;
     xyz.reserve(3 * g.cloud->size());
     for (const auto& q : *g.cloud) xyz.insert(xyz.end(), {q.x, q.y, q.z});
     g.tree.build(xyz.data(), g.cloud->size());
   }
-  const bool seeded = init.frames.size() == frames;
-  auto starts = [&](int t, int, const std::vector<RigidTransform>* fits) {
-    std::vector<ChainStart<RigidTransform>> s;
-    if (seeded && init.frames[t].valid) s.push_back({init.frames[t], false});
+  // A link of the chain: frame t's estimate, and the last valid one up to t (what the next
+  // frame's guess starts from).
+  struct Link {
+    RigidTransform fit, carry;
+    bool from_init = false;
+  };
+  auto starts = [&](int t, int, const std::vector<Link>* fits) {
+    std::vector<ChainStart<Link>> s;
+    if (seeded && init->frames[t].valid)
+      s.push_back({{init->frames[t], init->frames[t], true}, false});
     if (fits) {
       const Target& g = targets[t];
-      s.push_back({g.usable ? chainedGuess((*fits)[t - 1], c0, axis0, ratio0, g.centroid,
-                                           g.axis, g.ratio)
-                            : (*fits)[t - 1],
-                   true});
+      const RigidTransform& last = (*fits)[t - 1].carry;
+      const RigidTransform guess =
+          g.usable ? chainedGuess(last, c0, axis0, ratio0, g.centroid, g.axis, g.ratio) : last;
+      s.push_back({{guess, last, false}, true});
     }
     return s;
   };
-  auto score = [&](int t, const RigidTransform& x) {
+  auto score = [&](int t, const Link& x) {
     const Target& g = targets[t];
-    if (!g.usable) return 0.0;
+    if (!seeded || !g.usable) return 0.0;
     double sum = 0.0;
     for (const Eigen::Vector3d& q : probe) {
-      const Eigen::Vector3f y = x.apply(q).cast<float>();
+      const Eigen::Vector3f y = x.fit.apply(q).cast<float>();
       float d2 = 0.0f;
       g.tree.nearest(y.data(), std::numeric_limits<float>::infinity(), d2);
       sum += d2;
     }
     return std::sqrt(sum / static_cast<double>(probe.size()));
   };
-  // A frame without enough points, or whose ICP fails, carries its start's pose for the next
-  // frame's guess and has no estimate (as in the chained fit, which carries the last valid one).
-  auto fitFrom = [&](int t, const RigidTransform& start, double) {
-    RigidTransform r;
+  auto fitFrom = [&](int t, const Link& start, double) {
+    Link out;
+    out.carry = start.carry;
+    out.fit = start.carry;
+    out.fit.valid = false;
+    out.fit.rms = -1.0;
     const Target& g = targets[t];
-    if (g.usable) {
-      double rms = 0.0;
-      const bool from_init = seeded && init.frames[t].valid &&
-                             start.rotation == init.frames[t].rotation &&
-                             start.translation == init.frames[t].translation;
-      const Eigen::Matrix4f m = alignPasses(source, g.cloud, toMatrix(start), spacing[t],
-                                            part_diag, p, rms, !from_init);
-      r = fitted(m, rms);  // after alignPasses has set rms: two statements
-      if (r.valid) return r;
-    }
-    r = start;
-    r.valid = false;
-    r.rms = -1.0;
-    return r;
+    if (!g.usable) return out;
+    double rms = 0.0;
+    const Eigen::Matrix4f m = alignPasses(source, g.cloud, toMatrix(start.fit), spacing[t],
+                                          part_diag, p, rms, !start.from_init);
+    out.fit = fitted(m, rms);  // after alignPasses has set rms: two statements
+    if (out.fit.valid) out.carry = out.fit;
+    return out;
   };
-  auto same = [](const RigidTransform& a, const RigidTransform& b) {
+  auto sameTransform = [](const RigidTransform& a, const RigidTransform& b) {
     return a.rotation == b.rotation && a.translation == b.translation && a.valid == b.valid;
   };
-  std::vector<RigidTransform> fit =
-      fitAlongChain(static_cast<int>(frames), 0, motion.frames[0], starts, score, fitFrom, same,
+  auto same = [&](const Link& a, const Link& b) {
+    return sameTransform(a.fit, b.fit) && sameTransform(a.carry, b.carry);
+  };
+  const Link first{motion.frames[0], motion.frames[0], false};
+  const std::vector<Link> chain =
+      fitAlongChain(static_cast<int>(frames), 0, first, starts, score, fitFrom, same,
                     !omp_in_parallel() && omp_get_max_threads() > 1);
-  for (std::size_t t = 1; t < frames; ++t) motion.frames[t] = fit[t];
+  for (std::size_t t = 1; t < frames; ++t) motion.frames[t] = chain[t].fit;
 }
 
 // The motions of merged parts of a nested level from those of the level below (children), each
@@ -503,7 +516,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
   });
   const RigidMotionParams p = params_;
   // The first labelling's parts with a start of their own in every frame (setInitialMotions) run
-  // one after the other, each with its frames in parallel (fitSeeded); the others side by side.
+  // one after the other, each with its frames in parallel (fitChained); the others side by side.
   std::vector<std::pair<std::size_t, int>> seeded;
   if (!init_.empty() && !sets.empty()) {
     auto first = [&](const std::pair<std::size_t, int>& j) {
@@ -513,41 +526,13 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     jobs.erase(std::remove_if(jobs.begin(), jobs.end(), first), jobs.end());
   }
   for (const auto& [s, part] : seeded)
-    fitSeeded(*sequence_, p, *sets[s], part, spacing, frame0_points[s][part], init_[part],
-              out[s][part]);
+    fitChained(*sequence_, p, *sets[s], part, spacing, frame0_points[s][part], &init_[part],
+               out[s][part]);
 #pragma omp parallel for schedule(dynamic)
   for (std::size_t job = 0; job < jobs.size(); ++job) {
-    const std::vector<std::vector<int>>& labels = *sets[jobs[job].first];
-    const int part = jobs[job].second;
-    PartMotion& motion = out[jobs[job].first][part];
-    Cloud::Ptr source = partCloud(*sequence_->frame(0), labels[0], part, p.max_points);
-    if (!startMotion(motion, frames, frame0_points[jobs[job].first][part], *source, p.min_points))
-      continue;
-    Eigen::Vector4f c0;
-    pcl::compute3DCentroid(*source, c0);
-    const double part_diag = boundingBoxDiagonal(*source);
-
-    RigidTransform prev = motion.frames[0];
-    const auto [axis0, prev_ratio] = principalAxis(*source);
-    for (std::size_t t = 1; t < frames; ++t) {
-      Cloud::Ptr target = partCloud(*sequence_->frame(t), labels[t], part, 0);
-      RigidTransform& result = motion.frames[t];
-      result = prev;
-      result.valid = false;
-      result.rms = -1.0;
-      if (static_cast<int>(target->size()) < p.min_points) continue;
-      Eigen::Vector4f ct;
-      pcl::compute3DCentroid(*target, ct);
-      const auto [axis, ratio] = principalAxis(*target);
-      const RigidTransform guess =
-          chainedGuess(prev, c0.head<3>().cast<double>(), axis0, prev_ratio,
-                       ct.head<3>().cast<double>(), axis, ratio);
-      double rms = 0.0;
-      const Eigen::Matrix4f m =
-          alignPasses(source, target, toMatrix(guess), spacing[t], part_diag, p, rms);
-      result = fitted(m, rms);
-      if (result.valid) prev = result;
-    }
+    const auto [s, part] = jobs[job];
+    fitChained(*sequence_, p, *sets[s], part, spacing, frame0_points[s][part], nullptr,
+               out[s][part]);
   }
   return out;
 }
