@@ -19,9 +19,12 @@
 #include <string>
 #include <utility>
 
+#include "pipeline/sequence_params.h"
+
 namespace seg = pcl_animseg::segmentation;
 namespace synth = pcl_animseg::synth;
 namespace ev = pcl_animseg::evaluation;
+using animseg_test::sequenceParams;
 
 namespace {
 
@@ -70,17 +73,6 @@ long smallestPart(const RunResult& r, long& total) {
     for (int l : labels)
       if (l >= 0 && l < r.clusters) ++size[l], ++total;
   return size.empty() ? 0 : *std::min_element(size.begin(), size.end());
-}
-
-synth::SynthParams sequenceParams(synth::BodyPlan plan, int frames, int points, unsigned seed) {
-  synth::SynthParams sp;
-  sp.plan = plan;
-  sp.frames = frames;
-  sp.points = points;
-  sp.point_variation = 0.2;
-  sp.motion = 1.0;
-  sp.seed = seed;
-  return sp;
 }
 
 int envInt(const char* name, int fallback) {

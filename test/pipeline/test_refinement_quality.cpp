@@ -13,6 +13,7 @@
 #include <memory>
 #include <string>
 
+#include "pipeline/sequence_params.h"
 #include "segmentation/synthetic_parts.h"
 
 namespace seg = pcl_animseg::segmentation;
@@ -23,13 +24,8 @@ namespace synth = pcl_animseg::synth;
 // leave them (nearly) right: with normals alone the refinement moved ~1900 points across the
 // hips, shoulders and neck and the pooled ARI fell to 0.81; the motion check keeps it at 0.98.
 TEST(RefinementQuality, TrueLabelsOfAQuadrupedStayTrue) {
-  synth::SynthParams sp;
-  sp.plan = synth::BodyPlan::Quadruped;
-  sp.frames = 8;
-  sp.points = 1500;
-  sp.point_variation = 0.2;
-  sp.motion = 1.0;
-  sp.seed = 3;
+  const synth::SynthParams sp =
+      animseg_test::sequenceParams(synth::BodyPlan::Quadruped, 8, 1500, 3);
   const auto frames = synth::generate(sp);
   const pcl_animseg::PointCloudSequence seq = synth::toSequence(frames);
   seg::SegmentationResult in, out;
@@ -143,13 +139,8 @@ void printWrongByDistance(const Refined& r) {
 // side they had entered: boundary error 0.115 -> 0.125 and ARI 0.932 -> 0.923; one pass gives
 // 0.115 -> 0.107 and 0.932 -> 0.936.
 TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
-  synth::SynthParams sp;
-  sp.plan = synth::BodyPlan::Humanoid;
-  sp.frames = 20;
-  sp.points = 3000;
-  sp.point_variation = 0.2;
-  sp.seed = 6;
-  const Refined r = refineMotionLabels(sp, seg::RefinementParams());
+  const Refined r = refineMotionLabels(
+      animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6), seg::RefinementParams());
   std::printf("boundary error %.4f -> %.4f, pooled ARI %.4f -> %.4f, %d pass(es)\n", r.error_before,
               r.error_after, r.ari_before, r.ari_after, r.passes);
   EXPECT_GT(r.error_before, 0.05);  // there is something to refine
@@ -186,13 +177,10 @@ TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
   std::size_t pos = 0;
   while (pos < list.size()) {
     const std::size_t comma = std::min(list.find(',', pos), list.size());
-    synth::SynthParams sp;
-    sp.plan = synth::bodyPlanFromString(list.substr(pos, comma - pos));
+    const synth::SynthParams sp = animseg_test::sequenceParams(
+        synth::bodyPlanFromString(list.substr(pos, comma - pos)), 20,
+        points ? std::atoi(points) : 2000, seed ? static_cast<unsigned>(std::atoi(seed)) : 3u);
     pos = comma + 1;
-    sp.frames = 20;
-    sp.points = points ? std::atoi(points) : 2000;
-    sp.point_variation = 0.2;
-    sp.seed = seed ? static_cast<unsigned>(std::atoi(seed)) : 3u;
     const Refined r = refineMotionLabels(sp, rp);
     std::printf("%-10s %d pts: boundary error %.3f -> %.3f (%.0f%% fewer), ARI %.3f -> %.3f\n",
                 synth::toString(sp.plan).c_str(), sp.points, r.error_before, r.error_after,
