@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <set>
+#include <utility>
 
 namespace pcl_animseg {
 
@@ -158,7 +159,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     rme.setParams(params.rigid_motion);
     // Level 0's parts are the refinement's input parts with refined borders: their motions,
     // which the refinement fitted, start each frame's fit, and the frames run in parallel.
-    rme.setInitialMotions(refinement_motions);
+    rme.setInitialMotions(std::move(refinement_motions));
     r.motions = rme.computeLevels(r.levels, {},
                                   static_cast<std::size_t>(std::max(0, params.motion_levels)));
     progress.end();
