@@ -103,6 +103,9 @@ int main(int argc, char** argv) {
      "refinement: L_R, outer width of the bands F and B (point spacings)")
     ("refine-iterations", po::value<int>()->default_value(defaults.refinement.max_iterations),
      "refinement: passes at most (bands rebuilt from the new labels each time)")
+    ("fold-snap", po::value<double>()->default_value(defaults.refinement.fold_snap_band),
+     "refinement: points within this many spacings of a border move onto the inward fold "
+     "where one part leaves the other (0: off)")
     ("rp-step", po::value<double>()->default_value(defaults.hierarchy.step),
      "hierarchy: raise of the region-persistence threshold per level (0.05-0.1)")
     ("png", po::value<std::string>()->implicit_value(""),
@@ -144,6 +147,7 @@ int main(int argc, char** argv) {
         params.refinement.narrow_band = vm["narrow-band"].as<double>();
         params.refinement.outer_band = vm["outer-band"].as<double>();
         params.refinement.max_iterations = vm["refine-iterations"].as<int>();
+        params.refinement.fold_snap_band = vm["fold-snap"].as<double>();
         params.hierarchy.step = vm["rp-step"].as<double>();
         params.features = !vm.count("no-features");
         params.refine = !vm.count("no-refine");

@@ -39,6 +39,11 @@ int main(int argc, char** argv) {
       "the paper's rule: decide by normals alone, without the rigid-motion check")(
       "iterations", po::value<int>()->default_value(d.max_iterations),
       "refinement iterations at most")(
+      "fold-snap", po::value<double>()->default_value(d.fold_snap_band),
+      "after the GMM pass, points within this many spacings of a border move onto the inward "
+      "fold where one part leaves the other (0: off)")(
+      "fold-snap-angle", po::value<double>()->default_value(d.fold_snap_angle_deg),
+      "degrees of inward folding that a point's own part must cross more than another part")(
       "per-frame", po::bool_switch(), "refine each frame on its own instead of pooling all frames")(
       "seed", po::value<unsigned>()->default_value(1), "random seed of the GMM initialisation");
   return pcl_animseg::tools::runTool(
@@ -55,12 +60,16 @@ int main(int argc, char** argv) {
         params.motion_tolerance = ctx.vm["motion-tolerance"].as<double>();
         params.motion_check = !ctx.vm["no-motion-check"].as<bool>();
         params.max_iterations = ctx.vm["iterations"].as<int>();
+        params.fold_snap_band = ctx.vm["fold-snap"].as<double>();
+        params.fold_snap_angle_deg = ctx.vm["fold-snap-angle"].as<double>();
         params.pool_frames = !ctx.vm["per-frame"].as<bool>();
         params.seed = ctx.vm["seed"].as<unsigned>();
         if (!(params.narrow_band > 0.0) || !(params.outer_band > params.narrow_band))
           throw pcl_animseg::Error("need 0 < --narrow-band < --outer-band");
         if (!(params.motion_tolerance >= 0.0))
           throw pcl_animseg::Error("--motion-tolerance must be >= 0");
+        if (!(params.fold_snap_band >= 0.0) || !(params.fold_snap_angle_deg > 0.0))
+          throw pcl_animseg::Error("need --fold-snap >= 0 and --fold-snap-angle > 0");
 
         const std::string label_dir = ctx.vm["labels"].as<std::string>();
         const std::string out_dir = ctx.vm["output"].as<std::string>();

@@ -5,15 +5,15 @@
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
-#include "surface_fold.h"
-
-
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <map>
+#include <queue>
 #include <tuple>
 #include <unordered_map>
+
+#include "surface_fold.h"
 
 namespace pcl_animseg {
 namespace segmentation {
@@ -63,6 +63,129 @@ std::vector<int> subsample(const std::vector<int>& idx, int cap) {
   return out;
 }
 
+// The angle in degrees between the normals of two near points unless the surface clearly curves
+// outwards between them (the change of normal points along the step from one to the other, as
+// on a ridge). Unlike detail::inwardFoldCos, a step that grazes an inward fold (one running
+// nearly along it, where the sign of (n_a - n_b) . (a - b) is noise) counts as crossing it; else
+// a path could cross the fold where it meets the crease at a shallow angle.
+double snapFoldDegrees(const pcl::PointNormal& a, const pcl::PointNormal& b) {
+  const Eigen::Vector3d na = a.getNormalVector3fMap().cast<double>(),
+                        nb = b.getNormalVector3fMap().cast<double>();
+  const Eigen::Vector3d dn = na - nb,
+                        step = (a.getVector3fMap() - b.getVector3fMap()).cast<double>();
+  const double scale = dn.norm() * step.norm();
+  if (!(scale > 0.0) || dn.dot(step) >= 0.5 * scale) return 0.0;
+  return std::acos(std::clamp(na.dot(nb), -1.0, 1.0)) * (180.0 / 3.14159265358979323846);
+}
+
+// The fold snap of one frame (RefinementParams::fold_snap_*); returns the points it moved.
+// Written by us: a Dijkstra that keeps each point's three nearest parts over the frame's k-NN
+// surface graph (no kept library has a multi-label one), run twice: once from the border points
+// for the band, then from the parts' points just beyond the band into it.
+std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree,
+                     double spacing, const RefinementParams& p, std::vector<int>& lab) {
+  const int n = static_cast<int>(cloud.size());
+  const int k = p.boundary_k;
+  const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * spacing, 2));
+  // The surface graph: each point's k nearest within boundary_max_distance, edge cost in
+  // spacings (length plus the fold penalty).
+  std::vector<int> adj(static_cast<std::size_t>(n) * k, -1);
+  std::vector<float> len(static_cast<std::size_t>(n) * k, 0.0f), fold(adj.size(), 0.0f);
+  std::vector<int> idx;
+  std::vector<float> d2;
+  std::vector<char> border(n, 0);
+  for (int j = 0; j < n; ++j) {
+    if (lab[j] < 0) continue;
+    tree.nearestKSearch(cloud[j], k + 1, idx, d2);
+    int e = 0;
+    for (std::size_t q = 0; q < idx.size() && e < k; ++q) {
+      if (idx[q] == j || d2[q] > max_d2 || lab[idx[q]] < 0) continue;
+      const std::size_t slot = static_cast<std::size_t>(j) * k + e++;
+      adj[slot] = idx[q];
+      len[slot] = static_cast<float>(std::sqrt(d2[q]) / spacing);
+      fold[slot] = static_cast<float>(
+          std::max(0.0, snapFoldDegrees(cloud[j], cloud[idx[q]]) - p.fold_snap_dead_zone_deg));
+      if (lab[idx[q]] != lab[j]) border[j] = 1;
+    }
+  }
+  // 1. The band: points within fold_snap_band of a border point (straight-line distance, as W).
+  const float band = static_cast<float>(p.fold_snap_band);
+  std::vector<float> to_border(n, std::numeric_limits<float>::infinity());
+  Cloud::Ptr border_points(new Cloud);
+  for (int j = 0; j < n; ++j)
+    if (border[j]) border_points->push_back(cloud[j]);
+  if (border_points->empty()) return 0;
+  pcl_animseg::KdTree<pcl::PointNormal> border_tree;
+  border_tree.setInputCloud(border_points);
+  for (int j = 0; j < n; ++j) {
+    if (lab[j] < 0) continue;
+    border_tree.nearestKSearch(cloud[j], 1, idx, d2);
+    if (!idx.empty()) to_border[j] = static_cast<float>(std::sqrt(d2[0]) / spacing);
+  }
+  // 2. Every band point's three nearest parts, reached from the points just beyond the band; a
+  // path costs its length plus fold_snap_penalty per degree of inward folding, and each point
+  // keeps, per part, the degrees of folding on its cheapest path.
+  constexpr int kKeep = 3;
+  struct Reach {
+    int part = -1;
+    float folded = 0.0f;
+  };
+  using Step = std::tuple<float, int, int, float>;  // (cost, point, part, degrees folded)
+  std::priority_queue<Step, std::vector<Step>, std::greater<Step>> paths;
+  std::vector<Reach> reach(static_cast<std::size_t>(n) * kKeep);
+  std::vector<unsigned char> settled(n, 0);
+  auto inBand = [&](int j) { return lab[j] >= 0 && to_border[j] <= band; };
+  for (int j = 0; j < n; ++j) {
+    if (lab[j] < 0 || inBand(j)) continue;
+    for (int e = 0; e < k; ++e) {
+      const int v = adj[static_cast<std::size_t>(j) * k + e];
+      if (v < 0) break;
+      if (inBand(v)) {
+        paths.emplace(0.0f, j, lab[j], 0.0f);
+        break;
+      }
+    }
+  }
+  const float per_degree = static_cast<float>(p.fold_snap_penalty);
+  while (!paths.empty()) {
+    const auto [d, u, part, folded] = paths.top();
+    paths.pop();
+    if (settled[u] >= kKeep) continue;
+    bool seen = false;
+    for (int r = 0; r < settled[u]; ++r)
+      seen = seen || reach[static_cast<std::size_t>(u) * kKeep + r].part == part;
+    if (seen) continue;
+    reach[static_cast<std::size_t>(u) * kKeep + settled[u]++] = Reach{part, folded};
+    for (int e = 0; e < k; ++e) {
+      const std::size_t slot = static_cast<std::size_t>(u) * k + e;
+      const int v = adj[slot];
+      if (v < 0) break;
+      if (inBand(v) && settled[v] < kKeep)
+        paths.emplace(d + len[slot] + per_degree * fold[slot], v, part, folded + fold[slot]);
+    }
+  }
+  // 3. A point moves when its own part reaches it only across a fold at least
+  // fold_snap_angle_deg deeper than another part's path (Jacobi: all decisions from the labels
+  // before the snap). Lengths do not count here: where the band's edges lie is arbitrary.
+  std::vector<std::pair<int, int>> moves;
+  for (int j = 0; j < n; ++j) {
+    if (!inBand(j)) continue;
+    float own = std::numeric_limits<float>::infinity(), other = own;
+    int to = -1;
+    for (int r = 0; r < settled[j]; ++r) {
+      const Reach& q = reach[static_cast<std::size_t>(j) * kKeep + r];
+      if (q.part == lab[j])
+        own = q.folded;
+      else if (q.folded < other)
+        other = q.folded, to = q.part;
+    }
+    if (to >= 0 && std::isfinite(own) && own - other >= p.fold_snap_angle_deg)
+      moves.emplace_back(j, to);
+  }
+  for (const auto& [j, l] : moves) lab[j] = l;
+  return moves.size();
+}
+
 }  // namespace
 
 void validate(const RefinementParams& p) {
@@ -76,6 +199,14 @@ void validate(const RefinementParams& p) {
   if (!(p.fold_angle_deg >= 0.0 && p.fold_angle_deg < 180.0))
     throw Error("GMM refinement: fold_angle_deg must be in [0, 180) (got " +
                 std::to_string(p.fold_angle_deg) + ")");
+  if (!(p.fold_snap_band >= 0.0) || !(p.fold_snap_penalty >= 0.0) ||
+      !(p.fold_snap_angle_deg > 0.0) || !(p.fold_snap_dead_zone_deg >= 0.0))
+    throw Error(
+        "GMM refinement: need fold snap band >= 0, penalty >= 0, angle > 0 and dead zone >= 0 "
+        "(got " +
+        std::to_string(p.fold_snap_band) + ", " + std::to_string(p.fold_snap_penalty) + ", " +
+        std::to_string(p.fold_snap_angle_deg) + ", " + std::to_string(p.fold_snap_dead_zone_deg) +
+        ")");
   if (!(p.motion_tolerance >= 0.0) || !(p.motion_cap > 0.0))
     throw Error("GMM refinement: need motion_tolerance >= 0 and motion_cap > 0 (got " +
                 std::to_string(p.motion_tolerance) + ", " + std::to_string(p.motion_cap) + ")");
@@ -440,6 +571,13 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     stats_.changed.push_back(changed);
     if (static_cast<double>(changed) <= p.min_changed_fraction * static_cast<double>(total_points))
       break;
+  }
+  if (p.fold_snap_band > 0.0) {
+    std::size_t snapped = 0;
+#pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
+    for (int t = 0; t < static_cast<int>(frames); ++t)
+      snapped += foldSnap(*sequence_->frame(t), trees[t], spacing[t], p, labels[t]);
+    stats_.snapped = snapped;
   }
 }
 

@@ -6,6 +6,7 @@
 #include <pcl_animseg/sequence.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <random>
 #include <vector>
@@ -92,6 +93,98 @@ inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::ve
     out.sequence.addFrame(cloud, "f" + std::to_string(t));
     out.truth.push_back(truth);
     out.shifted.push_back(shifted);
+  }
+  return out;
+}
+
+/** A knee: a thigh capsule (radius `r_thigh`, axis from the joint up, length 1) whose rounded end
+ * is a sphere about the joint, and a thinner shin capsule (radius `r_shin`, length 0.9) leaving
+ * that sphere at a concave crease; the knee bends by 0.6 + 0.3 sin(0.9 t) radians and the whole
+ * leg moves rigidly. Point mode, exact normals. `truth`: 0 thigh, 1 shin. `capped`: the thigh's
+ * cap points within `cap_spacings` of the crease (over the sphere) labelled shin, the error that
+ * the motions leave there (the cap is a sphere about the joint, so it fits both bones' motions).
+ * With r_shin == r_thigh and `straight` the leg is one straight capsule (no crease) and `capped`
+ * moves the border `cap_spacings` up the thigh. */
+struct Knee {
+  pcl_animseg::PointCloudSequence sequence;
+  std::vector<std::vector<int>> truth, capped;
+};
+
+inline Knee makeKnee(int frames, int points, double r_thigh, double r_shin, double cap_spacings,
+                     unsigned seed, bool straight = false) {
+  Knee out;
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<double> u01(0.0, 1.0);
+  const double kPi = 3.14159265358979323846;
+  const double len[2] = {1.0, 0.9}, r[2] = {r_thigh, r_shin};
+  // A uniform point on capsule i (axis a -> a + l d), with its outward normal.
+  auto onCapsule = [&](const Eigen::Vector3d& a, const Eigen::Vector3d& d, double l, double rad,
+                       Eigen::Vector3d& x, Eigen::Vector3d& n) {
+    Eigen::Vector3d u = d.unitOrthogonal(), v = d.cross(u);
+    const double cyl = 2 * kPi * rad * l, sph = 4 * kPi * rad * rad;
+    if (u01(rng) * (cyl + sph) < cyl) {
+      const double phi = 2 * kPi * u01(rng);
+      n = std::cos(phi) * u + std::sin(phi) * v;
+      x = a + u01(rng) * l * d + rad * n;
+    } else {
+      const double z = 2 * u01(rng) - 1, phi = 2 * kPi * u01(rng), s = std::sqrt(1 - z * z);
+      n = z * d + s * (std::cos(phi) * u + std::sin(phi) * v);
+      x = (z >= 0 ? a + l * d : a) + rad * n;
+    }
+  };
+  auto inside = [](const Eigen::Vector3d& x, const Eigen::Vector3d& a, const Eigen::Vector3d& d,
+                   double l, double rad) {
+    const double s = std::clamp((x - a).dot(d), 0.0, l);
+    return (x - (a + s * d)).norm() < rad * (1.0 - 1e-9);
+  };
+  const double area = 2 * kPi * (r[0] * len[0] + r[1] * len[1]) + 4 * kPi * r[0] * r[0];
+  for (int t = 0; t < frames; ++t) {
+    const double bend = straight ? 0.0 : 0.6 + 0.3 * std::sin(0.9 * t);
+    const Eigen::Vector3d up = Eigen::Vector3d::UnitZ();
+    const Eigen::Vector3d down(std::sin(bend), 0.0, -std::cos(bend));
+    const Eigen::Vector3d axis[2] = {up, down};
+    const Eigen::Affine3d global =
+        Eigen::Translation3d(0.2 * t, 0.1 * std::sin(0.5 * t), 0.05 * t) *
+        Eigen::AngleAxisd(0.15 * t, Eigen::Vector3d(0.3, 1, 0.2).normalized());
+    const int n = static_cast<int>(points * (0.8 + 0.4 * u01(rng)));
+    const double spacing = 0.5 * std::sqrt(area / n) * 1.07;  // as makeTubeChain's
+    // The crease: the shin leaves the thigh's sphere where sin(angle from the shin axis) equals
+    // r_shin / r_thigh.
+    const double crease = std::asin(std::min(1.0, r[1] / r[0]));
+    Cloud::Ptr cloud(new Cloud);
+    std::vector<int> truth, capped;
+    const double total = 2 * kPi * r[0] * len[0] + 4 * kPi * r[0] * r[0] + 2 * kPi * r[1] * len[1] +
+                         4 * kPi * r[1] * r[1];
+    while (static_cast<int>(cloud->size()) < n) {
+      const double a0 = 2 * kPi * r[0] * len[0] + 4 * kPi * r[0] * r[0];
+      const int i = u01(rng) * total < a0 ? 0 : 1;
+      Eigen::Vector3d x, nrm;
+      onCapsule(Eigen::Vector3d::Zero(), axis[i], len[i], r[i], x, nrm);
+      if (inside(x, Eigen::Vector3d::Zero(), axis[1 - i], len[1 - i], r[1 - i])) continue;
+      int label = i;
+      if (i == 0 && x.dot(up) < 0.0) {
+        // On the thigh's cap: over the sphere from the crease.
+        const double from_axis = std::acos(std::clamp(x.normalized().dot(down), -1.0, 1.0));
+        if (straight) {
+          if (x.dot(up) > -cap_spacings * spacing) label = 1;
+        } else if ((from_axis - crease) * r[0] < cap_spacings * spacing) {
+          label = 1;
+        }
+      } else if (straight && i == 0 && x.dot(up) < cap_spacings * spacing) {
+        label = 1;
+      }
+      const Eigen::Vector3d gx = global * x, gn = global.linear() * nrm;
+      pcl::PointNormal p;
+      p.getVector3fMap() = gx.cast<float>();
+      p.getNormalVector3fMap() = gn.cast<float>();
+      p.curvature = 0;
+      cloud->push_back(p);
+      truth.push_back(i);
+      capped.push_back(label);
+    }
+    out.sequence.addFrame(cloud, "f" + std::to_string(t));
+    out.truth.push_back(truth);
+    out.capped.push_back(capped);
   }
   return out;
 }

@@ -92,6 +92,20 @@ struct RefinementParams {
    * faster (800k-point humanoid, 2 cores: 4.9 s -> 2.7 s). */
   int max_iterations = 1;
   double min_changed_fraction = 1e-4;
+  /** Fold snap (beyond the paper), after the GMM passes. Within `fold_snap_band` of a border
+   * each point is reached from the parts' points beyond the band over the frame's surface graph
+   * (its `boundary_k` nearest within `boundary_max_distance`); a path costs its length plus
+   * `fold_snap_penalty` per degree by which the surface folds inwards along it (each edge's turn
+   * beyond `fold_snap_dead_zone_deg`, the noise of estimated normals). A point whose own part
+   * reaches it only across at least `fold_snap_angle_deg` more inward folding than another part
+   * does takes that part: the border moves onto the fold where one part leaves another (the
+   * minima rule). Neither the normals' GMMs nor the parts' motions can place it where a part's
+   * end is a sphere about its joint (a knee cap fits both bones' motions). Distances in
+   * spacings; 0: off. */
+  double fold_snap_band = 8.0;
+  double fold_snap_penalty = 0.5;
+  double fold_snap_angle_deg = 10.0;
+  double fold_snap_dead_zone_deg = 4.0;
   /** Build the bands and models jointly over all frames (temporal coherence, Sect. 4): each part's
    * points of every frame are brought into frame 0 by the part's rigid motion (point-to-plane ICP,
    * see rigid_motion.h) and a pair's GMMs pool the band points of every frame. When false, each
@@ -110,6 +124,7 @@ struct RefinementStats {
   std::vector<std::size_t> changed;  ///< points relabelled per iteration
   std::size_t band_points = 0;       ///< |W| over all frames at the first iteration
   int models = 0;                    ///< GMMs fitted at the first iteration
+  std::size_t snapped = 0;           ///< points moved by the fold snap (all frames)
 };
 
 /** \brief Refines the boundaries of a joint segmentation with local GMMs in normal space.
