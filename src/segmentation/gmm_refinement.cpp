@@ -134,7 +134,16 @@ std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNor
   std::priority_queue<Step, std::vector<Step>, std::greater<Step>> paths;
   std::vector<Reach> reach(static_cast<std::size_t>(n) * kKeep);
   std::vector<unsigned char> settled(n, 0);
-  auto inBand = [&](int j) { return lab[j] >= 0 && to_border[j] <= band; };
+  // A part thinner than two bands (a fingertip of few points) would have no core: its core
+  // starts halfway to its farthest point from a border instead.
+  int labels_here = 0;
+  for (int j = 0; j < n; ++j) labels_here = std::max(labels_here, lab[j] + 1);
+  std::vector<float> reach_of(labels_here, 0.0f);
+  for (int j = 0; j < n; ++j)
+    if (lab[j] >= 0 && std::isfinite(to_border[j]))
+      reach_of[lab[j]] = std::max(reach_of[lab[j]], to_border[j]);
+  for (float& r : reach_of) r = std::min(band, 0.5f * r);
+  auto inBand = [&](int j) { return lab[j] >= 0 && to_border[j] <= reach_of[lab[j]]; };
   for (int j = 0; j < n; ++j) {
     if (lab[j] < 0 || inBand(j)) continue;
     for (int e = 0; e < k; ++e) {

@@ -137,7 +137,8 @@ void printWrongByDistance(const Refined& r) {
 // the default parameters: the boundary error must not grow and the pooled ARI must not drop.
 // With the four passes the refinement used to make, later passes pushed borders on into the
 // side they had entered: boundary error 0.115 -> 0.125 and ARI 0.932 -> 0.923; one pass gives
-// 0.115 -> 0.107 and 0.932 -> 0.936.
+// 0.115 -> 0.107 and 0.932 -> 0.936, and with the fold snap since 0.115 -> 0.057 and
+// 0.932 -> 0.973.
 TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
   const Refined r = refineMotionLabels(
       animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6), seg::RefinementParams());
@@ -151,7 +152,7 @@ TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
 // The goal on every body plan (20 frames, 6000 points per frame, seed 5): the motion
 // method's labels at the true part count, refined with the defaults, have at least 30% fewer
 // wrong points within 3 spacings of a true boundary, and a pooled ARI no lower than before.
-// Measured: 62% / 73% / 38% / 46% fewer (quadruped / humanoid / spider / hand). The fold snap
+// Measured: 65% / 73% / 39% / 46% fewer (quadruped / humanoid / spider / hand). The fold snap
 // does most of it (knee caps, knuckles); without it the drops at 8000 points were 14-27% on
 // the quadruped, the humanoid and the hand (docs/mean_shift_experiments.md).
 TEST(RefinementQuality, BoundaryErrorDropsByAThirdOnEveryPlan) {
