@@ -97,7 +97,8 @@ int main(int argc, char** argv) {
         std::size_t changed = 0;
         for (std::size_t c : refine.getStats().changed) changed += c;
         progress.end(std::to_string(refine.getStats().iterations) + " iterations, " +
-                     std::to_string(changed) + " points relabelled");
+                     std::to_string(changed) + " points relabelled by the GMMs, " +
+                     std::to_string(refine.getStats().snapped) + " snapped onto folds");
 
         progress.begin("write", seq.size());
         pcl_animseg::io::saveSequenceLabels(out_dir, seq, {output.labels});

@@ -132,7 +132,8 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     refinement_motions = gmm.getMotions();
     std::size_t changed = 0;
     for (std::size_t c : gmm.getStats().changed) changed += c;
-    progress.end(std::to_string(changed) + " points relabelled");
+    progress.end(std::to_string(changed) + " points relabelled by the GMMs, " +
+                 std::to_string(gmm.getStats().snapped) + " snapped onto folds");
   } else {
     refined = clusters;
   }

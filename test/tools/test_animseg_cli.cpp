@@ -138,6 +138,7 @@ INSTANTIATE_TEST_SUITE_P(
                       BadCase{"negative_transform_levels", "--input {in} --output {out} --transform-levels -1"},
                       BadCase{"zero_refine_iterations", "--input {in} --output {out} --refine-iterations 0"},
                       BadCase{"narrow_band_past_outer", "--input {in} --output {out} --narrow-band 12"},
+                      BadCase{"negative_fold_snap", "--input {in} --output {out} --fold-snap -1"},
                       BadCase{"unknown_config_key", "--config {tmp}/badcfg.json --input {in} --output {out}"},
                       BadCase{"broken_config", "--config {tmp}/brokencfg.json --input {in} --output {out}"},
                       BadCase{"missing_config", "--config {tmp}/none.json --input {in} --output {out}"}),

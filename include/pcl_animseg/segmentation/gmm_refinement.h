@@ -99,7 +99,8 @@ struct RefinementParams {
    * beyond `fold_snap_dead_zone_deg`, the noise of estimated normals). A point whose own part
    * reaches it only across at least `fold_snap_angle_deg` more inward folding than another part
    * does takes that part: the border moves onto the fold where one part leaves another (the
-   * minima rule). Neither the normals' GMMs nor the parts' motions can place it where a part's
+   * minima rule). A part thinner than two bands starts its core halfway to its point farthest
+   * from a border. Neither the normals' GMMs nor the parts' motions can place it where a part's
    * end is a sphere about its joint (a knee cap fits both bones' motions). Distances in
    * spacings; 0: off. */
   double fold_snap_band = 8.0;
