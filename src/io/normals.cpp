@@ -41,6 +41,22 @@ double dotN(const pcl::PointNormal& a, const pcl::PointNormal& b) {
          static_cast<double>(a.normal_z) * b.normal_z;
 }
 
+/** How well the normals of two near points agree once b's is mirrored across the plane midway
+ * between the points (normal to the step e from a to b): n_a . n_b - 2 (e . n_a)(e . n_b). On a
+ * sphere of any radius the mirrored normal is exactly a's, so it is 1 for consistent outward
+ * normals. On the two sides of a thin sheet (a finger: a point's k nearest can include the far
+ * side), where consistent normals point away from each other, it is near +1 too, while the plain
+ * dot product (near -1) would make Hoppe's propagation flip the far side. Two points at the same
+ * position: the plain dot product. */
+double mirroredAgreement(const pcl::PointNormal& a, const pcl::PointNormal& b) {
+  const Eigen::Vector3d d = (b.getVector3fMap() - a.getVector3fMap()).cast<double>();
+  const double len = d.norm();
+  if (!(len > 0.0)) return dotN(a, b);
+  const Eigen::Vector3d e = d / len;
+  return dotN(a, b) - 2.0 * e.dot(a.getNormalVector3fMap().cast<double>()) *
+                          e.dot(b.getNormalVector3fMap().cast<double>());
+}
+
 }  // namespace
 
 std::vector<char> computeMeshNormals(PointCloudSequence::Cloud& cloud,
@@ -160,7 +176,8 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
     for (std::size_t e = start[i]; e < start[i + 1]; ++e) {
       const int j = adj[e];
       if (!visited[j])
-        heap.push({static_cast<float>(1.0 - std::abs(dotN(cloud[i], cloud[j]))), j, i});
+        heap.push(
+            {static_cast<float>(1.0 - std::abs(mirroredAgreement(cloud[i], cloud[j]))), j, i});
     }
   };
   for (std::size_t first = 0; first < n; ++first) {
@@ -200,7 +217,7 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
       const Entry e = heap.top();
       heap.pop();
       if (visited[e.to]) continue;
-      if (dotN(cloud[e.from], cloud[e.to]) < 0.0) flip(cloud[e.to]);
+      if (mirroredAgreement(cloud[e.from], cloud[e.to]) < 0.0) flip(cloud[e.to]);
       visit(e.to);
     }
     if (!has_fixed) {

@@ -321,6 +321,42 @@ TEST(Normals, OpenCapPointsToItsConvexSide) {
   EXPECT_GE(outwardFraction(*seq.frame(0), cap), 0.99);
 }
 
+// A thin slab (a plate 0.05 thick, points 0.04 apart): a point's 16 nearest include points of
+// the far face, whose consistent normal points the other way. Hoppe's plain rule (make the
+// normals of near points agree) turned patches of the far face inwards; the mirrored rule
+// (normals agree after mirroring across the plane midway between the points, exact on spheres)
+// keeps them outward. Measured: 0.50 of the points outward with the plain rule, 1.0 now.
+TEST(Normals, OrientationKeepsBothFacesOfAThinSlabOutward) {
+  Shape slab;
+  const Eigen::Vector3f half(1.0f, 0.6f, 0.025f);
+  const float step = 0.04f;
+  for (int axis = 0; axis < 3; ++axis)
+    for (float side : {-1.0f, 1.0f}) {
+      const int u = (axis + 1) % 3, v = (axis + 2) % 3;
+      const int nu = std::max(1, static_cast<int>(2.0f * half[u] / step));
+      const int nv = std::max(1, static_cast<int>(2.0f * half[v] / step));
+      for (int i = 0; i < nu; ++i)
+        for (int j = 0; j < nv; ++j) {
+          Eigen::Vector3f p, n = Eigen::Vector3f::Zero();
+          p[axis] = side * half[axis];
+          p[u] = half[u] * (2.0f * (i + 0.5f) / nu - 1.0f);
+          p[v] = half[v] * (2.0f * (j + 0.5f) / nv - 1.0f);
+          n[axis] = side;
+          slab.points.push_back(p);
+          slab.normals.push_back(n);
+        }
+    }
+  PointCloudSequence::Cloud c;
+  for (std::size_t i = 0; i < slab.points.size(); ++i) {
+    pcl::PointNormal p;
+    p.getVector3fMap() = slab.points[i];
+    p.getNormalVector3fMap() = ((i * 7919) % 3 == 0 ? -1.0f : 1.0f) * slab.normals[i];
+    c.push_back(p);
+  }
+  io::orientNormals(c, 16);
+  EXPECT_GE(outwardFraction(c, slab), 0.99);
+}
+
 TEST(Normals, OrientationFlipsAnInwardSeed) {
   const Shape s = fixtures::sampleSphere(500);
   PointCloudSequence::Cloud c;

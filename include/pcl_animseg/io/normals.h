@@ -29,7 +29,13 @@ void estimateNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<
 
 /** \brief Orients normals consistently (Hoppe et al. 1992): within each connected component of
  * the symmetric k-nearest-neighbour graph, the orientation is propagated along a minimum spanning
- * tree with edge cost 1 - |n_i . n_j| (so it crosses flat regions first, sharp creases last).
+ * tree with edge cost 1 - |a_ij| (so it crosses flat regions first, sharp creases last), where
+ * a_ij = n_i . n_j - 2 (e . n_i)(e . n_j) compares n_i with n_j mirrored across the plane midway
+ * between the points (e: the unit step from i to j), and n_j is flipped when a_ij < 0. Unlike
+ * Hoppe's n_i . n_j it is exact on spheres of any radius and right across a thin part, where a
+ * point's neighbours include the far side (whose outward normal points the other way): with the
+ * plain dot product a thin slab came out half inwards, and plain point clouds of generated
+ * bodies had 2-7% of their normals flipped (a hand's fingers, an arm against the torso).
  *
  * - A component that contains points with `fixed[i]` != 0 is grown from all of them at once;
  *   fixed normals are never flipped.
