@@ -40,6 +40,15 @@ class PointCloudSequence {
   std::size_t inputSize(std::size_t t) const { return frames_.at(t).input_size; }
   const std::vector<pcl::Vertices>& faces(std::size_t t) const { return frames_.at(t).faces; }
 
+  /** \brief How many of frame t's normals were estimated from the points (not read from the
+   * file or a mesh); their orientation is only a guess (io::orientNormals). */
+  std::size_t estimatedNormals(std::size_t t) const { return frames_.at(t).estimated_normals; }
+  void setEstimatedNormals(std::size_t t, std::size_t count) {
+    frames_.at(t).estimated_normals = count;
+  }
+  /** \brief True when no frame has estimated normals: every normal's sign is from the input. */
+  bool normalsOriented() const;
+
   /** \brief Total number of (kept) points over all frames. */
   std::size_t totalPoints() const;
   /** \brief offsets()[t] is the index of frame t's first point when all frames are flattened;
@@ -60,6 +69,7 @@ class PointCloudSequence {
     std::vector<int> input_index;
     std::size_t input_size = 0;
     std::vector<pcl::Vertices> faces;
+    std::size_t estimated_normals = 0;
   };
   std::vector<FrameData> frames_;
 };

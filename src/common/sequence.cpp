@@ -33,6 +33,12 @@ void PointCloudSequence::addFrame(Cloud::Ptr cloud, const std::string& name, con
   frames_.push_back(std::move(f));
 }
 
+bool PointCloudSequence::normalsOriented() const {
+  for (const auto& f : frames_)
+    if (f.estimated_normals > 0) return false;
+  return true;
+}
+
 std::size_t PointCloudSequence::totalPoints() const {
   std::size_t n = 0;
   for (const auto& f : frames_) n += f.cloud->size();

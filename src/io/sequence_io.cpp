@@ -200,9 +200,14 @@ void loadFrame(const std::string& path, PointCloudSequence& sequence, const Load
     }
     all_known = false;
   }
-  if (!all_known) estimateNormals(*cloud, options.normal_k, known);
+  std::size_t estimated = 0;
+  if (!all_known) {
+    estimateNormals(*cloud, options.normal_k, known);
+    for (char k : known) estimated += !k;
+  }
 
   sequence.addFrame(cloud, stem(path), path, std::move(index), n_in, std::move(faces));
+  sequence.setEstimatedNormals(sequence.size() - 1, estimated);
 }
 
 PointCloudSequence loadSequence(const std::string& path, const LoadOptions& options,
@@ -235,6 +240,7 @@ PointCloudSequence loadSequence(const std::string& path, const LoadOptions& opti
   for (int t = 0; t < nf; ++t) {
     const PointCloudSequence& p = parts[t];
     seq.addFrame(p.frame(0), p.name(0), p.source(0), p.inputIndex(0), p.inputSize(0), p.faces(0));
+    seq.setEstimatedNormals(seq.size() - 1, p.estimatedNormals(0));
   }
 
   if (options.max_scale_ratio > 0.0 && nf > 1) {

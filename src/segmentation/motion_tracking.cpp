@@ -64,7 +64,15 @@ struct Frame {
   pcl_animseg::KdTree<pcl::PointNormal> tree;
   double spacing = 1.0;
   float error_bound2 = 0.0f;  ///< squared distance beyond which a surface error is clipped
+  /** Normals whose sign is a guess (estimated from points: PointCloudSequence::normalsOriented
+   * false): points of two frames are compared by |n . n'|, so that a limb whose normals the
+   * orientation turned inwards in one frame is still tracked there. */
+  bool unoriented = false;
 };
+
+/** The cosine of two normals as the frames allow: signed, or its absolute value when the
+ * normals' orientation is a guess (Frame::unoriented). */
+inline double normalCos(double c, const Frame& f) { return f.unoriented ? std::abs(c) : c; }
 
 /** Every frame with its kd-tree and spacing; built once per segmentation and shared by the
  * steps. */
@@ -79,6 +87,7 @@ std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
     frames[t].spacing = std::max(meanSpacing(*frames[t].cloud), 1e-9);
     const double bound = (kClip + 1.5) * frames[t].spacing;
     frames[t].error_bound2 = static_cast<float>(bound * bound);
+    frames[t].unoriented = !seq.normalsOriented();
   }
   return frames;
 }
@@ -125,7 +134,7 @@ inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, c
   if (k < 0) return clip2;
   const auto& t = (*f.cloud)[k];
   const Eigen::Vector3d tn(t.normal_x, t.normal_y, t.normal_z);
-  if (n.dot(tn) <= kNormalCos) return clip2;
+  if (normalCos(n.dot(tn), f) <= kNormalCos) return clip2;
   const double inv_s = 1.0 / f.spacing;
   const double pl = (y - Eigen::Vector3d(t.x, t.y, t.z)).dot(tn) * inv_s;
   const double far = std::max(0.0, std::sqrt(static_cast<double>(d2)) * inv_s - 1.5);
@@ -194,7 +203,7 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
       if (k < 0) continue;
       const auto& t = (*f.cloud)[k];
       const Eigen::Vector3d tn(t.normal_x, t.normal_y, t.normal_z);
-      if ((R * src.n.col(i)).dot(tn) < kNormalCos) continue;
+      if (normalCos((R * src.n.col(i)).dot(tn), f) < kNormalCos) continue;
       const Eigen::Vector3d tp(t.x, t.y, t.z);
       const Eigen::Vector3d y = yw - c;
       ++used;
@@ -1755,9 +1764,9 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
         int pick = idx.empty() ? -1 : idx[0];
         for (int m : idx) {
           const auto& q = (*moved)[m];
-          if (q.normal_x * fc[j].normal_x + q.normal_y * fc[j].normal_y +
-                  q.normal_z * fc[j].normal_z >
-              kNormalCos) {
+          if (normalCos(q.normal_x * fc[j].normal_x + q.normal_y * fc[j].normal_y +
+                            q.normal_z * fc[j].normal_z,
+                        frames[t]) > kNormalCos) {
             pick = m;
             break;
           }

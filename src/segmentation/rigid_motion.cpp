@@ -494,7 +494,6 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit,
     const std::vector<double>& spacing,
     const std::vector<std::vector<std::size_t>>& frame0_points) const {
-  const std::size_t frames = sequence_->size();
   std::vector<std::vector<PartMotion>> out(sets.size());
   // (labelling, part) pairs to fit: the parts of every labelling in one parallel loop, so that a
   // few large parts of several levels run side by side.
