@@ -291,7 +291,7 @@ int connectedComponents(const Graph& graph, const std::vector<int>& order, std::
  * neighbourhoods and adjacency grown over it stay on one surface sheet. */
 std::vector<std::vector<int>> surfaceGraphOf(const Cloud& cloud,
                                              const pcl_animseg::KdTree<pcl::PointNormal>& tree,
-                                             int k, double max_dist) {
+                                             int k, double max_dist, bool unoriented) {
   const int n = static_cast<int>(cloud.size());
   std::vector<std::vector<int>> g(n);
   const float max_d2 = static_cast<float>(max_dist * max_dist);
@@ -308,8 +308,19 @@ std::vector<std::vector<int>> surfaceGraphOf(const Cloud& cloud,
         const int j = idx[m];
         if (j == i || d2[m] > max_d2) continue;
         const auto& b = cloud[j];
-        if (a.normal_x * b.normal_x + a.normal_y * b.normal_y + a.normal_z * b.normal_z < 0.5f)
-          continue;
+        const float ab =
+            a.normal_x * b.normal_x + a.normal_y * b.normal_y + a.normal_z * b.normal_z;
+        if (!unoriented) {
+          if (ab < 0.5f) continue;
+        } else {
+          // Signs are a guess: alike up to sign, and the step between the points lies in both
+          // tangent planes (a step across the gap to a facing sheet goes along the normals).
+          if (std::abs(ab) < 0.5f) continue;
+          const Eigen::Vector3f e = (b.getVector3fMap() - a.getVector3fMap()).normalized();
+          if (std::abs(e.dot(a.getNormalVector3fMap())) > 0.6f ||
+              std::abs(e.dot(b.getNormalVector3fMap())) > 0.6f)
+            continue;
+        }
         g[i].push_back(j);
       }
     }
@@ -493,7 +504,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   // Neighbourhoods, cells and adjacency grow over the surface graph, not through space: two
   // limbs that nearly touch in the reference frame must not share a neighbourhood.
   tr.surface = surfaceGraphOf(rc, frames[ref].tree, std::max(params.point_neighbours, 6),
-                              3.0 * frames[ref].spacing);
+                              3.0 * frames[ref].spacing, frames[ref].unoriented);
   tr.owner = geodesicOwners(rc, tr.surface, tr.sample_points);
   tr.graph = cellGraphOf(tr.surface, tr.owner, p0, 6.0 * frames[ref].spacing);
   // Each sample's ICP source: its geodesically nearest reference points (reference geometry: no
