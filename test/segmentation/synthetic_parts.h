@@ -22,6 +22,16 @@ struct TubeChain {
   std::vector<std::vector<int>> shifted;
 };
 
+/** Appends point x with normal n, both moved by `global`. */
+inline void appendMoved(Cloud& cloud, const Eigen::Affine3d& global, const Eigen::Vector3d& x,
+                        const Eigen::Vector3d& n) {
+  pcl::PointNormal p;
+  p.getVector3fMap() = (global * x).cast<float>();
+  p.getNormalVector3fMap() = (global.linear() * n).cast<float>();
+  p.curvature = 0;
+  cloud.push_back(p);
+}
+
 /** Chain of `lengths.size()` tubes of radius r joined by mitres; joint k bends by
  * bend0[k] + amp * sin(...) in frame t; the whole chain also moves rigidly. Point mode: each
  * frame is sampled anew with points * (1 ± 0.2) points. */
@@ -76,17 +86,7 @@ inline TubeChain makeTubeChain(const std::vector<double>& lengths, const std::ve
       int sh = i;
       if (i + 1 < parts && (x - start[i + 1]).dot(mitre[i]) > -shift) sh = i + 1;
       if (i > 0 && (x - start[i]).dot(mitre[i - 1]) < -shift) sh = i - 1;
-      const Eigen::Vector3d gx = global * x;
-      const Eigen::Vector3d gn = global.linear() * nrm;
-      pcl::PointNormal p;
-      p.x = gx.x();
-      p.y = gx.y();
-      p.z = gx.z();
-      p.normal_x = gn.x();
-      p.normal_y = gn.y();
-      p.normal_z = gn.z();
-      p.curvature = 0;
-      cloud->push_back(p);
+      appendMoved(*cloud, global, x, nrm);
       truth.push_back(i);
       shifted.push_back(sh);
     }
@@ -173,12 +173,7 @@ inline Knee makeKnee(int frames, int points, double r_thigh, double r_shin, doub
       } else if (straight && i == 0 && x.dot(up) < cap_spacings * spacing) {
         label = 1;
       }
-      const Eigen::Vector3d gx = global * x, gn = global.linear() * nrm;
-      pcl::PointNormal p;
-      p.getVector3fMap() = gx.cast<float>();
-      p.getNormalVector3fMap() = gn.cast<float>();
-      p.curvature = 0;
-      cloud->push_back(p);
+      appendMoved(*cloud, global, x, nrm);
       truth.push_back(i);
       capped.push_back(label);
     }
