@@ -46,7 +46,9 @@ class PointCloudSequence {
   void setEstimatedNormals(std::size_t t, std::size_t count) {
     frames_.at(t).estimated_normals = count;
   }
-  /** \brief True when no frame has estimated normals: every normal's sign is from the input. */
+  /** \brief False when some frame's normals were all estimated: their signs are a guess. A frame
+   * with some normals from the input (a mesh with a few vertices in no face) is oriented from
+   * those (io::estimateNormals seeds the orientation with them), so it counts as oriented. */
   bool normalsOriented() const;
 
   /** \brief Total number of (kept) points over all frames. */

@@ -35,7 +35,7 @@ void PointCloudSequence::addFrame(Cloud::Ptr cloud, const std::string& name, con
 
 bool PointCloudSequence::normalsOriented() const {
   for (const auto& f : frames_)
-    if (f.estimated_normals > 0) return false;
+    if (f.estimated_normals > 0 && f.estimated_normals >= f.cloud->size()) return false;
   return true;
 }
 

@@ -309,6 +309,10 @@ TEST(MotionQuality, GuessedNormalOrientationDoesNotMatter) {
   const auto marked = copy(false, true);
   EXPECT_FALSE(marked.normalsOriented());
   EXPECT_TRUE(base.normalsOriented());
+  // A few estimated normals (a mesh's vertices in no face) take their signs from the known ones.
+  auto partly = copy(false, false);
+  partly.setEstimatedNormals(3, 5);
+  EXPECT_TRUE(partly.normalsOriented());
   const TrackingRun straight = runTracking(marked);
   const TrackingRun turned = runTracking(copy(true, true));
   expectSameRun(straight, turned);
