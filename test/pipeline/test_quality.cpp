@@ -321,7 +321,7 @@ TEST(MotionQuality, GuessedNormalOrientationDoesNotMatter) {
   const double ari_oriented = pcl_animseg::evaluation::adjustedRandIndex(oriented.labels, truth);
   std::printf("pooled ARI %.4f; with two frames turned inwards and taken as oriented %.4f\n", ari,
               ari_oriented);
-  EXPECT_GT(ari, 0.7);  // measured 0.759 (8 frames of 1500 points, parts by the threshold)
+  EXPECT_GT(ari, 0.65);  // measured 0.723 (8 frames of 1500 points, parts by the threshold)
   EXPECT_LT(ari_oriented, ari - 0.2);  // measured 0.126
 }
 
