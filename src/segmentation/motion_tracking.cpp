@@ -79,6 +79,7 @@ inline double normalCos(double c, const Frame& f) { return f.unoriented ? std::a
 std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
   const int T = static_cast<int>(seq.size());
   std::vector<Frame> frames(T);
+  const bool unoriented = !seq.normalsOriented();
   for (int t = 0; t < T; ++t) {
     frames[t].cloud = seq.frame(t);
     if (frames[t].cloud->empty())
@@ -87,7 +88,7 @@ std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
     frames[t].spacing = std::max(meanSpacing(*frames[t].cloud), 1e-9);
     const double bound = (kClip + 1.5) * frames[t].spacing;
     frames[t].error_bound2 = static_cast<float>(bound * bound);
-    frames[t].unoriented = !seq.normalsOriented();
+    frames[t].unoriented = unoriented;
   }
   return frames;
 }
