@@ -63,21 +63,6 @@ std::vector<int> subsample(const std::vector<int>& idx, int cap) {
   return out;
 }
 
-// The angle in degrees between the normals of two near points unless the surface clearly curves
-// outwards between them (the change of normal points along the step from one to the other, as
-// on a ridge). Unlike detail::inwardFoldCos, a step that grazes an inward fold (one running
-// nearly along it, where the sign of (n_a - n_b) . (a - b) is noise) counts as crossing it; else
-// a path could cross the fold where it meets the crease at a shallow angle.
-double snapFoldDegrees(const pcl::PointNormal& a, const pcl::PointNormal& b) {
-  const Eigen::Vector3d na = a.getNormalVector3fMap().cast<double>(),
-                        nb = b.getNormalVector3fMap().cast<double>();
-  const Eigen::Vector3d dn = na - nb,
-                        step = (a.getVector3fMap() - b.getVector3fMap()).cast<double>();
-  const double scale = dn.norm() * step.norm();
-  if (!(scale > 0.0) || dn.dot(step) >= 0.5 * scale) return 0.0;
-  return std::acos(std::clamp(na.dot(nb), -1.0, 1.0)) * (180.0 / 3.14159265358979323846);
-}
-
 // The fold snap of one frame (RefinementParams::fold_snap_*); returns the points it moved.
 // Written by us: a Dijkstra that keeps each point's three nearest parts over the frame's k-NN
 // surface graph (no kept library has a multi-label one), run twice: once from the border points
@@ -104,7 +89,7 @@ std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNor
       adj[slot] = idx[q];
       len[slot] = static_cast<float>(std::sqrt(d2[q]) / spacing);
       fold[slot] = static_cast<float>(
-          std::max(0.0, snapFoldDegrees(cloud[j], cloud[idx[q]]) - p.fold_snap_dead_zone_deg));
+          std::max(0.0, detail::foldDegrees(cloud[j], cloud[idx[q]]) - p.fold_snap_dead_zone_deg));
       if (lab[idx[q]] != lab[j]) border[j] = 1;
     }
   }
