@@ -133,6 +133,86 @@ std::vector<int> nearestNeighbours(const PointCloudSequence::Cloud& cloud, int k
   return knn;
 }
 
+/** The second step of orientNormals (normals.h): the spanning tree decides each sign by one
+ * edge, and one misleading edge (two sheets closer than the spacing, an arm against the torso)
+ * flips a whole limb. Here every edge of the graph votes: removing a tree edge cuts the tree in
+ * two, and the sum S of the agreements a_ij over all graph edges across that cut says whether
+ * flipping the subtree below it would make the normals agree better (S < 0). The most negative
+ * subtree is flipped, the sums are computed again, and so on until none is negative (each flip
+ * raises the total agreement, so this ends; capped all the same). S for every tree edge at once:
+ * an edge (i, j) crosses exactly the tree edges on the path from i to j, so a_ij is added at i
+ * and j and subtracted twice at their lowest common ancestor, and S is the sum over the subtree.
+ * Written by us (no kept library orients normals by cuts). Subtrees that hold a fixed normal are
+ * never flipped. `order`: the component's points, each after its parent (-1 for a root); `pos`:
+ * scratch of the cloud's size. */
+void repairSubtrees(PointCloudSequence::Cloud& cloud, const std::vector<std::size_t>& start,
+                    const std::vector<int>& adj, const std::vector<int>& order,
+                    const std::vector<int>& parent, const std::vector<char>& fixed,
+                    std::vector<int>& pos) {
+  const int m = static_cast<int>(order.size());
+  if (m < 3) return;
+  for (int a = 0; a < m; ++a) pos[order[a]] = a;  // point -> place in order (scratch, n long)
+  // Binary lifting over the tree; the roots hang off a virtual root m.
+  int levels = 1;
+  while ((1 << levels) <= m) ++levels;
+  std::vector<std::vector<int>> up(levels, std::vector<int>(m + 1, m));
+  std::vector<int> depth(m + 1, 0);
+  for (int a = 0; a < m; ++a) {
+    const int pa = parent[order[a]] < 0 ? m : pos[parent[order[a]]];
+    up[0][a] = pa;
+    depth[a] = pa == m ? 1 : depth[pa] + 1;
+  }
+  for (int l = 1; l < levels; ++l)
+    for (int a = 0; a <= m; ++a) up[l][a] = up[l - 1][up[l - 1][a]];
+  auto lca = [&](int a, int b) {
+    if (depth[a] < depth[b]) std::swap(a, b);
+    for (int l = levels - 1; l >= 0; --l)
+      if (depth[a] - (1 << l) >= depth[b]) a = up[l][a];
+    if (a == b) return a;
+    for (int l = levels - 1; l >= 0; --l)
+      if (up[l][a] != up[l][b]) a = up[l][a], b = up[l][b];
+    return up[0][a];
+  };
+  // The graph's edges once each (u before v in order), and their lowest common ancestors, which
+  // flips do not change.
+  std::vector<std::tuple<int, int, int>> edges;
+  for (int a = 0; a < m; ++a) {
+    const int i = order[a];
+    for (std::size_t e = start[i]; e < start[i + 1]; ++e) {
+      const int b = pos[adj[e]];  // the graph's edges stay within the component
+      if (b > a) edges.emplace_back(a, b, lca(a, b));
+    }
+  }
+  std::vector<int> fixed_below(m + 1, 0);
+  for (int a = 0; a < m; ++a) fixed_below[a] = !fixed.empty() && fixed[order[a]];
+  for (int a = m - 1; a >= 0; --a) fixed_below[up[0][a]] += fixed_below[a];
+  std::vector<double> sum(m + 1);
+  std::vector<char> flip_here(m + 1);
+  constexpr int kMaxFlips = 64;
+  for (int round = 0; round < kMaxFlips; ++round) {
+    std::fill(sum.begin(), sum.end(), 0.0);
+    for (const auto& [a, b, c] : edges) {
+      const double v = mirroredAgreement(cloud[order[a]], cloud[order[b]]);
+      sum[a] += v;
+      sum[b] += v;
+      sum[c] -= 2.0 * v;
+    }
+    for (int a = m - 1; a >= 0; --a) sum[up[0][a]] += sum[a];
+    int worst = -1;
+    double worst_sum = -0.5;  // a flip must win at least half an edge's worth
+    for (int a = 0; a < m; ++a)
+      if (up[0][a] != m && fixed_below[a] == 0 && sum[a] < worst_sum) worst_sum = sum[a], worst = a;
+    if (worst < 0) break;
+    // Flip the subtree of `worst`: its points in order are those whose ancestor it is.
+    std::fill(flip_here.begin(), flip_here.end(), 0);
+    flip_here[worst] = 1;
+    for (int a = worst + 1; a < m; ++a)
+      if (up[0][a] != m && flip_here[up[0][a]]) flip_here[a] = 1;
+    for (int a = worst; a < m; ++a)
+      if (flip_here[a]) flip(cloud[order[a]]);
+  }
+}
+
 /** Hoppe's propagation over the symmetric kNN graph (see orientNormals in normals.h). */
 void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& knn, int k,
                      const std::vector<char>& fixed) {
@@ -169,7 +249,7 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
     }
   };
   std::vector<char> in_component(n, 0), visited(n, 0);
-  std::vector<int> members;
+  std::vector<int> members, order, parent(n, -1), pos(n, -1);
   std::priority_queue<Entry, std::vector<Entry>, std::greater<Entry>> heap;
   auto visit = [&](int i) {
     visited[i] = 1;
@@ -196,9 +276,13 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
     for (int i : members) c += cloud[i].getVector3fMap().cast<double>();
     c /= static_cast<double>(members.size());
 
+    order.clear();
     if (has_fixed) {
       for (int i : members)
-        if (isFixed(i)) visit(i);
+        if (isFixed(i)) {
+          order.push_back(i);
+          visit(i);
+        }
     } else {
       int seed = members.front();
       double best = -1.0;
@@ -211,6 +295,7 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
       }
       const Eigen::Vector3d out = cloud[seed].getVector3fMap().cast<double>() - c;
       if (cloud[seed].getNormalVector3fMap().cast<double>().dot(out) < 0.0) flip(cloud[seed]);
+      order.push_back(seed);
       visit(seed);
     }
     while (!heap.empty()) {
@@ -218,8 +303,11 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
       heap.pop();
       if (visited[e.to]) continue;
       if (mirroredAgreement(cloud[e.from], cloud[e.to]) < 0.0) flip(cloud[e.to]);
+      parent[e.to] = e.from;
+      order.push_back(e.to);
       visit(e.to);
     }
+    repairSubtrees(cloud, start, adj, order, parent, fixed, pos);
     if (!has_fixed) {
       // The seed alone decides little when it sits on noise; the majority decides (closed
       // surfaces: outward).

@@ -100,6 +100,7 @@ Refined refineMotionLabels(const synth::SynthParams& sp, const seg::RefinementPa
 void printWrongByDistance(const Refined& r) {
   const auto tin = toTruthIds(r.in.labels, r.truth), tout = toTruthIds(r.out.labels, r.truth);
   long hist_in[6] = {0}, hist_out[6] = {0};
+  std::map<std::pair<int, int>, long> pair_in, pair_out;  // (true part, given part) -> count
   std::vector<int> idx;
   std::vector<float> d2;
   for (std::size_t t = 0; t < r.seq->size(); ++t) {
@@ -120,6 +121,8 @@ void printWrongByDistance(const Refined& r) {
       const int bin = d < 2 ? 0 : d < 4 ? 1 : d < 6 ? 2 : d < 10 ? 3 : d < 20 ? 4 : 5;
       hist_in[bin] += tin[t][j] != r.truth[t][j];
       hist_out[bin] += tout[t][j] != r.truth[t][j];
+      if (tin[t][j] != r.truth[t][j]) ++pair_in[{r.truth[t][j], tin[t][j]}];
+      if (tout[t][j] != r.truth[t][j]) ++pair_out[{r.truth[t][j], tout[t][j]}];
     }
   }
   std::printf(
@@ -128,7 +131,12 @@ void printWrongByDistance(const Refined& r) {
   for (long h : hist_in) std::printf(" %ld", h);
   std::printf("\n  after ");
   for (long h : hist_out) std::printf(" %ld", h);
-  std::printf("\n");
+  std::printf("\n  wrong near a true boundary by (true part, given part): before -> after\n");
+  std::map<std::pair<int, int>, long> all(pair_in);
+  for (const auto& [key, count] : pair_out) all[key] += 0;
+  for (const auto& [key, count] : all)
+    if (count + pair_out[key] >= 40)
+      std::printf("   %2d <- %2d: %5ld -> %5ld\n", key.first, key.second, count, pair_out[key]);
 }
 
 }  // namespace
@@ -211,6 +219,17 @@ TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
                 synth::toString(sp.plan).c_str(), sp.points, r.error_before, r.error_after,
                 100.0 * (1.0 - r.error_after / r.error_before), r.ari_before, r.ari_after);
     if (std::getenv("DIAG")) printWrongByDistance(r);
+    if (std::getenv("DIAG")) {  // each given part's largest true parts, before the refinement
+      std::map<int, std::map<int, long>> overlap;
+      for (std::size_t t = 0; t < r.truth.size(); ++t)
+        for (std::size_t i = 0; i < r.truth[t].size(); ++i) ++overlap[r.in.labels[t][i]][r.truth[t][i]];
+      for (const auto& [given, counts] : overlap) {
+        std::printf("  given %2d:", given);
+        for (const auto& [truth, count] : counts)
+          if (count >= 100) std::printf(" %d:%ld", truth, count);
+        std::printf("\n");
+      }
+    }
     std::fflush(stdout);
   }
 }
