@@ -222,7 +222,8 @@ TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
     if (std::getenv("DIAG")) {  // each given part's largest true parts, before the refinement
       std::map<int, std::map<int, long>> overlap;
       for (std::size_t t = 0; t < r.truth.size(); ++t)
-        for (std::size_t i = 0; i < r.truth[t].size(); ++i) ++overlap[r.in.labels[t][i]][r.truth[t][i]];
+        for (std::size_t i = 0; i < r.truth[t].size(); ++i)
+          ++overlap[r.in.labels[t][i]][r.truth[t][i]];
       for (const auto& [given, counts] : overlap) {
         std::printf("  given %2d:", given);
         for (const auto& [truth, count] : counts)
