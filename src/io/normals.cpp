@@ -135,82 +135,192 @@ std::vector<int> nearestNeighbours(const PointCloudSequence::Cloud& cloud, int k
 
 /** The second step of orientNormals (normals.h): the spanning tree decides each sign by one
  * edge, and one misleading edge (two sheets closer than the spacing, an arm against the torso)
- * flips a whole limb. Here every edge of the graph votes: removing a tree edge cuts the tree in
- * two, and the sum S of the agreements a_ij over all graph edges across that cut says whether
+ * flips a whole limb. Here the edges of the graph vote: removing a tree edge cuts the tree in
+ * two, and the sum S of the agreements a_ij of the graph edges across that cut says whether
  * flipping the subtree below it would make the normals agree better (S < 0). The most negative
- * subtree is flipped, the sums are computed again, and so on until none is negative (each flip
- * raises the total agreement, so this ends; capped all the same). S for every tree edge at once:
- * an edge (i, j) crosses exactly the tree edges on the path from i to j, so a_ij is added at i
- * and j and subtracted twice at their lowest common ancestor, and S is the sum over the subtree.
- * Written by us (no kept library orients normals by cuts). Subtrees that hold a fixed normal are
- * never flipped. `order`: the component's points, each after its parent (-1 for a root); `pos`:
- * scratch of the cloud's size. */
-void repairSubtrees(PointCloudSequence::Cloud& cloud, const std::vector<std::size_t>& start,
-                    const std::vector<int>& adj, const std::vector<int>& order,
-                    const std::vector<int>& parent, const std::vector<char>& fixed,
-                    std::vector<int>& pos) {
+ * subtrees that do not nest are flipped, the sums are computed again, and so on until none is
+ * negative (the total agreement rises every round, so this ends; capped all the same). S for
+ * every tree edge at once: an edge (i, j) crosses exactly the tree edges on the path from i to j,
+ * so a_ij is added at i and j and subtracted twice at their lowest common ancestor (Tarjan's
+ * offline algorithm), and S is the sum over the subtree. The voters are each point's
+ * kRepairNeighbours nearest (fewer than the tree's graph: memory and time, same result on the
+ * generated bodies). Written by us (no kept library orients normals by cuts). Subtrees that hold
+ * a fixed normal are never flipped. `order`: the component's points, each after its parent (-1
+ * for a root); `pos`: scratch of the cloud's size. */
+void repairSubtrees(PointCloudSequence::Cloud& cloud, const std::vector<int>& knn, int k,
+                    const std::vector<int>& order, const std::vector<int>& parent,
+                    const std::vector<char>& fixed, std::vector<int>& pos) {
+  constexpr int kRepairNeighbours = 8;
   const int m = static_cast<int>(order.size());
   if (m < 3) return;
-  for (int a = 0; a < m; ++a) pos[order[a]] = a;  // point -> place in order (scratch, n long)
-  // Binary lifting over the tree; the roots hang off a virtual root m.
-  int levels = 1;
-  while ((1 << levels) <= m) ++levels;
-  std::vector<std::vector<int>> up(levels, std::vector<int>(m + 1, m));
-  std::vector<int> depth(m + 1, 0);
-  for (int a = 0; a < m; ++a) {
-    const int pa = parent[order[a]] < 0 ? m : pos[parent[order[a]]];
-    up[0][a] = pa;
-    depth[a] = pa == m ? 1 : depth[pa] + 1;
-  }
-  for (int l = 1; l < levels; ++l)
-    for (int a = 0; a <= m; ++a) up[l][a] = up[l - 1][up[l - 1][a]];
-  auto lca = [&](int a, int b) {
-    if (depth[a] < depth[b]) std::swap(a, b);
-    for (int l = levels - 1; l >= 0; --l)
-      if (depth[a] - (1 << l) >= depth[b]) a = up[l][a];
-    if (a == b) return a;
-    for (int l = levels - 1; l >= 0; --l)
-      if (up[l][a] != up[l][b]) a = up[l][a], b = up[l][b];
-    return up[0][a];
+  for (int a = 0; a < m; ++a) pos[order[a]] = a;      // point -> place in order
+  const int kv = std::min(k, kRepairNeighbours + 1);  // knn rows start with the point itself
+  auto lists = [&](int i, int j) {
+    for (int c = 0; c < kv; ++c)
+      if (knn[static_cast<std::size_t>(i) * k + c] == j) return true;
+    return false;
   };
-  // The graph's edges once each (u before v in order), and their lowest common ancestors, which
-  // flips do not change.
-  std::vector<std::tuple<int, int, int>> edges;
-  for (int a = 0; a < m; ++a) {
-    const int i = order[a];
-    for (std::size_t e = start[i]; e < start[i + 1]; ++e) {
-      const int b = pos[adj[e]];  // the graph's edges stay within the component
-      if (b > a) edges.emplace_back(a, b, lca(a, b));
+  // The voters' graph (each undirected edge once), as adjacency over places.
+  std::vector<int> adj_start(m + 1, 0), adj;
+  {
+    std::vector<std::pair<int, int>> edges;
+    edges.reserve(static_cast<std::size_t>(m) * kRepairNeighbours);
+    for (int a = 0; a < m; ++a) {
+      const int i = order[a];
+      for (int c = 0; c < kv; ++c) {
+        const int j = knn[static_cast<std::size_t>(i) * k + c];
+        if (j < 0 || j == i || (j < i && lists(j, i))) continue;
+        edges.emplace_back(a, pos[j]);  // the graph's edges stay within the component
+        ++adj_start[a + 1];
+        ++adj_start[pos[j] + 1];
+      }
+    }
+    for (int a = 0; a < m; ++a) adj_start[a + 1] += adj_start[a];
+    adj.resize(adj_start[m]);
+    std::vector<int> fill(adj_start.begin(), adj_start.end() - 1);
+    for (const auto& [a, b] : edges) {
+      adj[fill[a]++] = b;
+      adj[fill[b]++] = a;
     }
   }
-  std::vector<int> fixed_below(m + 1, 0);
+  // The tree in places; the roots hang off a virtual root m.
+  std::vector<int> up(m + 1, m);
+  for (int a = 0; a < m; ++a) up[a] = parent[order[a]] < 0 ? m : pos[parent[order[a]]];
+  std::vector<int> child_start(m + 2, 0), children(m);
+  for (int a = 0; a < m; ++a) ++child_start[up[a] + 1];
+  for (int a = 0; a <= m; ++a) child_start[a + 1] += child_start[a];
+  {
+    std::vector<int> fill(child_start.begin(), child_start.end() - 1);
+    for (int a = 0; a < m; ++a) children[fill[up[a]]++] = a;
+  }
+  // Tarjan's offline lowest common ancestors over an iterative depth-first search. An edge is
+  // taken when the later of its two ends finishes; the edges are stored in that order (the
+  // later end `finished[f]` owns [edge_start[f], edge_start[f + 1])), with the other end, the
+  // ancestor and the agreement. The entry order gives each subtree as a range:
+  // subtree(a) = by_tin[tin[a] .. tin[a] + size[a]).
+  std::vector<int> finished, edge_start{0}, other, lca, uf(m + 1), anc(m + 1), tin(m + 1, 0),
+      by_tin(m);
+  std::vector<char> done(m + 1, 0);
+  std::vector<float> agreement;
+  finished.reserve(m);
+  edge_start.reserve(m + 1);
+  other.reserve(adj.size() / 2);
+  lca.reserve(adj.size() / 2);
+  agreement.reserve(adj.size() / 2);
+  auto find = [&](int x) {
+    int r = x;
+    while (uf[r] != r) r = uf[r];
+    while (uf[x] != r) {
+      const int nx = uf[x];
+      uf[x] = r;
+      x = nx;
+    }
+    return r;
+  };
+  {
+    int entered = 0;
+    std::vector<std::pair<int, int>> stack{{m, child_start[m]}};
+    uf[m] = anc[m] = m;
+    while (!stack.empty()) {
+      auto& [u, next] = stack.back();
+      if (next < child_start[u + 1]) {
+        const int v = children[next++];
+        uf[v] = anc[v] = v;
+        tin[v] = entered;
+        by_tin[entered++] = v;
+        stack.emplace_back(v, child_start[v]);  // invalidates u and next
+        continue;
+      }
+      const int w = u;
+      stack.pop_back();
+      if (w == m) break;
+      done[w] = 1;
+      finished.push_back(w);
+      for (int e = adj_start[w]; e < adj_start[w + 1]; ++e) {
+        const int v = adj[e];
+        if (!done[v] || v == w) continue;
+        other.push_back(v);
+        lca.push_back(anc[find(v)]);
+        agreement.push_back(
+            static_cast<float>(mirroredAgreement(cloud[order[w]], cloud[order[v]])));
+      }
+      edge_start.push_back(static_cast<int>(other.size()));
+      const int pw = stack.back().first;  // w's subtree joins its parent's set
+      uf[find(w)] = find(pw);
+      anc[find(pw)] = pw;
+    }
+  }
+  adj = std::vector<int>();  // not needed any more
+  std::vector<int> fixed_below(m + 1, 0), size(m + 1, 1);
   for (int a = 0; a < m; ++a) fixed_below[a] = !fixed.empty() && fixed[order[a]];
-  for (int a = m - 1; a >= 0; --a) fixed_below[up[0][a]] += fixed_below[a];
-  std::vector<double> sum(m + 1);
-  std::vector<char> flip_here(m + 1);
-  constexpr int kMaxFlips = 64;
-  for (int round = 0; round < kMaxFlips; ++round) {
-    std::fill(sum.begin(), sum.end(), 0.0);
-    for (const auto& [a, b, c] : edges) {
-      const double v = mirroredAgreement(cloud[order[a]], cloud[order[b]]);
-      sum[a] += v;
-      sum[b] += v;
-      sum[c] -= 2.0 * v;
-    }
-    for (int a = m - 1; a >= 0; --a) sum[up[0][a]] += sum[a];
-    int worst = -1;
-    double worst_sum = -0.5;  // a flip must win at least half an edge's worth
-    for (int a = 0; a < m; ++a)
-      if (up[0][a] != m && fixed_below[a] == 0 && sum[a] < worst_sum) worst_sum = sum[a], worst = a;
-    if (worst < 0) break;
-    // Flip the subtree of `worst`: its points in order are those whose ancestor it is.
-    std::fill(flip_here.begin(), flip_here.end(), 0);
-    flip_here[worst] = 1;
-    for (int a = worst + 1; a < m; ++a)
-      if (up[0][a] != m && flip_here[up[0][a]]) flip_here[a] = 1;
-    for (int a = worst; a < m; ++a)
-      if (flip_here[a]) flip(cloud[order[a]]);
+  for (int a = m - 1; a >= 0; --a) {
+    fixed_below[up[a]] += fixed_below[a];
+    size[up[a]] += size[a];
   }
+  std::vector<signed char> sign(m, 1);  // a flip only changes the agreements' signs
+  std::vector<double> sum(m + 1);
+  // The agreement sums of every subtree's cut; returns the graph's total agreement.
+  auto cutSums = [&]() {
+    std::fill(sum.begin(), sum.end(), 0.0);
+    double total = 0.0;
+    for (int f = 0; f < m; ++f) {
+      const int u = finished[f];
+      for (int q = edge_start[f]; q < edge_start[f + 1]; ++q) {
+        const int v = other[q];
+        const double agree = sign[u] * sign[v] * agreement[q];
+        total += agree;
+        sum[u] += agree;
+        sum[v] += agree;
+        sum[lca[q]] -= 2.0 * agree;
+      }
+    }
+    for (int a = m - 1; a >= 0; --a) sum[up[a]] += sum[a];
+    return total;
+  };
+  auto flipSubtree = [&](int a) {
+    for (int r = tin[a]; r < tin[a] + size[a]; ++r) sign[by_tin[r]] = -sign[by_tin[r]];
+  };
+  // Fenwick trees over the entry order: the chosen subtrees' roots, and their ranges.
+  std::vector<int> roots_at(m + 2), ranges_at(m + 2);
+  auto add = [](std::vector<int>& t, int i, int d) {
+    for (++i; i < static_cast<int>(t.size()); i += i & -i) t[i] += d;
+  };
+  auto prefix = [](const std::vector<int>& t, int i) {  // sum over [0, i)
+    int r = 0;
+    for (; i > 0; i -= i & -i) r += t[i];
+    return r;
+  };
+  std::vector<std::pair<double, int>> candidates;
+  std::vector<int> chosen;
+  constexpr int kMaxRounds = 64;
+  for (int round = 0; round < kMaxRounds; ++round) {
+    const double before = cutSums();
+    candidates.clear();
+    for (int a = 0; a < m; ++a)  // a flip must win at least half an edge's worth
+      if (up[a] != m && fixed_below[a] == 0 && sum[a] < -0.5) candidates.emplace_back(sum[a], a);
+    if (candidates.empty()) break;
+    std::sort(candidates.begin(), candidates.end());
+    // The most negative subtrees that do not nest in one another, flipped at once; if edges
+    // between them make that no better than before, only the most negative one.
+    std::fill(roots_at.begin(), roots_at.end(), 0);
+    std::fill(ranges_at.begin(), ranges_at.end(), 0);
+    chosen.clear();
+    for (const auto& [s, a] : candidates) {
+      if (prefix(ranges_at, tin[a] + 1) > 0) continue;  // inside one
+      if (prefix(roots_at, tin[a] + size[a]) - prefix(roots_at, tin[a]) > 0) continue;  // holds one
+      chosen.push_back(a);
+      add(roots_at, tin[a], 1);
+      add(ranges_at, tin[a], 1);
+      add(ranges_at, tin[a] + size[a], -1);
+    }
+    for (int a : chosen) flipSubtree(a);
+    if (chosen.size() > 1 && cutSums() <= before) {
+      for (int a : chosen) flipSubtree(a);
+      flipSubtree(chosen.front());
+    }
+  }
+  for (int a = 0; a < m; ++a)
+    if (sign[a] < 0) flip(cloud[order[a]]);
 }
 
 /** Hoppe's propagation over the symmetric kNN graph (see orientNormals in normals.h). */
@@ -307,7 +417,7 @@ void orientWithGraph(PointCloudSequence::Cloud& cloud, const std::vector<int>& k
       order.push_back(e.to);
       visit(e.to);
     }
-    repairSubtrees(cloud, start, adj, order, parent, fixed, pos);
+    repairSubtrees(cloud, knn, k, order, parent, fixed, pos);
     if (!has_fixed) {
       // The seed alone decides little when it sits on noise; the majority decides (closed
       // surfaces: outward).

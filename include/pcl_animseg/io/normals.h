@@ -39,10 +39,11 @@ void estimateNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<
  *
  * The tree decides each sign by one edge, and where two sheets lie closer than the spacing (an
  * arm against the torso) one misleading edge turned a whole arm inside out (8-11% of a frame).
- * So every edge of the graph then votes: for each tree edge, the agreements a_ij of all graph
- * edges across the cut it makes are summed, and the subtree with the most negative sum is
- * flipped, again until no sum is negative (at most 64 flips per component). On a generated
- * humanoid's plain point clouds this took the flipped normals from 2.4% to 0.3%.
+ * So the edges then vote (each point's 8 nearest): for each tree edge, the agreements a_ij of
+ * the edges across the cut it makes are summed, and the subtrees with the most negative sums
+ * are flipped, again until no sum is negative (at most 64 rounds per component). On a
+ * generated humanoid's plain point clouds this took the flipped normals from 2.4% to 0.3%; it
+ * adds about 5% to the loading of a 1M-point frame.
  *
  * - A component that contains points with `fixed[i]` != 0 is grown from all of them at once;
  *   fixed normals are never flipped.
