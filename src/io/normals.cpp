@@ -293,8 +293,8 @@ void repairSubtrees(PointCloudSequence::Cloud& cloud, const std::vector<int>& kn
   std::vector<std::pair<double, int>> candidates;
   std::vector<int> chosen;
   constexpr int kMaxRounds = 64;
+  double total = cutSums();  // the sums always belong to the current signs
   for (int round = 0; round < kMaxRounds; ++round) {
-    const double before = cutSums();
     candidates.clear();
     for (int a = 0; a < m; ++a)  // a flip must win at least half an edge's worth
       if (up[a] != m && fixed_below[a] == 0 && sum[a] < -0.5) candidates.emplace_back(sum[a], a);
@@ -314,9 +314,13 @@ void repairSubtrees(PointCloudSequence::Cloud& cloud, const std::vector<int>& kn
       add(ranges_at, tin[a] + size[a], -1);
     }
     for (int a : chosen) flipSubtree(a);
-    if (chosen.size() > 1 && cutSums() <= before) {
+    const double after = cutSums();
+    if (chosen.size() > 1 && after <= total) {
       for (int a : chosen) flipSubtree(a);
       flipSubtree(chosen.front());
+      total = cutSums();
+    } else {
+      total = after;
     }
   }
   for (int a = 0; a < m; ++a)
