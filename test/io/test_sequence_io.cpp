@@ -61,6 +61,19 @@ double outwardFraction(const PointCloudSequence::Cloud& c, const Shape& s, doubl
   return static_cast<double>(good) / static_cast<double>(c.size());
 }
 
+/** The shape's points with its normals, every third one turned around: input for
+ * orientNormals. */
+PointCloudSequence::Cloud withScrambledSigns(const Shape& shape) {
+  PointCloudSequence::Cloud c;
+  for (std::size_t i = 0; i < shape.points.size(); ++i) {
+    pcl::PointNormal p;
+    p.getVector3fMap() = shape.points[i];
+    p.getNormalVector3fMap() = ((i * 7919) % 3 == 0 ? -1.0f : 1.0f) * shape.normals[i];
+    c.push_back(p);
+  }
+  return c;
+}
+
 }  // namespace
 
 // ---------------------------------------------------------------------------------------------
@@ -346,27 +359,15 @@ TEST(Normals, OrientationKeepsBothFacesOfAThinSlabOutward) {
           slab.normals.push_back(n);
         }
     }
-  PointCloudSequence::Cloud c;
-  for (std::size_t i = 0; i < slab.points.size(); ++i) {
-    pcl::PointNormal p;
-    p.getVector3fMap() = slab.points[i];
-    p.getNormalVector3fMap() = ((i * 7919) % 3 == 0 ? -1.0f : 1.0f) * slab.normals[i];
-    c.push_back(p);
-  }
+  PointCloudSequence::Cloud c = withScrambledSigns(slab);
   io::orientNormals(c, 16);
   EXPECT_GE(outwardFraction(c, slab), 0.99);
 }
 
 TEST(Normals, OrientationFlipsAnInwardSeed) {
   const Shape s = fixtures::sampleSphere(500);
-  PointCloudSequence::Cloud c;
-  for (std::size_t i = 0; i < s.points.size(); ++i) {
-    pcl::PointNormal p;
-    p.getVector3fMap() = s.points[i];
-    // Random signs: orientation must make them all agree, and outward.
-    p.getNormalVector3fMap() = ((i * 7919) % 3 == 0 ? -1.0f : 1.0f) * s.normals[i];
-    c.push_back(p);
-  }
+  // Scrambled signs: orientation must make them all agree, and outward.
+  PointCloudSequence::Cloud c = withScrambledSigns(s);
   io::orientNormals(c, 12);
   EXPECT_EQ(outwardFraction(c, s), 1.0);
 }
