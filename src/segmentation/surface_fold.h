@@ -22,9 +22,9 @@ inline float inwardFoldCos(const pcl::PointNormal& a, const pcl::PointNormal& b)
 
 /** The angle in degrees between the normals of two near points unless the surface clearly curves
  * outwards between them (the change of normal points along the step from one to the other, as
- * on a ridge); the fold snap's measure. Unlike inwardFoldCos, a step that grazes an inward fold (one running
- * nearly along it, where the sign of (n_a - n_b) . (a - b) is noise) counts as crossing it; else
- * a path could cross the fold where it meets the crease at a shallow angle. */
+ * on a ridge); the fold snap's measure. Unlike inwardFoldCos, a step that grazes an inward fold
+ * (one running nearly along it, where the sign of (n_a - n_b) . (a - b) is noise) counts as
+ * crossing it; else a path could cross the fold where it meets the crease at a shallow angle. */
 inline double foldDegrees(const pcl::PointNormal& a, const pcl::PointNormal& b) {
   const Eigen::Vector3d na = a.getNormalVector3fMap().cast<double>(),
                         nb = b.getNormalVector3fMap().cast<double>();

@@ -43,7 +43,7 @@ void estimateNormals(PointCloudSequence::Cloud& cloud, int k, const std::vector<
  * the edges across the cut it makes are summed, and the subtrees with the most negative sums
  * are flipped, again until no sum is negative (at most 64 rounds per component). On a
  * generated humanoid's plain point clouds this took the flipped normals from 2.4% to 0.3%; it
- * adds about 5% to the loading of a 1M-point frame.
+ * adds about 4% to the loading of a 1M-point frame.
  *
  * - A component that contains points with `fixed[i]` != 0 is grown from all of them at once;
  *   fixed normals are never flipped.
