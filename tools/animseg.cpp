@@ -37,6 +37,7 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   os << "  \"frames\": " << seq.size() << ",\n  \"points_per_frame\": [";
   for (std::size_t t = 0; t < seq.size(); ++t) os << (t ? ", " : "") << seq.inputSize(t);
   os << "],\n  \"total_points\": " << seq.totalPoints() << ",\n";
+  os << "  \"normals_estimated\": " << r.normals_estimated << ",\n";
   os << "  \"keypoints\": " << r.keypoints << ",\n  \"parts_per_level\": [";
   for (std::size_t l = 0; l < r.parts_per_level.size(); ++l)
     os << (l ? ", " : "") << r.parts_per_level[l];

@@ -47,6 +47,8 @@ struct PipelineResult {
   std::string device_used = "cpu";
   std::size_t keypoints = 0;
   std::vector<std::size_t> keypoints_per_frame;
+  /** Points of the input whose normals the loader estimated (0 when every point came with one). */
+  std::size_t normals_estimated = 0;
   std::vector<segmentation::LevelMotion> motions;  ///< every level's parts (empty when not asked for)
   std::vector<std::string> notes;   ///< fall-backs and warnings worth keeping in summary.json
 };

@@ -61,6 +61,18 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   // follows its own merges), so neither is computed for it: same labels, levels and motions,
   // 27% less time on a 200k-point humanoid (15.7 s -> 11.5 s, 2 cores).
   const bool motion_method = params.mean_shift.method == segmentation::MeanShiftMethod::Motion;
+  // Normals the loader had to estimate (plain point clouds): say so, with what it costs.
+  for (std::size_t t = 0; t < seq.size(); ++t) r.normals_estimated += seq.estimatedNormals(t);
+  if (r.normals_estimated > 0) {
+    const std::string note =
+        "normals estimated for " + std::to_string(r.normals_estimated) + " of " +
+        std::to_string(seq.totalPoints()) +
+        " points (the input has none for them): their directions blur the creases between "
+        "parts, so parts that barely move against each other (a pelvis under a torso) merge more "
+        "often than with the input's own normals";
+    r.notes.push_back(note);
+    progress.debug(note);
+  }
   SequenceFeatures features;
   if (params.features && motion_method) {
     r.notes.push_back(

@@ -69,6 +69,34 @@ TEST(AnimsegCli, FeaturesOnlyForThePaperMethod) {
   }
 }
 
+// Plain point clouds (positions only) get estimated normals, which blur the creases between
+// parts: summary.json counts them and a note says what that costs; inputs with normals get 0.
+TEST(AnimsegCli, SaysWhenItEstimatedTheNormals) {
+  TempDir tmp;
+  makeSequence(tmp.dir() / "with");
+  fs::create_directories(tmp.dir() / "plain");
+  for (const auto& e : fs::directory_iterator(tmp.dir() / "with")) {  // the same points, xyz only
+    std::istringstream in(slurp(e.path().string()));
+    std::ofstream out(tmp.dir() / "plain" / e.path().filename());
+    double x, y, z, nx, ny, nz;
+    while (in >> x >> y >> z >> nx >> ny >> nz) out << x << " " << y << " " << z << "\n";
+  }
+  for (const std::string kind : {"with", "plain"}) {
+    const std::string out = tmp.str() + "/out_" + kind;
+    const RunResult r = run(tool("animseg") + " --quiet --no-transforms --input " + tmp.str() +
+                                "/" + kind + " --output " + out,
+                            tmp.dir());
+    ASSERT_EQ(r.code, 0) << r.err;
+    const std::string summary = slurp(out + "/summary.json");
+    const bool plain = kind == "plain";
+    EXPECT_NE(summary.find(plain ? "\"normals_estimated\": 1020," : "\"normals_estimated\": 0,"),
+              std::string::npos)
+        << summary;
+    EXPECT_EQ(summary.find("normals estimated for 1020 of 1020 points") != std::string::npos, plain)
+        << summary;
+  }
+}
+
 TEST(AnimsegCli, QuietPrintsNothing) {
   TempDir tmp;
   makeSequence(tmp.dir() / "in");
