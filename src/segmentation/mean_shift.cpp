@@ -897,6 +897,8 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   values.leftCols(dim) = space.z;
   values.col(dim).setOnes();
   sums_out = std::make_unique<JointKernelSum>(space, values, params);
+  // The tree's build and blur report their own times: the walk's below starts here.
+  timer.restart();
   const JointKernelSum& sums = *sums_out;
   values.resize(0, 0);
   const bool cells = params.backend == MeanShiftBackend::GaussianKdTree && params.iterate_cells;
