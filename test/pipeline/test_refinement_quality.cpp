@@ -170,10 +170,10 @@ TEST(RefinementQuality, BoundaryErrorDropsByAThirdOnEveryPlan) {
                                        synth::BodyPlan::Spider, synth::BodyPlan::Hand}) {
       const Refined r = refineMotionLabels(animseg_test::sequenceParams(plan, 20, 6000, seed),
                                            seg::RefinementParams());
-      std::printf("%-10s seed %u: boundary error %.4f -> %.4f (%.0f%% fewer), pooled ARI %.4f -> "
-                  "%.4f\n",
+      std::printf("%-10s seed %u: boundary error %.4f -> %.4f (%.0f%% fewer), ",
                   synth::toString(plan).c_str(), seed, r.error_before, r.error_after,
-                  100.0 * (1.0 - r.error_after / r.error_before), r.ari_before, r.ari_after);
+                  100.0 * (1.0 - r.error_after / r.error_before));
+      std::printf("pooled ARI %.4f -> %.4f\n", r.ari_before, r.ari_after);
       const std::string what = synth::toString(plan) + " seed " + std::to_string(seed);
       EXPECT_GT(r.error_before, 0.03) << what;  // there is something to refine
       EXPECT_LE(r.error_after, 0.7 * r.error_before) << what;
