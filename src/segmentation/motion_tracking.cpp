@@ -286,17 +286,61 @@ int connectedComponents(const Graph& graph, const std::vector<int>& order, std::
   return n;
 }
 
+/** Points whose neighbourhood is concave (MotionTrackingParams::concave_crease_depth): the
+ * centroid of the point's kConcaveNeighbours nearest points lies more than `depth` spacings
+ * along its normal (outward: the loader orients estimated normals so). Where two parts of a body
+ * meet, the surface folds inwards (the minima rule); estimated normals turn across such a fold
+ * over two or three spacings, so no single edge shows it, but a wider neighbourhood rises there
+ * on both sides. On a generated humanoid's plain clouds these points form a band around the
+ * waist that leaves 0-2 of 64 surface-graph edges between torso and pelvis (0.1 spacings).
+ * All flags are cleared when more than kConcaveMaxFraction of the points are flagged: a region
+ * whose normals the orientation turned inwards looks concave everywhere (a noisy quadruped's two
+ * right legs, 28% of its points), and cutting it out of the graph left one part. Written by us:
+ * PCL has curvature estimates but no concavity test on oriented normals. */
+constexpr int kConcaveNeighbours = 16;
+constexpr double kConcaveMaxFraction = 0.2;
+std::vector<char> concavePoints(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree,
+                                double spacing, double depth) {
+  const int n = static_cast<int>(cloud.size());
+  std::vector<char> concave(n, 0);
+  if (!(depth > 0.0) || n < 3) return concave;
+  const int k = std::min(kConcaveNeighbours, n);
+  long count = 0;
+#pragma omp parallel reduction(+ : count)
+  {
+    std::vector<int> idx;
+    std::vector<float> d2;
+#pragma omp for schedule(static)
+    for (int i = 0; i < n; ++i) {
+      tree.nearestKSearch(cloud[i], k, idx, d2);
+      if (idx.empty()) continue;
+      Eigen::Vector3d c = Eigen::Vector3d::Zero();
+      for (int j : idx) c += cloud[j].getVector3fMap().cast<double>();
+      c /= static_cast<double>(idx.size());
+      const double h = (c - cloud[i].getVector3fMap().cast<double>())
+                           .dot(cloud[i].getNormalVector3fMap().cast<double>());
+      concave[i] = h > depth * spacing;
+      count += concave[i];
+    }
+  }
+  if (static_cast<double>(count) > kConcaveMaxFraction * n) std::fill(concave.begin(), concave.end(), 0);
+  return concave;
+}
+
 /** Surface graph of a cloud: each point linked to its k nearest points that lie within
  * `max_dist` and have a compatible normal (symmetric). Unlike a plain k-NN graph it does not
  * bridge the gap between two limbs that nearly touch (facing sides have opposite normals), so
- * neighbourhoods and adjacency grown over it stay on one surface sheet. */
+ * neighbourhoods and adjacency grown over it stay on one surface sheet. Points flagged in
+ * `no_edges` (concavePoints, for estimated normals) get no edge. */
 std::vector<std::vector<int>> surfaceGraphOf(const Cloud& cloud,
                                              const pcl_animseg::KdTree<pcl::PointNormal>& tree,
-                                             int k, double max_dist, bool unoriented) {
+                                             int k, double max_dist, bool unoriented,
+                                             const std::vector<char>& no_edges = {}) {
   const int n = static_cast<int>(cloud.size());
   std::vector<std::vector<int>> g(n);
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const int kk = std::min(k + 1, n);
+  const bool cut = no_edges.size() == static_cast<std::size_t>(n);
 #pragma omp parallel
   {
     std::vector<int> idx;
@@ -308,6 +352,7 @@ std::vector<std::vector<int>> surfaceGraphOf(const Cloud& cloud,
       for (std::size_t m = 0; m < idx.size(); ++m) {
         const int j = idx[m];
         if (j == i || d2[m] > max_d2) continue;
+        if (cut && (no_edges[i] || no_edges[j])) continue;
         const auto& b = cloud[j];
         const float ab =
             a.normal_x * b.normal_x + a.normal_y * b.normal_y + a.normal_z * b.normal_z;
@@ -444,15 +489,25 @@ std::vector<std::vector<int>> cellGraphOf(const std::vector<std::vector<int>>& g
 
 }  // namespace
 
-std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned seed) {
+std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned seed,
+                                      const std::vector<char>& skip) {
   const int n = static_cast<int>(cloud.size());
   std::vector<int> out;
   if (n == 0 || count <= 0) return out;
   std::vector<Eigen::Vector3d> p(n);
   for (int i = 0; i < n; ++i) p[i] = Eigen::Vector3d(cloud[i].x, cloud[i].y, cloud[i].z);
   // A simple LCG step of the seed picks the start, identically on every platform.
-  out.push_back(static_cast<int>((1103515245u * seed + 12345u) % static_cast<unsigned>(n)));
+  int start = static_cast<int>((1103515245u * seed + 12345u) % static_cast<unsigned>(n));
+  // Points in `skip` (no surface-graph edge: a sample there would be a part of one point that
+  // never merges) are never picked: their distance stays below every other point's.
+  const bool skipping = skip.size() == static_cast<std::size_t>(n);
+  for (int k = 0; skipping && skip[start] && k < n; ++k) start = (start + 1) % n;
+  if (skipping && skip[start]) return out;
+  out.push_back(start);
   std::vector<double> dmin(n, std::numeric_limits<double>::max());
+  if (skipping)
+    for (int i = 0; i < n; ++i)
+      if (skip[i]) dmin[i] = -1.0;
   while (static_cast<int>(out.size()) < count) {
     const Eigen::Vector3d s = p[out.back()];
     int far = 0;
@@ -495,7 +550,12 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   SampleTracks tr;
   tr.reference_frame = ref;
   tr.spacing = frames[ref].spacing;
-  tr.sample_points = farthestPointSamples(rc, std::min(want, n0), params.seed);
+  // Reference points in concave bands get no surface-graph edge (estimated normals only).
+  const std::vector<char> crease =
+      frames[ref].unoriented
+          ? concavePoints(rc, frames[ref].tree, frames[ref].spacing, params.concave_crease_depth)
+          : std::vector<char>();
+  tr.sample_points = farthestPointSamples(rc, std::min(want, n0), params.seed, crease);
   const int S = static_cast<int>(tr.sample_points.size());
   Eigen::Matrix3Xd p0(3, S);
   for (int s = 0; s < S; ++s) {
@@ -505,7 +565,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   // Neighbourhoods, cells and adjacency grow over the surface graph, not through space: two
   // limbs that nearly touch in the reference frame must not share a neighbourhood.
   tr.surface = surfaceGraphOf(rc, frames[ref].tree, std::max(params.point_neighbours, 6),
-                              3.0 * frames[ref].spacing, frames[ref].unoriented);
+                              3.0 * frames[ref].spacing, frames[ref].unoriented, crease);
   tr.owner = geodesicOwners(rc, tr.surface, tr.sample_points);
   tr.graph = cellGraphOf(tr.surface, tr.owner, p0, 6.0 * frames[ref].spacing);
   // Each sample's ICP source: its geodesically nearest reference points (reference geometry: no

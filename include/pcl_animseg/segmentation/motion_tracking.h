@@ -69,6 +69,13 @@ struct MotionTrackingParams {
    * whose motions differ (merge cost at least 0.4 of the threshold) cost at least this much to
    * merge (point spacings; 0: no such rule). */
   double crease_cost = 3.25;
+  /** Estimated normals (plain point clouds) blur creases, so no surface-graph edge is long
+   * enough to cross one. For them a reference point is a crease point when its neighbourhood is
+   * concave: the centroid of its 16 nearest points lies more than this far (point spacings)
+   * along its normal, and a crease point has no surface-graph edge. Skipped for the frame when
+   * more than a fifth of its points would be crease points (the normals' orientation is then in
+   * doubt there). 0: off. Inputs with their own normals are not affected. */
+  double concave_crease_depth = 0.1;
   /** Dissolving a part: a piece of the over-segmentation that straddles a joint has a
    * compromise motion of its own, so merging it with either side costs as much as merging two
    * true parts. Such a piece may instead dissolve into the parts it touches (each point to the
@@ -131,9 +138,10 @@ struct SampleTracks {
 };
 
 /** \brief Farthest-point sampling of `count` points of a cloud, starting from a point chosen by
- * `seed`; returns indices (fewer when the cloud has fewer distinct points). */
+ * `seed`; returns indices (fewer when the cloud has fewer distinct points). Points with `skip[i]`
+ * != 0 are never picked (`skip` empty or of another size: none skipped). */
 std::vector<int> farthestPointSamples(const PointCloudSequence::Cloud& cloud, int count,
-                                      unsigned seed);
+                                      unsigned seed, const std::vector<char>& skip = {});
 
 /** \brief Steps 1-2: samples and their poses in every frame. Throws Error on bad parameters. */
 SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingParams& params,
