@@ -327,21 +327,31 @@ TEST(MotionQuality, GuessedNormalOrientationDoesNotMatter) {
   EXPECT_LT(ari_oriented, ari - 0.2);  // measured 0.126
 }
 
+namespace {
+/** The frames written as xyz files (positions only) and loaded back, so that the loader
+ * estimates the normals; `truth` gets the true labels of all frames in order. */
+pcl_animseg::PointCloudSequence loadAsPlainClouds(const std::vector<synth::SynthFrame>& frames,
+                                                  std::vector<int>& truth) {
+  animseg_test::TempDir dir;
+  truth.clear();
+  for (std::size_t t = 0; t < frames.size(); ++t) {
+    std::ofstream out(dir / ("f" + std::to_string(100 + t) + ".xyz"));
+    out.precision(9);
+    for (const auto& p : *frames[t].cloud) out << p.x << " " << p.y << " " << p.z << "\n";
+    truth.insert(truth.end(), frames[t].labels.begin(), frames[t].labels.end());
+  }
+  return pcl_animseg::io::loadSequence(dir.str());
+}
+}  // namespace
+
 // A plain point cloud sequence (xyz files, no normals): the loader estimates the normals and
 // marks them, and the motion method at the true part count must still find the parts. Before
 // this stop a hand came out as one part this way (normals turned inwards on thin fingers).
 TEST(MotionQuality, PlainPointCloudsWithoutNormals) {
   for (const auto plan : {synth::BodyPlan::Quadruped, synth::BodyPlan::Hand}) {
     const auto frames = synth::generate(sequenceParams(plan, 10, 2500, 8));
-    animseg_test::TempDir dir;
     std::vector<int> truth;
-    for (std::size_t t = 0; t < frames.size(); ++t) {
-      std::ofstream out(dir / ("f" + std::to_string(100 + t) + ".xyz"));
-      out.precision(9);
-      for (const auto& p : *frames[t].cloud) out << p.x << " " << p.y << " " << p.z << "\n";
-      truth.insert(truth.end(), frames[t].labels.begin(), frames[t].labels.end());
-    }
-    const auto seq = pcl_animseg::io::loadSequence(dir.str());
+    const auto seq = loadAsPlainClouds(frames, truth);
     ASSERT_EQ(seq.size(), frames.size());
     EXPECT_FALSE(seq.normalsOriented());
     EXPECT_EQ(seq.estimatedNormals(0), seq.frame(0)->size());
@@ -362,15 +372,8 @@ TEST(MotionQuality, PlainPointCloudsWithoutNormals) {
 // method 0.670 without the band and 0.846 with it (`animseg --parts 15`: 0.704 and 0.881).
 TEST(MotionQuality, PlainHumanoidKeepsTorsoAndPelvisApart) {
   const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Humanoid, 20, 4000, 7));
-  animseg_test::TempDir dir;
   std::vector<int> truth;
-  for (std::size_t t = 0; t < frames.size(); ++t) {
-    std::ofstream out(dir / ("f" + std::to_string(100 + t) + ".xyz"));
-    out.precision(9);
-    for (const auto& p : *frames[t].cloud) out << p.x << " " << p.y << " " << p.z << "\n";
-    truth.insert(truth.end(), frames[t].labels.begin(), frames[t].labels.end());
-  }
-  const auto seq = pcl_animseg::io::loadSequence(dir.str());
+  const auto seq = loadAsPlainClouds(frames, truth);
   ASSERT_FALSE(seq.normalsOriented());
   double ari[2];
   for (int with = 0; with < 2; ++with) {
