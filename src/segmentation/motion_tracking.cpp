@@ -299,8 +299,9 @@ int connectedComponents(const Graph& graph, const std::vector<int>& order, std::
  * PCL has curvature estimates but no concavity test on oriented normals. */
 constexpr int kConcaveNeighbours = 16;
 constexpr double kConcaveMaxFraction = 0.2;
-std::vector<char> concavePoints(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree,
-                                double spacing, double depth) {
+std::vector<char> concavePoints(const Cloud& cloud,
+                                const pcl_animseg::KdTree<pcl::PointNormal>& tree, double spacing,
+                                double depth) {
   const int n = static_cast<int>(cloud.size());
   std::vector<char> concave(n, 0);
   if (!(depth > 0.0) || n < 3) return concave;
@@ -323,7 +324,8 @@ std::vector<char> concavePoints(const Cloud& cloud, const pcl_animseg::KdTree<pc
       count += concave[i];
     }
   }
-  if (static_cast<double>(count) > kConcaveMaxFraction * n) std::fill(concave.begin(), concave.end(), 0);
+  if (static_cast<double>(count) > kConcaveMaxFraction * n)
+    std::fill(concave.begin(), concave.end(), 0);
   return concave;
 }
 
