@@ -3,6 +3,7 @@
 #include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/normals.h>
+#include <pcl_animseg/union_find.h>
 
 #include <Eigen/Core>
 #include <algorithm>
@@ -207,16 +208,7 @@ void repairSubtrees(PointCloudSequence::Cloud& cloud, const std::vector<int>& kn
   other.reserve(adj.size() / 2);
   lca.reserve(adj.size() / 2);
   agreement.reserve(adj.size() / 2);
-  auto find = [&](int x) {
-    int r = x;
-    while (uf[r] != r) r = uf[r];
-    while (uf[x] != r) {
-      const int nx = uf[x];
-      uf[x] = r;
-      x = nx;
-    }
-    return r;
-  };
+  auto find = [&](int x) { return findRoot(uf, x); };
   {
     int entered = 0;
     std::vector<std::pair<int, int>> stack{{m, child_start[m]}};

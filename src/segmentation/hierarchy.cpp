@@ -1,5 +1,6 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/segmentation/hierarchy.h>
+#include <pcl_animseg/union_find.h>
 
 #include <algorithm>
 #include <cmath>
@@ -24,10 +25,7 @@ namespace {
 struct UnionFind {
   std::vector<int> parent;
   explicit UnionFind(int n) : parent(n) { std::iota(parent.begin(), parent.end(), 0); }
-  int find(int x) {
-    while (parent[x] != x) x = parent[x] = parent[parent[x]];
-    return x;
-  }
+  int find(int x) { return findRoot(parent, x); }
 };
 
 }  // namespace

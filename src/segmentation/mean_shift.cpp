@@ -3,6 +3,7 @@
 #include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/progress.h>
+#include <pcl_animseg/union_find.h>
 
 #include <flann/flann.hpp>
 
@@ -1114,16 +1115,7 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   }
   // Absorption chains can be thousands long (many tiny clusters absorbed one into the next):
   // follow each once, with path compression, instead of once per point.
-  auto root = [&](int c) {
-    int r = c;
-    while (target[r] != r) r = target[r];
-    while (target[c] != r) {
-      const int next = target[c];
-      target[c] = r;
-      c = next;
-    }
-    return r;
-  };
+  auto root = [&](int c) { return findRoot(target, c); };
   // Final ids by decreasing mode density (mode order), modes from the densest merged mode.
   std::vector<int> final_id(nm, -1);
   num_clusters = 0;
