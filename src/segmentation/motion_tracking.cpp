@@ -5,6 +5,7 @@
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/chained_fit.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
+#include <pcl_animseg/segmentation/task_graph.h>
 
 #include <pcl/segmentation/grabcut_segmentation.h>
 
@@ -595,83 +596,104 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
 
   tr.poses.assign(T, std::vector<Pose>(S, Pose::Identity()));
   tr.residual.assign(T, 0.0);
-  std::vector<Pose> global(T, Pose::Identity());
+  // The frames in the order of a serial run: away from the reference, forwards first.
+  std::vector<int> frame_order, dir_of(T, 0);
+  for (int dir : {+1, -1})
+    for (int t = ref + dir; t >= 0 && t < T; t += dir) frame_order.push_back(t), dir_of[t] = dir;
+  const int F = static_cast<int>(frame_order.size());
   if (progress) progress->begin("tracking samples", static_cast<std::size_t>(T));
-  int done = 0;
-  for (int dir : {+1, -1}) {
-    for (int t = ref + dir; t >= 0 && t < T; t += dir) {
-      const Frame& f = frames[t];
-      const int tp = t - dir, tpp = t - 2 * dir;
-      const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
-      // Global pose: the previous one and a constant-velocity guess, the better kept (the whole
-      // body's source is large enough to search its nearest points in parallel: done serially
-      // these ICPs were a quarter of the tracking on 16 cores).
-      {
-        std::vector<Pose> inits{global[tp]};
-        if (has_pp) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
-        double best = std::numeric_limits<double>::max();
-        for (const Pose& init : inits) {
-          const Pose cand = icp(whole, init, f, 30, 10.0 * f.spacing);
-          const double r = residual(whole, cand, f);
-          if (r < best) best = r, global[t] = cand;
-        }
-      }
-      // Root: the sample best explained by the global pose.
-      std::vector<double> groot(S);
-#pragma omp parallel for schedule(static)
-      for (int s = 0; s < S; ++s) groot[s] = residual(probe[s], global[t], f);
-      const int root =
-          static_cast<int>(std::min_element(groot.begin(), groot.end()) - groot.begin());
-      // BFS levels from the root (unreached components start from their own best sample).
-      std::vector<int> order(S);
-      std::iota(order.begin(), order.end(), 0);
-      std::stable_sort(order.begin(), order.end(),
-                       [&](int a, int b) { return groot[a] < groot[b]; });
-      order.insert(order.begin(), root);
-      std::vector<int> level;
-      const std::vector<std::vector<int>> levels = bfsLevels(tr.graph, order, level);
-      std::vector<Pose>& pose = tr.poses[t];
-      std::vector<double> res(S, 0.0);
-      std::vector<char> solved(S, 0);
-      for (const std::vector<int>& lv : levels) {
-#pragma omp parallel for schedule(dynamic, 1)
-        for (std::size_t li = 0; li < lv.size(); ++li) {
-          const int s = lv[li];
-          // The starts: the previous pose, the body's motion since the previous frame applied
-          // to it, a constant-velocity guess, and the poses of the neighbours solved before.
-          // Never the global pose itself: it puts a sample where its part was in the reference
-          // frame relative to the body, which in a walk is where the other leg is half a
-          // stride later; both legs fit there equally well, and samples of a right shin
-          // continued on the left one (humanoid, 4000 points, seed 12: 28 of 31 samples).
-          std::vector<Pose> cands{tr.poses[tp][s],
-                                  global[t] * global[tp].inverse() * tr.poses[tp][s]};
-          if (has_pp)
-            cands.push_back(tr.poses[tp][s] * tr.poses[tpp][s].inverse() * tr.poses[tp][s]);
-          for (int o : tr.graph[s])
-            if (solved[o] && level[o] < level[s]) cands.push_back(pose[o]);
-          // Score every start cheaply, refine the two best: ICP from all would triple the cost
-          // for the same answer.
-          std::vector<std::pair<double, int>> score;
-          for (std::size_t c = 0; c < cands.size(); ++c)
-            score.push_back({residual(probe[s], cands[c], f), static_cast<int>(c)});
-          std::stable_sort(score.begin(), score.end());
-          double best = std::numeric_limits<double>::max();
-          Pose best_pose = cands[score[0].second];
-          for (std::size_t c = 0; c < std::min<std::size_t>(2, score.size()); ++c) {
-            const Pose cand =
-                icp(src[s], cands[score[c].second], f, params.icp_iterations, 4.0 * f.spacing);
-            const double r = residual(src[s], cand, f);
-            if (r < best) best = r, best_pose = cand;
-          }
-          pose[s] = best_pose;
-          res[s] = best;
-        }
-        for (int s : lv) solved[s] = 1;
-      }
-      tr.residual[t] = std::accumulate(res.begin(), res.end(), 0.0) / S;
-      if (progress) progress->update(static_cast<std::size_t>(++done));
+  // 1. The whole body's pose in every frame, a chain along each direction: the previous one and
+  //    a constant-velocity guess, the better kept (the body's source is large enough to search its
+  //    nearest points in parallel: done serially these ICPs were a quarter of the tracking on 16
+  //    cores). It depends on no sample's pose.
+  std::vector<Pose> global(T, Pose::Identity());
+  for (int t : frame_order) {
+    const int dir = dir_of[t], tp = t - dir, tpp = t - 2 * dir;
+    const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+    std::vector<Pose> inits{global[tp]};
+    if (has_pp) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
+    double best = std::numeric_limits<double>::max();
+    for (const Pose& init : inits) {
+      const Pose cand = icp(whole, init, frames[t], 30, 10.0 * frames[t].spacing);
+      const double r = residual(whole, cand, frames[t]);
+      if (r < best) best = r, global[t] = cand;
     }
   }
+  // 2. Each frame's order of the samples: BFS levels over the sample graph from the sample best
+  //    explained by the global pose (unreached components start from their own best sample).
+  std::vector<std::vector<int>> level_of(T);
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int k = 0; k < F; ++k) {
+    const int t = frame_order[k];
+    std::vector<double> groot(S);
+    for (int s = 0; s < S; ++s) groot[s] = residual(probe[s], global[t], frames[t]);
+    const int root = static_cast<int>(std::min_element(groot.begin(), groot.end()) - groot.begin());
+    std::vector<int> order(S);
+    std::iota(order.begin(), order.end(), 0);
+    std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return groot[a] < groot[b]; });
+    order.insert(order.begin(), root);
+    bfsLevels(tr.graph, order, level_of[t]);
+  }
+  // 3. Every (frame, sample) pose, each as soon as its own poses in the two frames before and its
+  //    neighbours' of earlier levels in the same frame are known (a task graph: the levels of a
+  //    frame, one after the other, left most of 16 cores waiting on their narrow first levels).
+  //    Task k * S + s is sample s in frame_order[k].
+  std::vector<std::vector<int>> successors(static_cast<std::size_t>(F) * S);
+  std::vector<long> priority(successors.size());
+  for (int k = 0; k < F; ++k) {
+    const int t = frame_order[k];
+    const std::vector<int>& level = level_of[t];
+    const bool chained = k + 1 < F && dir_of[frame_order[k + 1]] == dir_of[t];
+    for (int s = 0; s < S; ++s) {
+      const int task = k * S + s;
+      priority[task] = static_cast<long>(k) * (S + 1) + level[s];
+      if (chained) successors[task].push_back(task + S);
+      for (int o : tr.graph[s])
+        if (level[s] < level[o]) successors[task].push_back(k * S + o);
+    }
+  }
+  std::vector<std::vector<double>> res(T, std::vector<double>(S, 0.0));
+  std::vector<int> left(F, S);
+  int frames_done = 0;
+  auto solve = [&](int task) {
+    const int k = task / S, s = task % S, t = frame_order[k];
+    const int dir = dir_of[t], tp = t - dir, tpp = t - 2 * dir;
+    const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+    const Frame& f = frames[t];
+    const std::vector<int>& level = level_of[t];
+    std::vector<Pose>& pose = tr.poses[t];
+    // The starts: the previous pose, the body's motion since the previous frame applied to it, a
+    // constant-velocity guess, and the poses of the neighbours of earlier levels. Never the
+    // global pose itself: it puts a sample where its part was in the reference frame relative to
+    // the body, which in a walk is where the other leg is half a stride later; both legs fit
+    // there equally well, and samples of a right shin continued on the left one (humanoid, 4000
+    // points, seed 12: 28 of 31 samples).
+    std::vector<Pose> cands{tr.poses[tp][s], global[t] * global[tp].inverse() * tr.poses[tp][s]};
+    if (has_pp) cands.push_back(tr.poses[tp][s] * tr.poses[tpp][s].inverse() * tr.poses[tp][s]);
+    for (int o : tr.graph[s])
+      if (level[o] < level[s]) cands.push_back(pose[o]);
+    // Score every start cheaply, refine the two best: ICP from all would triple the cost for the
+    // same answer.
+    std::vector<std::pair<double, int>> score;
+    for (std::size_t c = 0; c < cands.size(); ++c)
+      score.push_back({residual(probe[s], cands[c], f), static_cast<int>(c)});
+    std::stable_sort(score.begin(), score.end());
+    double best = std::numeric_limits<double>::max();
+    Pose best_pose = cands[score[0].second];
+    for (std::size_t c = 0; c < std::min<std::size_t>(2, score.size()); ++c) {
+      const Pose cand =
+          icp(src[s], cands[score[c].second], f, params.icp_iterations, 4.0 * f.spacing);
+      const double r = residual(src[s], cand, f);
+      if (r < best) best = r, best_pose = cand;
+    }
+    pose[s] = best_pose;
+    res[t][s] = best;
+  };
+  runTaskGraph(successors, priority, solve, [&](int task) {
+    if (--left[task / S] == 0 && progress) progress->update(static_cast<std::size_t>(++frames_done));
+  });
+  for (int t : frame_order)
+    tr.residual[t] = std::accumulate(res[t].begin(), res[t].end(), 0.0) / S;
   tr.positions.resize(T);
   for (int t = 0; t < T; ++t) {
     tr.positions[t].resize(3, S);
