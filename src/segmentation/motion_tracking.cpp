@@ -955,17 +955,9 @@ std::set<int> detachEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int
   return nbrs;
 }
 
-/** After b joined a: scores the edges between a and its former neighbours again, one after the
- * other: each score runs over the frames in parallel (a merge has a handful of neighbours and a
- * sequence tens of frames, so the frames keep many cores busy where the neighbours did not: 16
- * threads were slower than 8). */
-template <class Edge, class Evaluate>
-void rewireEdges(std::map<std::pair<int, int>, Edge>& edges, int a, int b, Evaluate evaluate) {
-  for (int o : detachEdges(edges, a, b)) edges[{std::min(a, o), std::max(a, o)}] = evaluate(a, o);
-}
-
-/** rewireEdges with the former neighbours' edges scored together: `evaluate` takes the list of
- * pairs and returns their edges. */
+/** After b joined a: scores the edges between a and its former neighbours again, together:
+ * `evaluate` takes the list of pairs and returns their edges (one parallel loop over all their
+ * frames: a merge has a handful of neighbours and a sequence tens of frames). */
 template <class Edge, class EvaluateAll>
 void rewireEdgesBatch(std::map<std::pair<int, int>, Edge>& edges, int a, int b,
                       EvaluateAll evaluate) {
@@ -1233,6 +1225,34 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     for (int t = 0; t < T; ++t) e.cost = std::max(e.cost, cost[t]);
     return e;
   };
+  // evaluate(a, o) for each of `others`, with every (o, frame) in one parallel loop: a merge's
+  // neighbours one after the other, each over its frames, were a parallel loop of a few
+  // microseconds' work per neighbour, and 16 threads spent it starting and joining.
+  auto evaluateFrom = [&](int a, const std::vector<int>& others) {
+    const std::size_t no = others.size();
+    const Source sa = sourceOf(rc, points[a], kSourcePoints);
+    std::vector<Source> sb(no);
+    for (std::size_t i = 0; i < no; ++i) sb[i] = sourceOf(rc, points[others[i]], kSourcePoints);
+    std::vector<Eval> out(no);
+    for (Eval& e : out) e.pose.resize(T);
+    std::vector<double> cost(no * T, 0.0);
+#pragma omp parallel for schedule(dynamic, 4) if (!omp_in_parallel())
+    for (std::size_t it = 0; it < no * T; ++it) {
+      const std::size_t i = it / T;
+      const int t = static_cast<int>(it % T), b = others[i];
+      if (t == ref) {
+        out[i].pose[t] = pose[a][t];
+        continue;
+      }
+      const double ca = std::max(self[a][t], residual(sb[i], pose[a][t], frames[t]));
+      const double cb = std::max(residual(sa, pose[b][t], frames[t]), self[b][t]);
+      out[i].pose[t] = ca <= cb ? pose[a][t] : pose[b][t];
+      cost[it] = std::min(ca, cb);
+    }
+    for (std::size_t i = 0; i < no; ++i)
+      for (int t = 0; t < T; ++t) out[i].cost = std::max(out[i].cost, cost[i * T + t]);
+    return out;
+  };
   std::map<std::pair<int, int>, Eval> edges;
   {
     std::vector<std::pair<int, int>> pairs;
@@ -1258,7 +1278,11 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     points[b].clear();
     selfResidual(a);
     alive[b] = 0;
-    rewireEdges(edges, a, b, evaluate);
+    const std::set<int> nbrs = detachEdges(edges, a, b);
+    const std::vector<int> others(nbrs.begin(), nbrs.end());
+    std::vector<Eval> scored = evaluateFrom(a, others);
+    for (std::size_t i = 0; i < others.size(); ++i)
+      edges[{std::min(a, others[i]), std::max(a, others[i])}] = std::move(scored[i]);
   };
   auto cheapest = [&](auto pred) {
     auto best = edges.end();
