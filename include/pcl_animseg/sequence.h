@@ -81,6 +81,11 @@ class PointCloudSequence {
  * units of it so that results do not change when a frame is scaled or resampled. */
 double meanSpacing(const PointCloudSequence::Cloud& cloud, std::size_t max_samples = 2000);
 
+/** \brief meanSpacing of every frame of a sequence, the frames in parallel. A frame that has no
+ * spacing (fewer than 2 points, all points coinciding) throws pcl_animseg::Error naming the
+ * frame. */
+std::vector<double> meanSpacings(const PointCloudSequence& seq, std::size_t max_samples = 2000);
+
 /** \brief Length of the axis-aligned bounding-box diagonal. */
 double boundingBoxDiagonal(const PointCloudSequence::Cloud& cloud);
 

@@ -1,10 +1,10 @@
+#include <pcl/common/common.h>
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/sequence.h>
 
-#include <pcl/common/common.h>
-#include <pcl_animseg/kdtree.h>
-
 #include <algorithm>
+#include <exception>
 #include <numeric>
 
 namespace pcl_animseg {
@@ -95,6 +95,23 @@ double meanSpacing(const PointCloudSequence::Cloud& cloud, std::size_t max_sampl
   }
   if (count == 0 || sum <= 0.0) throw Error("all points coincide: the point spacing is zero");
   return sum / static_cast<double>(count);
+}
+
+std::vector<double> meanSpacings(const PointCloudSequence& seq, std::size_t max_samples) {
+  const int T = static_cast<int>(seq.size());
+  std::vector<double> spacing(seq.size(), 0.0);
+  std::vector<std::string> error(seq.size());
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < T; ++t) {
+    try {
+      spacing[t] = meanSpacing(*seq.frame(t), max_samples);
+    } catch (const std::exception& e) {
+      error[t] = e.what();
+    }
+  }
+  for (int t = 0; t < T; ++t)
+    if (!error[t].empty()) throw Error("frame " + seq.name(t) + ": " + error[t]);
+  return spacing;
 }
 
 double boundingBoxDiagonal(const PointCloudSequence::Cloud& cloud) {

@@ -228,12 +228,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   std::vector<std::vector<int>>& labels = output.labels;
   std::size_t total_points = sequence_->totalPoints();
 
-  std::vector<double> spacing(frames);
+  const std::vector<double> spacing = meanSpacings(*sequence_);
   std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees(frames);
-  for (std::size_t t = 0; t < frames; ++t) {
-    spacing[t] = meanSpacing(*sequence_->frame(t));
-    trees[t].setInputCloud(sequence_->frame(t));
-  }
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < static_cast<int>(frames); ++t) trees[t].setInputCloud(sequence_->frame(t));
   double mean_spacing = 0.0;
   for (double s : spacing) mean_spacing += s / static_cast<double>(frames);
 

@@ -1,28 +1,28 @@
 // Tracked samples + trajectory clustering (see motion_tracking.h).
-#include <pcl_animseg/kdtree.h>
+#include <omp.h>
+#include <pcl/segmentation/grabcut_segmentation.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/chained_fit.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/task_graph.h>
 
-#include <pcl/segmentation/grabcut_segmentation.h>
-
-#include "mean_shift_internal.h"
-#include "surface_fold.h"
-
-#include <omp.h>
-
 #include <Eigen/Dense>
 #include <algorithm>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <map>
 #include <numeric>
 #include <queue>
 #include <set>
 #include <string>
+
+#include "mean_shift_internal.h"
+#include "surface_fold.h"
 
 namespace pcl_animseg {
 namespace segmentation {
@@ -81,12 +81,15 @@ std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
   const int T = static_cast<int>(seq.size());
   std::vector<Frame> frames(T);
   const bool unoriented = !seq.normalsOriented();
+  for (int t = 0; t < T; ++t)
+    if (seq.frame(t)->empty())
+      throw Error("motion tracking: frame " + std::to_string(t) + " has no points");
+  const std::vector<double> spacing = meanSpacings(seq);
+#pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < T; ++t) {
     frames[t].cloud = seq.frame(t);
-    if (frames[t].cloud->empty())
-      throw Error("motion tracking: frame " + std::to_string(t) + " has no points");
     frames[t].tree.setInputCloud(frames[t].cloud);
-    frames[t].spacing = std::max(meanSpacing(*frames[t].cloud), 1e-9);
+    frames[t].spacing = std::max(spacing[t], 1e-9);
     const double bound = (kClip + 1.5) * frames[t].spacing;
     frames[t].error_bound2 = static_cast<float>(bound * bound);
     frames[t].unoriented = unoriented;
@@ -1074,91 +1077,71 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
         if (a.first >= kJointPoints && level[h] < level[c])
           joints[c].push_back({h, a.second / static_cast<double>(a.first)});
   }
-  for (int dir : {+1, -1}) {
-    for (int t = ref + dir; t >= 0 && t < T; t += dir) {
-      const int tp = t - dir, tpp = t - 2 * dir;
-      const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
-      for (const std::vector<int>& lv : levels) {
-        // The starts of each part of the level, then every (part, start) score and every
-        // (part, best start) ICP as one parallel loop each: a level has few parts, and one
-        // loop over the parts left most cores idle.
-        const std::size_t L = lv.size();
-        std::vector<std::vector<Pose>> starts(L);
-        for (std::size_t li = 0; li < L; ++li) {
-          const int c = lv[li];
-          if (pts[c].empty()) continue;
-          std::vector<Pose>& st = starts[li];
-          st = {init[c][t], motion[c][tp]};
-          if (has_pp) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
-          const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
-          if (m >= 3) {
-            Eigen::Matrix3Xd a(3, m), b(3, m);
-            for (Eigen::Index k = 0; k < m; ++k)
-              a.col(k) = tr.positions[ref].col(smp[c][k]),
-              b.col(k) = tr.positions[t].col(smp[c][k]);
-            const evaluation::RigidFit fit = evaluation::kabsch(a, b);
-            Pose k = Pose::Identity();
-            k.linear() = fit.rotation;
-            k.translation() = fit.translation;
-            st.push_back(k);
-          }
-          for (int h : adj[c])
-            if (level[h] < level[c])
-              st.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
-        }
-        std::vector<std::pair<std::size_t, std::size_t>> jobs;  // (part of the level, start)
-        for (std::size_t li = 0; li < L; ++li)
-          for (std::size_t k = 0; k < starts[li].size(); ++k) jobs.push_back({li, k});
-        // Residual plus the joint term: joint_weight per spacing that a joint opens beyond
-        // kJointGap spacings from where the solved neighbour put it.
-        auto scoreOf = [&](int c, const Pose& P) {
-          double pen = 0.0;
-          for (const auto& [h, j] : joints[c])
-            pen += std::max(0.0, (P * j - motion[h][t] * j).norm() / frames[t].spacing - kJointGap);
-          return residual(src[c], P, frames[t]) + joint_weight * pen;
-        };
-        std::vector<double> start_score(jobs.size());
-#pragma omp parallel for schedule(dynamic, 1)
-        for (std::size_t q = 0; q < jobs.size(); ++q) {
-          const int c = lv[jobs[q].first];
-          start_score[q] = scoreOf(c, starts[jobs[q].first][jobs[q].second]);
-        }
-        std::vector<std::vector<std::pair<double, int>>> score(L);
-        for (std::size_t q = 0; q < jobs.size(); ++q)
-          score[jobs[q].first].push_back({start_score[q], static_cast<int>(jobs[q].second)});
-        std::vector<std::pair<std::size_t, std::size_t>> refine;  // (part, rank among starts)
-        for (std::size_t li = 0; li < L; ++li) {
-          std::stable_sort(score[li].begin(), score[li].end());
-          for (std::size_t k = 0; k < std::min<std::size_t>(2, score[li].size()); ++k)
-            refine.push_back({li, k});
-        }
-        std::vector<Pose> refined(refine.size());
-        std::vector<double> refined_res(refine.size());
-#pragma omp parallel for schedule(dynamic, 1)
-        for (std::size_t q = 0; q < refine.size(); ++q) {
-          const std::size_t li = refine[q].first;
-          const int c = lv[li];
-          refined[q] = icp(src[c], starts[li][score[li][refine[q].second].second], frames[t], 10,
-                           4.0 * frames[t].spacing);
-          refined_res[q] = scoreOf(c, refined[q]);
-        }
-        // Per part: the best start, replaced by a refined one that fits better (in rank order).
-        std::vector<double> best(L);
-        for (std::size_t li = 0; li < L; ++li)
-          if (!score[li].empty()) {
-            best[li] = score[li][0].first;
-            motion[lv[li]][t] = starts[li][score[li][0].second];
-          }
-        for (std::size_t q = 0; q < refine.size(); ++q) {
-          const std::size_t li = refine[q].first;
-          if (refined_res[q] < best[li]) {
-            best[li] = refined_res[q];
-            motion[lv[li]][t] = refined[q];
-          }
-        }
-      }
+  // Every (frame, part) motion as its own task, run as soon as the part's motion in the frame
+  // before and its solved neighbours' (earlier BFS levels) in the same frame are known
+  // (runTaskGraph): a frame's levels one after the other, each level's few parts in parallel,
+  // left most of 16 cores waiting. Task k * nc + c is part c in frame_order[k].
+  std::vector<int> frame_order, dir_of(T, 0);
+  for (int dir : {+1, -1})
+    for (int t = ref + dir; t >= 0 && t < T; t += dir) frame_order.push_back(t), dir_of[t] = dir;
+  const int F = static_cast<int>(frame_order.size());
+  std::vector<std::vector<int>> successors(static_cast<std::size_t>(F) * nc);
+  std::vector<long> priority(successors.size());
+  for (int k = 0; k < F; ++k) {
+    const bool chained = k + 1 < F && dir_of[frame_order[k + 1]] == dir_of[frame_order[k]];
+    for (int c = 0; c < nc; ++c) {
+      const int task = k * nc + c;
+      priority[task] = static_cast<long>(k) * (nc + 1) + level[c];
+      if (chained) successors[task].push_back(task + nc);
+      for (int o : adj[c])
+        if (level[c] < level[o]) successors[task].push_back(k * nc + o);
     }
   }
+  auto solve = [&](int task) {
+    const int t = frame_order[task / nc], c = task % nc;
+    if (pts[c].empty()) return;
+    const int dir = dir_of[t], tp = t - dir, tpp = t - 2 * dir;
+    const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+    // The starts: the initial motion, the previous frame's, a constant-velocity guess, the
+    // samples' rigid fit, and each solved neighbour's motion since the previous frame.
+    std::vector<Pose> st{init[c][t], motion[c][tp]};
+    if (has_pp) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
+    const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
+    if (m >= 3) {
+      Eigen::Matrix3Xd a(3, m), b(3, m);
+      for (Eigen::Index k = 0; k < m; ++k)
+        a.col(k) = tr.positions[ref].col(smp[c][k]), b.col(k) = tr.positions[t].col(smp[c][k]);
+      const evaluation::RigidFit fit = evaluation::kabsch(a, b);
+      Pose k = Pose::Identity();
+      k.linear() = fit.rotation;
+      k.translation() = fit.translation;
+      st.push_back(k);
+    }
+    for (int h : adj[c])
+      if (level[h] < level[c]) st.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
+    // Residual plus the joint term: joint_weight per spacing that a joint opens beyond kJointGap
+    // spacings from where the solved neighbour put it.
+    auto scoreOf = [&](const Pose& P) {
+      double pen = 0.0;
+      for (const auto& [h, j] : joints[c])
+        pen += std::max(0.0, (P * j - motion[h][t] * j).norm() / frames[t].spacing - kJointGap);
+      return residual(src[c], P, frames[t]) + joint_weight * pen;
+    };
+    std::vector<std::pair<double, int>> score;
+    for (std::size_t k = 0; k < st.size(); ++k)
+      score.push_back({scoreOf(st[k]), static_cast<int>(k)});
+    std::stable_sort(score.begin(), score.end());
+    // The best start, replaced by an ICP refinement of one of the two best that fits better (in
+    // rank order).
+    double best = score[0].first;
+    motion[c][t] = st[score[0].second];
+    for (std::size_t k = 0; k < std::min<std::size_t>(2, score.size()); ++k) {
+      const Pose refined = icp(src[c], st[score[k].second], frames[t], 10, 4.0 * frames[t].spacing);
+      const double r = scoreOf(refined);
+      if (r < best) best = r, motion[c][t] = refined;
+    }
+  };
+  runTaskGraph(successors, priority, solve, [](int) {});
   return motion;
 }
 
@@ -1532,10 +1515,11 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // pelvis) fits its own motion far better (measured: 2.3 to 7.6 times) than the ends of
     // its neighbours' (each end fits, the middle does not); pieces straddling a joint 1.0-1.5.
     if (!own_known[x]) {
-      double own = 0.0;
+      std::vector<double> own(T, 0.0);
+#pragma omp parallel for schedule(static) if (!omp_in_parallel())
       for (int t = 0; t < T; ++t)
-        if (t != ref) own = std::max(own, residual(sx, gpose[x][t], frames[t]));
-      own_residual[x] = own;
+        if (t != ref) own[t] = residual(sx, gpose[x][t], frames[t]);
+      own_residual[x] = *std::max_element(own.begin(), own.end());
       own_known[x] = 1;
     }
     const double limit = params.dissolve_ratio * own_residual[x];
@@ -1545,22 +1529,33 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // err[(k * nb + y) * T + t]
     std::vector<double> err(static_cast<std::size_t>(m) * nb.size() * T, 0.0);
     std::vector<int> pick(m, 0);
+    // Points in blocks, each block's points in parallel when called on its own (a refresh's
+    // handful of parts one after the other: side by side, the slowest part's serial loop held
+    // 16 threads); the running sum is checked in point order after each block, so the result is
+    // the same as point by point, and at most one block is scored in vain.
+    const bool parallel = !omp_in_parallel() && omp_get_max_threads() > 1;
+    const Eigen::Index block = parallel ? 2 * omp_get_max_threads() : 1;
+    std::vector<double> best(m, std::numeric_limits<double>::max());
     double lower = 0.0;
-    for (Eigen::Index k = 0; k < m; ++k) {
-      double best = std::numeric_limits<double>::max();
-      for (std::size_t y = 0; y < nb.size(); ++y) {
-        double sum = 0.0;
-        for (int t = 0; t < T; ++t) {
-          if (t == ref) continue;
-          const Pose& P = gpose[nb[y]][t];
-          const double e = surfaceError(P * sx.p.col(k), P.linear() * sx.n.col(k), frames[t]);
-          err[(k * nb.size() + y) * T + t] = e;
-          sum += e;
+    for (Eigen::Index k0 = 0; k0 < m; k0 += block) {
+      const Eigen::Index k1 = std::min(m, k0 + block);
+#pragma omp parallel for schedule(static, 1) if (parallel)
+      for (Eigen::Index k = k0; k < k1; ++k)
+        for (std::size_t y = 0; y < nb.size(); ++y) {
+          double sum = 0.0;
+          for (int t = 0; t < T; ++t) {
+            if (t == ref) continue;
+            const Pose& P = gpose[nb[y]][t];
+            const double e = surfaceError(P * sx.p.col(k), P.linear() * sx.n.col(k), frames[t]);
+            err[(k * nb.size() + y) * T + t] = e;
+            sum += e;
+          }
+          if (sum < best[k]) best[k] = sum, pick[k] = static_cast<int>(y);
         }
-        if (sum < best) best = sum, pick[k] = static_cast<int>(y);
+      for (Eigen::Index k = k0; k < k1; ++k) {
+        lower += best[k];
+        if (lower > give_up) return kNoDissolve;
       }
-      lower += best;
-      if (lower > give_up) return kNoDissolve;
     }
     // A piece never dissolves into parts that together are smaller than it (a torso into its
     // limbs).
@@ -1580,21 +1575,34 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     if (cost > limit) return kNoDissolve;
     return cost;
   };
+  // Where the part merges' time goes (ANIMSEG_MS_TIMING): merge fits, edge scores, dissolve
+  // costs, dissolves.
+  double t_fit = 0.0, t_edges = 0.0, t_dcost = 0.0, t_dissolve = 0.0, t_dpts = 0.0, t_dfit = 0.0;
+  int n_merges = 0, n_dissolves = 0;
+  auto since = [](std::chrono::steady_clock::time_point t0) {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
   std::vector<double> dcost(G, kNoDissolve);
 #pragma omp parallel for schedule(dynamic, 1)
   for (int g = 0; g < G; ++g)
     if (galive[g]) dcost[g] = dissolveCost(g);
+  // The parts side by side when there are enough of them to keep every thread busy; otherwise
+  // one after the other, each over its points in parallel (dissolveCost). The same costs.
   auto refreshDissolve = [&](const std::set<int>& parts) {
+    const auto t0 = std::chrono::steady_clock::now();
     const std::vector<int> list(parts.begin(), parts.end());
-#pragma omp parallel for schedule(dynamic, 1)
+    const bool side_by_side = static_cast<int>(list.size()) >= omp_get_max_threads();
+#pragma omp parallel for schedule(dynamic, 1) if (side_by_side)
     for (std::size_t i = 0; i < list.size(); ++i)
       dcost[list[i]] = galive[list[i]] ? dissolveCost(list[i]) : kNoDissolve;
+    t_dcost += since(t0);
   };
   auto dissolvePart = [&](int x) {
     const std::vector<int> nb = dissolveCandidates(x);
     const std::vector<int>& px = gpts[x];
     // Each point's cost under each candidate's motion, averaged over its surface neighbours in
     // the part (one point's residual is noisy).
+    auto t0 = std::chrono::steady_clock::now();
     std::vector<std::vector<double>> c(px.size(), std::vector<double>(nb.size()));
 #pragma omp parallel for schedule(dynamic, 16)
     for (std::size_t k = 0; k < px.size(); ++k)
@@ -1613,6 +1621,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       }
       to[k] = nb[std::min_element(sum.begin(), sum.end()) - sum.begin()];
     }
+    t_dpts += since(t0);
     std::set<int> receivers;
     for (std::size_t k = 0; k < px.size(); ++k) {
       part_of[px[k]] = to[k];
@@ -1633,8 +1642,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     }
     // One receiver after the other, each with its frames in parallel (fitPart): a dissolve has
     // two or three receivers, too few to keep many cores busy.
+    t0 = std::chrono::steady_clock::now();
     for (std::size_t r = 0; r < rec.size(); ++r)
       gpose[rec[r]] = fitPart(grown[r], gpose[rec[r]], nullptr);
+    t_dfit += since(t0);
     for (std::size_t r = 0; r < rec.size(); ++r) {
       gpts[rec[r]].swap(grown[r]);
       own_known[rec[r]] = 0;
@@ -1667,16 +1678,21 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   auto mergeParts = [&](int a, int b) {
     // The smaller id survives, so ids stay ordered by each group's first sample.
     if (b < a) std::swap(a, b);
+    ++n_merges;
+    auto t0 = std::chrono::steady_clock::now();
     std::vector<int> u;
     std::set_union(gpts[a].begin(), gpts[a].end(), gpts[b].begin(), gpts[b].end(),
                    std::back_inserter(u));
     gpose[a] = fitPart(u, gpose[a], &gpose[b]);
+    t_fit += since(t0);
+    t0 = std::chrono::steady_clock::now();
     gpts[a].swap(u);
     own_known[a] = 0;
     for (int i : gpts[b]) part_of[i] = a;
     gpts[b].clear();
     galive[b] = 0;
     rewireEdgesBatch(pedges, a, b, evaluatePairs);
+    t_edges += since(t0);
     if (refresh_dissolve) {
       // a's motion changed: a and the parts that touch it are scored again.
       const std::vector<int> touching = neighboursOf(a);
@@ -1732,7 +1748,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       break;
     }
     if (dissolve) {
+      const auto t0 = std::chrono::steady_clock::now();
       dissolvePart(dx);
+      t_dissolve += since(t0);
+      ++n_dissolves;
       --alive_parts;
       continue;
     }
@@ -1740,6 +1759,11 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     mergeParts(a, b);
     --alive_parts;
   }
+  if (timer.on())
+    std::fprintf(stderr,
+                 "[mean shift] part merges: %d merges (fits %.3f s, edges %.3f s), %d dissolves "
+                 "(%.3f s: point costs %.3f s, fits %.3f s), dissolve costs %.3f s\n",
+                 n_merges, t_fit, t_edges, n_dissolves, t_dissolve, t_dpts, t_dfit, t_dcost);
   timer.lap("clustering: part merges");
   refresh_dissolve = false;
   // Snapshot: final ids in order of each group's first sample.

@@ -1,14 +1,13 @@
+#include <omp.h>
 #include <pcl/common/centroid.h>
 #include <pcl/common/common.h>
 #include <pcl/registration/icp.h>
 #include <pcl_animseg/error.h>
-#include <pcl_animseg/io/atomic_file.h>
 #include <pcl_animseg/flat_kdtree.h>
+#include <pcl_animseg/io/atomic_file.h>
 #include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/segmentation/chained_fit.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
-
-#include <omp.h>
 
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
@@ -17,6 +16,7 @@
 #include <cstdio>
 #include <iomanip>
 #include <limits>
+#include <memory>
 #include <sstream>
 #include <tuple>
 
@@ -87,11 +87,7 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
 }
 
 // Each frame's mean point spacing (the ICPs' distances are in these units).
-std::vector<double> frameSpacings(const PointCloudSequence& seq) {
-  std::vector<double> spacing(seq.size());
-  for (std::size_t t = 0; t < seq.size(); ++t) spacing[t] = meanSpacing(*seq.frame(t));
-  return spacing;
-}
+std::vector<double> frameSpacings(const PointCloudSequence& seq) { return meanSpacings(seq); }
 
 // Points of each of a labelling's parts in frame 0.
 std::vector<std::size_t> frame0Counts(const std::vector<std::vector<int>>& labels, int parts) {
@@ -206,30 +202,116 @@ Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
 // one on. With `init` (its frames[t] where valid) there is one more start in every frame: the
 // better of the two by the RMS nearest-point distance of (up to kScorePoints of) the source
 // under each, and a start from init skips the wide passes. With good starts in every frame (the
-// motions of nearly the same labels) the chain is rarely needed, so the frames run in parallel
-// (fitAlongChain: the same result as one frame after the other), unless called inside a
-// parallel loop.
-void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
-                const std::vector<std::vector<int>>& labels, int part,
-                const std::vector<double>& spacing, std::size_t points_frame0,
-                const PartMotion* init, PartMotion& motion) {
-  const std::size_t frames = seq.size();
-  const Cloud::Ptr source = partCloud(*seq.frame(0), labels[0], part, p.max_points);
-  if (!startMotion(motion, frames, points_frame0, *source, p.min_points)) return;
-  const bool seeded = init && init->frames.size() == frames;
-  Eigen::Vector4f c0f;
-  pcl::compute3DCentroid(*source, c0f);
-  const Eigen::Vector3d c0 = c0f.head<3>().cast<double>();
-  const double part_diag = boundingBoxDiagonal(*source);
-  const auto [axis0, ratio0] = principalAxis(*source);
-  // Scoring is needed only to choose between two starts.
-  constexpr std::size_t kScorePoints = 500;
-  std::vector<Eigen::Vector3d> probe;
-  for (std::size_t k = 0, n = source->size(), m = seeded ? std::min(n, kScorePoints) : 0; k < m;
-       ++k) {
-    const auto& q = (*source)[k * n / m];
-    probe.emplace_back(q.x, q.y, q.z);
+// motions of nearly the same labels) the chain is rarely needed, so the frames of all such parts
+// run in parallel (fitAlongChains: the same result as one frame after the other).
+class ChainedPart {
+ public:
+  // A link of the chain: frame t's estimate, and the last valid one up to t (what the next
+  // frame's guess starts from).
+  struct Link {
+    RigidTransform fit, carry;
+    bool from_init = false;
+  };
+
+  // Sets `motion` up (startMotion) and, when the part has enough points, its frames' targets.
+  ChainedPart(const PointCloudSequence& seq, const RigidMotionParams& p,
+              const std::vector<std::vector<int>>& labels, int part,
+              const std::vector<double>& spacing, std::size_t points_frame0, const PartMotion* init,
+              PartMotion& motion)
+      : p_(p), spacing_(spacing), init_(init), motion_(motion), frames_(seq.size()) {
+    source_ = partCloud(*seq.frame(0), labels[0], part, p.max_points);
+    active_ = startMotion(motion, frames_, points_frame0, *source_, p.min_points);
+    if (!active_) return;
+    seeded_ = init && init->frames.size() == frames_;
+    Eigen::Vector4f c0f;
+    pcl::compute3DCentroid(*source_, c0f);
+    c0_ = c0f.head<3>().cast<double>();
+    part_diag_ = boundingBoxDiagonal(*source_);
+    std::tie(axis0_, ratio0_) = principalAxis(*source_);
+    // Scoring is needed only to choose between two starts.
+    constexpr std::size_t kScorePoints = 500;
+    for (std::size_t k = 0, n = source_->size(), m = seeded_ ? std::min(n, kScorePoints) : 0; k < m;
+         ++k) {
+      const auto& q = (*source_)[k * n / m];
+      probe_.emplace_back(q.x, q.y, q.z);
+    }
+    targets_.resize(frames_);
+#pragma omp parallel for schedule(dynamic)
+    for (std::size_t t = 1; t < frames_; ++t) {
+      Target& g = targets_[t];
+      g.cloud = partCloud(*seq.frame(t), labels[t], part, 0);
+      g.usable = static_cast<int>(g.cloud->size()) >= p.min_points;
+      if (!g.usable) continue;
+      Eigen::Vector4f ct;
+      pcl::compute3DCentroid(*g.cloud, ct);
+      g.centroid = ct.head<3>().cast<double>();
+      std::tie(g.axis, g.ratio) = principalAxis(*g.cloud);
+      if (!seeded_) continue;
+      std::vector<float> xyz;
+      xyz.reserve(3 * g.cloud->size());
+      for (const auto& q : *g.cloud) xyz.insert(xyz.end(), {q.x, q.y, q.z});
+      g.tree.build(xyz.data(), g.cloud->size());
+    }
   }
+
+  bool active() const { return active_; }
+  Link first() const { return {motion_.frames[0], motion_.frames[0], false}; }
+
+  std::vector<ChainStart<Link>> starts(int t, const std::vector<Link>* fits) const {
+    std::vector<ChainStart<Link>> s;
+    if (seeded_ && init_->frames[t].valid)
+      s.push_back({{init_->frames[t], init_->frames[t], true}, false});
+    if (fits) {
+      const Target& g = targets_[t];
+      const RigidTransform& last = (*fits)[t - 1].carry;
+      const RigidTransform guess =
+          g.usable ? chainedGuess(last, c0_, axis0_, ratio0_, g.centroid, g.axis, g.ratio) : last;
+      s.push_back({{guess, last, false}, true});
+    }
+    return s;
+  }
+
+  double score(int t, const Link& x) const {
+    const Target& g = targets_[t];
+    if (!seeded_ || !g.usable) return 0.0;
+    double sum = 0.0;
+    for (const Eigen::Vector3d& q : probe_) {
+      const Eigen::Vector3f y = x.fit.apply(q).cast<float>();
+      float d2 = 0.0f;
+      g.tree.nearest(y.data(), std::numeric_limits<float>::infinity(), d2);
+      sum += d2;
+    }
+    return std::sqrt(sum / static_cast<double>(probe_.size()));
+  }
+
+  Link fitFrom(int t, const Link& start) const {
+    Link out;
+    out.carry = start.carry;
+    out.fit = start.carry;
+    out.fit.valid = false;
+    out.fit.rms = -1.0;
+    const Target& g = targets_[t];
+    if (!g.usable) return out;
+    double rms = 0.0;
+    const Eigen::Matrix4f m = alignPasses(source_, g.cloud, toMatrix(start.fit), spacing_[t],
+                                          part_diag_, p_, rms, !start.from_init);
+    out.fit = fitted(m, rms);  // after alignPasses has set rms: two statements
+    if (out.fit.valid) out.carry = out.fit;
+    return out;
+  }
+
+  static bool same(const Link& a, const Link& b) {
+    auto sameTransform = [](const RigidTransform& x, const RigidTransform& y) {
+      return x.rotation == y.rotation && x.translation == y.translation && x.valid == y.valid;
+    };
+    return sameTransform(a.fit, b.fit) && sameTransform(a.carry, b.carry);
+  }
+
+  void finish(const std::vector<Link>& chain) {
+    for (std::size_t t = 1; t < frames_; ++t) motion_.frames[t] = chain[t].fit;
+  }
+
+ private:
   struct Target {
     Cloud::Ptr cloud;
     bool usable = false;
@@ -237,80 +319,57 @@ void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
     double ratio = 1.0;
     FlatKdTree3 tree;
   };
-  std::vector<Target> targets(frames);
-#pragma omp parallel for schedule(dynamic)
-  for (std::size_t t = 1; t < frames; ++t) {
-    Target& g = targets[t];
-    g.cloud = partCloud(*seq.frame(t), labels[t], part, 0);
-    g.usable = static_cast<int>(g.cloud->size()) >= p.min_points;
-    if (!g.usable) continue;
-    Eigen::Vector4f ct;
-    pcl::compute3DCentroid(*g.cloud, ct);
-    g.centroid = ct.head<3>().cast<double>();
-    std::tie(g.axis, g.ratio) = principalAxis(*g.cloud);
-    if (!seeded) continue;
-    std::vector<float> xyz;
-    xyz.reserve(3 * g.cloud->size());
-    for (const auto& q : *g.cloud) xyz.insert(xyz.end(), {q.x, q.y, q.z});
-    g.tree.build(xyz.data(), g.cloud->size());
+  const RigidMotionParams& p_;
+  const std::vector<double>& spacing_;
+  const PartMotion* init_;
+  PartMotion& motion_;
+  std::size_t frames_;
+  Cloud::Ptr source_;
+  bool active_ = false, seeded_ = false;
+  Eigen::Vector3d c0_ = Eigen::Vector3d::Zero(), axis0_ = Eigen::Vector3d::UnitX();
+  double ratio0_ = 1.0, part_diag_ = 0.0;
+  std::vector<Eigen::Vector3d> probe_;
+  std::vector<Target> targets_;
+};
+
+// The motions of several parts (fitChained each), their frames side by side (fitAlongChains).
+void fitChainedParts(std::vector<std::unique_ptr<ChainedPart>>& parts, std::size_t frames) {
+  std::vector<ChainedPart*> act;
+  for (auto& c : parts)
+    if (c->active()) act.push_back(c.get());
+  if (act.empty()) return;
+  using Link = ChainedPart::Link;
+  if (omp_in_parallel() || omp_get_max_threads() == 1) {  // the plain chains: no speculation
+    for (ChainedPart* c : act)
+      c->finish(fitAlongChain(
+          static_cast<int>(frames), 0, c->first(),
+          [&](int t, int, const std::vector<Link>* fits) { return c->starts(t, fits); },
+          [&](int t, const Link& x) { return c->score(t, x); },
+          [&](int t, const Link& x, double) { return c->fitFrom(t, x); }, ChainedPart::same,
+          false));
+    return;
   }
-  // A link of the chain: frame t's estimate, and the last valid one up to t (what the next
-  // frame's guess starts from).
-  struct Link {
-    RigidTransform fit, carry;
-    bool from_init = false;
-  };
-  auto starts = [&](int t, int, const std::vector<Link>* fits) {
-    std::vector<ChainStart<Link>> s;
-    if (seeded && init->frames[t].valid)
-      s.push_back({{init->frames[t], init->frames[t], true}, false});
-    if (fits) {
-      const Target& g = targets[t];
-      const RigidTransform& last = (*fits)[t - 1].carry;
-      const RigidTransform guess =
-          g.usable ? chainedGuess(last, c0, axis0, ratio0, g.centroid, g.axis, g.ratio) : last;
-      s.push_back({{guess, last, false}, true});
-    }
-    return s;
-  };
-  auto score = [&](int t, const Link& x) {
-    const Target& g = targets[t];
-    if (!seeded || !g.usable) return 0.0;
-    double sum = 0.0;
-    for (const Eigen::Vector3d& q : probe) {
-      const Eigen::Vector3f y = x.fit.apply(q).cast<float>();
-      float d2 = 0.0f;
-      g.tree.nearest(y.data(), std::numeric_limits<float>::infinity(), d2);
-      sum += d2;
-    }
-    return std::sqrt(sum / static_cast<double>(probe.size()));
-  };
-  auto fitFrom = [&](int t, const Link& start, double) {
-    Link out;
-    out.carry = start.carry;
-    out.fit = start.carry;
-    out.fit.valid = false;
-    out.fit.rms = -1.0;
-    const Target& g = targets[t];
-    if (!g.usable) return out;
-    double rms = 0.0;
-    const Eigen::Matrix4f m = alignPasses(source, g.cloud, toMatrix(start.fit), spacing[t],
-                                          part_diag, p, rms, !start.from_init);
-    out.fit = fitted(m, rms);  // after alignPasses has set rms: two statements
-    if (out.fit.valid) out.carry = out.fit;
-    return out;
-  };
-  auto sameTransform = [](const RigidTransform& a, const RigidTransform& b) {
-    return a.rotation == b.rotation && a.translation == b.translation && a.valid == b.valid;
-  };
-  auto same = [&](const Link& a, const Link& b) {
-    return sameTransform(a.fit, b.fit) && sameTransform(a.carry, b.carry);
-  };
-  const Link first{motion.frames[0], motion.frames[0], false};
-  const std::vector<Link> chain =
-      fitAlongChain(static_cast<int>(frames), 0, first, starts, score, fitFrom, same,
-                    !omp_in_parallel() && omp_get_max_threads() > 1);
-  for (std::size_t t = 1; t < frames; ++t) motion.frames[t] = chain[t].fit;
+  const std::vector<std::vector<Link>> chains = fitAlongChains(
+      static_cast<int>(act.size()), static_cast<int>(frames), 0, act.front()->first(),
+      [&](int c, int t, int, const std::vector<Link>* fits) { return act[c]->starts(t, fits); },
+      [&](int c, int t, const Link& x) { return act[c]->score(t, x); },
+      [&](int c, int t, const Link& x, double) { return act[c]->fitFrom(t, x); },
+      ChainedPart::same);
+  for (std::size_t c = 0; c < act.size(); ++c) act[c]->finish(chains[c]);
+}
+
+// One part's motion, the frames one after the other (inside a parallel loop over parts).
+void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
+                const std::vector<std::vector<int>>& labels, int part,
+                const std::vector<double>& spacing, std::size_t points_frame0, PartMotion& motion) {
+  ChainedPart c(seq, p, labels, part, spacing, points_frame0, nullptr, motion);
+  if (!c.active()) return;
+  using Link = ChainedPart::Link;
+  c.finish(fitAlongChain(
+      static_cast<int>(seq.size()), 0, c.first(),
+      [&](int t, int, const std::vector<Link>* fits) { return c.starts(t, fits); },
+      [&](int t, const Link& x) { return c.score(t, x); },
+      [&](int t, const Link& x, double) { return c.fitFrom(t, x); }, ChainedPart::same, false));
 }
 
 // The motions of merged parts of a nested level from those of the level below (children), each
@@ -515,7 +574,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
   });
   const RigidMotionParams p = params_;
   // The first labelling's parts with a start of their own in every frame (setInitialMotions) run
-  // one after the other, each with its frames in parallel (fitChained); the others side by side.
+  // with all their frames side by side (fitChainedParts); the others are chains, side by side.
   std::vector<std::pair<std::size_t, int>> seeded;
   if (!init_.empty() && !sets.empty()) {
     auto first = [&](const std::pair<std::size_t, int>& j) {
@@ -524,14 +583,18 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     std::copy_if(jobs.begin(), jobs.end(), std::back_inserter(seeded), first);
     jobs.erase(std::remove_if(jobs.begin(), jobs.end(), first), jobs.end());
   }
-  for (const auto& [s, part] : seeded)
-    fitChained(*sequence_, p, *sets[s], part, spacing, frame0_points[s][part], &init_[part],
-               out[s][part]);
+  {
+    std::vector<std::unique_ptr<ChainedPart>> chained;
+    for (const auto& [s, part] : seeded)
+      chained.push_back(std::make_unique<ChainedPart>(*sequence_, p, *sets[s], part, spacing,
+                                                      frame0_points[s][part], &init_[part],
+                                                      out[s][part]));
+    fitChainedParts(chained, sequence_->size());
+  }
 #pragma omp parallel for schedule(dynamic)
   for (std::size_t job = 0; job < jobs.size(); ++job) {
     const auto [s, part] = jobs[job];
-    fitChained(*sequence_, p, *sets[s], part, spacing, frame0_points[s][part], nullptr,
-               out[s][part]);
+    fitChained(*sequence_, p, *sets[s], part, spacing, frame0_points[s][part], out[s][part]);
   }
   return out;
 }

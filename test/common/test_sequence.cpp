@@ -57,3 +57,22 @@ TEST(PointCloudSequence, MeanSpacingAndDiagonal) {
   for (auto& p : same) p.x = p.y = p.z = 1.f;
   EXPECT_THROW(pcl_animseg::meanSpacing(same), pcl_animseg::Error);
 }
+
+TEST(PointCloudSequence, MeanSpacingsOfEveryFrameAndTheFrameThatHasNone) {
+  PointCloudSequence seq;
+  for (int t = 0; t < 9; ++t) seq.addFrame(grid(6 + t, 0.1f * (t + 1)), "f" + std::to_string(t));
+  const std::vector<double> s = pcl_animseg::meanSpacings(seq);
+  ASSERT_EQ(s.size(), 9u);
+  for (int t = 0; t < 9; ++t) EXPECT_EQ(s[t], pcl_animseg::meanSpacing(*seq.frame(t))) << t;
+  EXPECT_NEAR(s[4], 0.5, 1e-6);
+  PointCloudSequence::Cloud::Ptr same(new PointCloudSequence::Cloud);
+  same->resize(5);
+  for (auto& p : *same) p.x = p.y = p.z = 1.f;
+  seq.addFrame(same, "flat");
+  try {
+    pcl_animseg::meanSpacings(seq);
+    FAIL() << "a frame of coinciding points has no spacing";
+  } catch (const pcl_animseg::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("frame flat"), std::string::npos) << e.what();
+  }
+}

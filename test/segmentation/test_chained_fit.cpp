@@ -115,3 +115,44 @@ TEST(ChainedFit, SingleFrameAndEmptySequence) {
     EXPECT_TRUE(seg::fitAlongChain(0, 0, 0.0, starts, score, fit, same, parallel).empty());
   }
 }
+
+TEST(ChainedFit, SeveralChainsAtOnceEqualEachChainAlone) {
+  // fitAlongChains over 12 toy chains (each its own seed) must give each chain's serial fits.
+  const int chains = 12, T = 48;
+  std::vector<Toy> toys;
+  for (int c = 0; c < chains; ++c) toys.emplace_back(T, 100 + c);
+  const int before = omp_get_max_threads();
+  omp_set_num_threads(4);
+  for (int ref : {0, 30}) {
+    auto starts = [&](int c, int t, int dir, const std::vector<double>* fit) {
+      const Toy& y = toys[c];
+      std::vector<seg::ChainStart<double>> s{{y.a[t], false}};
+      if (fit) s.push_back({(*fit)[t - dir], true});
+      s.push_back({y.b[t], false});
+      const int tpp = t - 2 * dir;
+      if (fit && tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
+        s.push_back({2.0 * (*fit)[t - dir] - (*fit)[tpp], true});
+      return s;
+    };
+    auto score = [&](int c, int t, double p) { return toys[c].score(t, p); };
+    auto fit = [&](int c, int t, double p, double r0) { return toys[c].fitFrom(t, p, r0); };
+    auto same = [](double p, double q) { return p == q; };
+    const std::vector<std::vector<double>> all =
+        seg::fitAlongChains(chains, T, ref, 0.0, starts, score, fit, same);
+    ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
+    for (int c = 0; c < chains; ++c) {
+      const std::vector<double> alone = toys[c].run(ref, false);
+      for (int t = 0; t < T; ++t)
+        EXPECT_EQ(all[c][t], alone[t]) << "chain " << c << " ref " << ref << " frame " << t;
+    }
+  }
+  omp_set_num_threads(before);
+  EXPECT_TRUE(seg::fitAlongChains(
+                  0, 10, 0, 0.0,
+                  [](int, int, int, const std::vector<double>*) {
+                    return std::vector<seg::ChainStart<double>>{};
+                  },
+                  [](int, int, double) { return 0.0; },
+                  [](int, int, double, double) { return 0.0; }, [](double, double) { return true; })
+                  .empty());
+}

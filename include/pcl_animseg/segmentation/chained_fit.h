@@ -37,34 +37,20 @@ struct ChainStart {
  *    starts are scored, and it is fitted, again.
  * Written by us: the speculation is specific to this fit. */
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
+std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
+                                              Starts starts, Score score, FitFrom fitFrom,
+                                              Same same);
+
+template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts starts, Score score,
                                 FitFrom fitFrom, Same same, bool parallel) {
-  std::vector<Pose> fit(T > 0 ? T : 0, identity);
-  constexpr double kNone = std::numeric_limits<double>::max();
-  // Frame t's winner among its starts (the first of the lowest score), with the unchained ones
-  // scored already: the best of them is index `spec_k` among the unchained, scored `spec_r`.
-  // An unchained start that lost to it cannot win: it scores above it, or the same and later.
-  constexpr double kLost = std::numeric_limits<double>::infinity();
-  auto winner = [&](int t, const std::vector<ChainStart<Pose>>& s, std::size_t spec_k,
-                    double spec_r, double& r0) {
-    std::size_t best = 0, unchained = 0;
-    r0 = kNone;
-    for (std::size_t k = 0; k < s.size(); ++k) {
-      double r;
-      if (s[k].chained)
-        r = score(t, s[k].pose);
-      else
-        r = unchained++ == spec_k ? spec_r : kLost;
-      if (r < r0) r0 = r, best = k;
-    }
-    return best;
-  };
   if (!parallel) {
+    std::vector<Pose> fit(T > 0 ? T : 0, identity);
     for (int dir : {+1, -1})
       for (int t = ref + dir; t >= 0 && t < T; t += dir) {
         const auto s = starts(t, dir, &fit);
         std::size_t best = 0;
-        double r0 = kNone;
+        double r0 = std::numeric_limits<double>::max();
         for (std::size_t k = 0; k < s.size(); ++k) {
           const double r = score(t, s[k].pose);
           if (r < r0) r0 = r, best = k;
@@ -73,48 +59,98 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
       }
     return fit;
   }
+  return fitAlongChains(
+             1, T, ref, identity,
+             [&](int, int t, int dir, const std::vector<Pose>* fits) {
+               return starts(t, dir, fits);
+             },
+             [&](int, int t, const Pose& pose) { return score(t, pose); },
+             [&](int, int t, const Pose& pose, double r0) { return fitFrom(t, pose, r0); }, same)
+      .front();
+}
+
+/** \brief fitAlongChain's parallel steps for `chains` independent chains at once, each of T
+ * frames with the same reference: `starts(c, t, dir, fits)`, `score(c, t, pose)` and
+ * `fitFrom(c, t, pose, r0)` as in fitAlongChain with the chain c first. Steps 1 and 2 of all the
+ * chains' frames are one parallel loop each, and step 3 runs the chains side by side, so that a
+ * few short chains keep many cores busy (the parts of a labelling fitted one after the other,
+ * each over its frames, waited three times per part for the slowest of its frames). Returns
+ * every chain's fits: the same as fitAlongChain (and the serial chain) gives for each. */
+template <class Pose, class Starts, class Score, class FitFrom, class Same>
+std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
+                                              Starts starts, Score score, FitFrom fitFrom,
+                                              Same same) {
+  const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
+  const std::vector<Pose> frames_of(static_cast<std::size_t>(F), identity);
+  std::vector<std::vector<Pose>> fit(C, frames_of);
+  constexpr double kNone = std::numeric_limits<double>::max();
+  // Frame t's winner among its starts (the first of the lowest score), with the unchained ones
+  // scored already: the best of them is index `spec_k` among the unchained, scored `spec_r`.
+  // An unchained start that lost to it cannot win: it scores above it, or the same and later.
+  constexpr double kLost = std::numeric_limits<double>::infinity();
+  auto winner = [&](int c, int t, const std::vector<ChainStart<Pose>>& s, std::size_t spec_k,
+                    double spec_r, double& r0) {
+    std::size_t best = 0, unchained = 0;
+    r0 = kNone;
+    for (std::size_t k = 0; k < s.size(); ++k) {
+      double r;
+      if (s[k].chained)
+        r = score(c, t, s[k].pose);
+      else
+        r = unchained++ == spec_k ? spec_r : kLost;
+      if (r < r0) r0 = r, best = k;
+    }
+    return best;
+  };
+  const long jobs = static_cast<long>(C) * F;
   // Step 1.
-  std::vector<Pose> spec(fit.size(), identity);
-  std::vector<double> spec_r(fit.size(), kNone);
-  std::vector<std::size_t> spec_k(fit.size(), 0);
+  std::vector<std::vector<Pose>> spec(C, frames_of);
+  std::vector<std::vector<double>> spec_r(C, std::vector<double>(F, kNone));
+  std::vector<std::vector<std::size_t>> spec_k(C, std::vector<std::size_t>(F, 0));
 #pragma omp parallel for schedule(dynamic, 1)
-  for (int t = 0; t < T; ++t) {
+  for (long job = 0; job < jobs; ++job) {
+    const int c = static_cast<int>(job / F), t = static_cast<int>(job % F);
     if (t == ref) continue;
-    const auto s = starts(t, t > ref ? +1 : -1, nullptr);
+    const auto s = starts(c, t, t > ref ? +1 : -1, nullptr);
     if (s.empty()) continue;
     for (std::size_t k = 0; k < s.size(); ++k) {
-      const double r = score(t, s[k].pose);
-      if (r < spec_r[t]) spec_r[t] = r, spec_k[t] = k;
+      const double r = score(c, t, s[k].pose);
+      if (r < spec_r[c][t]) spec_r[c][t] = r, spec_k[c][t] = k;
     }
-    spec[t] = fitFrom(t, s[spec_k[t]].pose, spec_r[t]);
+    spec[c][t] = fitFrom(c, t, s[spec_k[c][t]].pose, spec_r[c][t]);
   }
   // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
-  std::vector<Pose> guess(fit.size(), identity);
+  std::vector<std::vector<Pose>> guess(C, frames_of);
 #pragma omp parallel for schedule(dynamic, 1)
-  for (int t = 0; t < T; ++t) {
+  for (long job = 0; job < jobs; ++job) {
+    const int c = static_cast<int>(job / F), t = static_cast<int>(job % F);
     if (t == ref) continue;
-    const auto s = starts(t, t > ref ? +1 : -1, &spec);
+    const auto s = starts(c, t, t > ref ? +1 : -1, &spec[c]);
     double r0;
-    const std::size_t best = winner(t, s, spec_k[t], spec_r[t], r0);
-    guess[t] = s[best].chained ? fitFrom(t, s[best].pose, r0) : spec[t];
+    const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
+    guess[c][t] = s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
   }
-  // Step 3. spec[ref] is the identity, as fit[ref] is.
-  for (int dir : {+1, -1})
-    for (int t = ref + dir; t >= 0 && t < T; t += dir) {
-      // The frames that frame t's chained starts may use: t - dir, and t - 2 dir where it is on
-      // this side of the reference (the other side's fits are not final yet).
-      const int t1 = t - dir, t2 = t - 2 * dir;
-      const bool t2_used = t2 >= 0 && t2 < T && (t2 - ref) * dir >= 0;
-      const bool as_assumed = same(fit[t1], spec[t1]) && (!t2_used || same(fit[t2], spec[t2]));
-      if (as_assumed) {
-        fit[t] = guess[t];
-        continue;
+  // Step 3, each chain on its own (one chain: outside any parallel region, as a caller's fits
+  // may use parallel loops of their own). spec[c][ref] is the identity, as fit[c][ref] is.
+#pragma omp parallel for schedule(dynamic, 1) if (C > 1)
+  for (int c = 0; c < C; ++c)
+    for (int dir : {+1, -1})
+      for (int t = ref + dir; t >= 0 && t < F; t += dir) {
+        // The frames that frame t's chained starts may use: t - dir, and t - 2 dir where it is
+        // on this side of the reference (the other side's fits are not final yet).
+        const int t1 = t - dir, t2 = t - 2 * dir;
+        const bool t2_used = t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0;
+        const bool as_assumed =
+            same(fit[c][t1], spec[c][t1]) && (!t2_used || same(fit[c][t2], spec[c][t2]));
+        if (as_assumed) {
+          fit[c][t] = guess[c][t];
+          continue;
+        }
+        const auto s = starts(c, t, dir, &fit[c]);
+        double r0;
+        const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
+        fit[c][t] = s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
       }
-      const auto s = starts(t, dir, &fit);
-      double r0;
-      const std::size_t best = winner(t, s, spec_k[t], spec_r[t], r0);
-      fit[t] = s[best].chained ? fitFrom(t, s[best].pose, r0) : spec[t];
-    }
   return fit;
 }
 
