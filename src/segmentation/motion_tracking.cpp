@@ -1529,29 +1529,31 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // err[(k * nb + y) * T + t]
     std::vector<double> err(static_cast<std::size_t>(m) * nb.size() * T, 0.0);
     std::vector<int> pick(m, 0);
-    // Points in blocks, each block's points in parallel when called on its own (a refresh's
-    // handful of parts one after the other: side by side, the slowest part's serial loop held
-    // 16 threads); the running sum is checked in point order after each block, so the result is
-    // the same as point by point, and at most one block is scored in vain.
+    // Points in blocks of 1, 2, 4, ..., those of 16 points and more in parallel when called on
+    // its own (a refresh of a few parts, one after the other: side by side, the slowest part's
+    // serial loop held 16 threads); the running sum is checked in point order after each block,
+    // so the result is the same as point by point, and a part rejected after a few points (most
+    // are) costs about as little.
     const bool parallel = !omp_in_parallel() && omp_get_max_threads() > 1;
-    const Eigen::Index block = parallel ? 2 * omp_get_max_threads() : 1;
     std::vector<double> best(m, std::numeric_limits<double>::max());
-    double lower = 0.0;
-    for (Eigen::Index k0 = 0; k0 < m; k0 += block) {
-      const Eigen::Index k1 = std::min(m, k0 + block);
-#pragma omp parallel for schedule(static, 1) if (parallel)
-      for (Eigen::Index k = k0; k < k1; ++k)
-        for (std::size_t y = 0; y < nb.size(); ++y) {
-          double sum = 0.0;
-          for (int t = 0; t < T; ++t) {
-            if (t == ref) continue;
-            const Pose& P = gpose[nb[y]][t];
-            const double e = surfaceError(P * sx.p.col(k), P.linear() * sx.n.col(k), frames[t]);
-            err[(k * nb.size() + y) * T + t] = e;
-            sum += e;
-          }
-          if (sum < best[k]) best[k] = sum, pick[k] = static_cast<int>(y);
+    auto scorePoint = [&](Eigen::Index k) {
+      for (std::size_t y = 0; y < nb.size(); ++y) {
+        double sum = 0.0;
+        for (int t = 0; t < T; ++t) {
+          if (t == ref) continue;
+          const Pose& P = gpose[nb[y]][t];
+          const double e = surfaceError(P * sx.p.col(k), P.linear() * sx.n.col(k), frames[t]);
+          err[(k * nb.size() + y) * T + t] = e;
+          sum += e;
         }
+        if (sum < best[k]) best[k] = sum, pick[k] = static_cast<int>(y);
+      }
+    };
+    double lower = 0.0;
+    for (Eigen::Index k0 = 0, block = 1; k0 < m; k0 += block, block *= 2) {
+      const Eigen::Index k1 = std::min(m, k0 + block);
+#pragma omp parallel for schedule(static, 1) if (parallel && k1 - k0 >= 16)
+      for (Eigen::Index k = k0; k < k1; ++k) scorePoint(k);
       for (Eigen::Index k = k0; k < k1; ++k) {
         lower += best[k];
         if (lower > give_up) return kNoDissolve;
