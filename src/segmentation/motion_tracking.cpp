@@ -1503,6 +1503,18 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   // (a merge or a dissolve next to it scores it again, but only its neighbours changed).
   std::vector<double> own_residual(G, 0.0);
   std::vector<char> own_known(G, 0);
+  // The errors of a part's source points under a neighbour's motion (per point and frame, and
+  // their sum over frames), kept while neither part's points nor motion change (`version`, bumped
+  // with own_known): a merge or dissolve makes its neighbours score their dissolve again, but
+  // only the changed neighbour's column is new. Filled in point order, as far as a score went.
+  struct ErrColumn {
+    int ver_x = -1, ver_y = -1;
+    Eigen::Index done = 0;
+    std::vector<double> e;    // [k * T + t]
+    std::vector<double> sum;  // [k]
+  };
+  std::vector<int> version(G, 0);
+  std::vector<std::map<int, ErrColumn>> err_cache(G);
   auto dissolveCost = [&](int x) {
     const std::vector<int> nb = dissolveCandidates(x);
     if (nb.size() < 2 || !has_surface || !(params.dissolve_ratio > 0.0)) return kNoDissolve;
@@ -1515,49 +1527,53 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // pelvis) fits its own motion far better (measured: 2.3 to 7.6 times) than the ends of
     // its neighbours' (each end fits, the middle does not); pieces straddling a joint 1.0-1.5.
     if (!own_known[x]) {
-      std::vector<double> own(T, 0.0);
-#pragma omp parallel for schedule(static) if (!omp_in_parallel())
+      double own = 0.0;
       for (int t = 0; t < T; ++t)
-        if (t != ref) own[t] = residual(sx, gpose[x][t], frames[t]);
-      own_residual[x] = *std::max_element(own.begin(), own.end());
+        if (t != ref) own = std::max(own, residual(sx, gpose[x][t], frames[t]));
+      own_residual[x] = own;
       own_known[x] = 1;
     }
     const double limit = params.dissolve_ratio * own_residual[x];
     // The worst frame's mean is at least the mean over frames, so the running sum of each
     // point's best total bounds the cost from below: most parts are rejected early.
     const double give_up = limit * limit * static_cast<double>(m) * frames_scored;
-    // err[(k * nb + y) * T + t]
-    std::vector<double> err(static_cast<std::size_t>(m) * nb.size() * T, 0.0);
+    // col[y]: x's errors under neighbour y's motion (err_cache; this call's own thread is the
+    // only one to touch x's columns).
+    std::vector<ErrColumn*> col(nb.size());
+    for (std::size_t y = 0; y < nb.size(); ++y) {
+      ErrColumn& c = err_cache[x][nb[y]];
+      if (c.ver_x != version[x] || c.ver_y != version[nb[y]] ||
+          c.sum.size() != static_cast<std::size_t>(m)) {
+        c.ver_x = version[x];
+        c.ver_y = version[nb[y]];
+        c.done = 0;
+        c.e.assign(static_cast<std::size_t>(m) * T, 0.0);
+        c.sum.assign(static_cast<std::size_t>(m), 0.0);
+      }
+      col[y] = &c;
+    }
     std::vector<int> pick(m, 0);
-    // Points in blocks of 1, 2, 4, ..., those of 16 points and more in parallel when called on
-    // its own (a refresh of a few parts, one after the other: side by side, the slowest part's
-    // serial loop held 16 threads); the running sum is checked in point order after each block,
-    // so the result is the same as point by point, and a part rejected after a few points (most
-    // are) costs about as little.
-    const bool parallel = !omp_in_parallel() && omp_get_max_threads() > 1;
-    std::vector<double> best(m, std::numeric_limits<double>::max());
-    auto scorePoint = [&](Eigen::Index k) {
-      for (std::size_t y = 0; y < nb.size(); ++y) {
-        double sum = 0.0;
-        for (int t = 0; t < T; ++t) {
-          if (t == ref) continue;
-          const Pose& P = gpose[nb[y]][t];
-          const double e = surfaceError(P * sx.p.col(k), P.linear() * sx.n.col(k), frames[t]);
-          err[(k * nb.size() + y) * T + t] = e;
-          sum += e;
-        }
-        if (sum < best[k]) best[k] = sum, pick[k] = static_cast<int>(y);
-      }
-    };
     double lower = 0.0;
-    for (Eigen::Index k0 = 0, block = 1; k0 < m; k0 += block, block *= 2) {
-      const Eigen::Index k1 = std::min(m, k0 + block);
-#pragma omp parallel for schedule(static, 1) if (parallel && k1 - k0 >= 16)
-      for (Eigen::Index k = k0; k < k1; ++k) scorePoint(k);
-      for (Eigen::Index k = k0; k < k1; ++k) {
-        lower += best[k];
-        if (lower > give_up) return kNoDissolve;
+    for (Eigen::Index k = 0; k < m; ++k) {
+      double best = std::numeric_limits<double>::max();
+      for (std::size_t y = 0; y < nb.size(); ++y) {
+        ErrColumn& c = *col[y];
+        if (c.done == k) {  // columns fill in point order: k is the next one
+          double sum = 0.0;
+          for (int t = 0; t < T; ++t) {
+            if (t == ref) continue;
+            const Pose& P = gpose[nb[y]][t];
+            const double e = surfaceError(P * sx.p.col(k), P.linear() * sx.n.col(k), frames[t]);
+            c.e[k * T + t] = e;
+            sum += e;
+          }
+          c.sum[k] = sum;
+          c.done = k + 1;
+        }
+        if (c.sum[k] < best) best = c.sum[k], pick[k] = static_cast<int>(y);
       }
+      lower += best;
+      if (lower > give_up) return kNoDissolve;
     }
     // A piece never dissolves into parts that together are smaller than it (a torso into its
     // limbs).
@@ -1571,7 +1587,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     for (int t = 0; t < T; ++t) {
       if (t == ref) continue;
       double sum = 0.0;
-      for (Eigen::Index k = 0; k < m; ++k) sum += err[(k * nb.size() + pick[k]) * T + t];
+      for (Eigen::Index k = 0; k < m; ++k) sum += col[pick[k]]->e[k * T + t];
       cost = std::max(cost, std::sqrt(sum / static_cast<double>(m)));
     }
     if (cost > limit) return kNoDissolve;
@@ -1588,13 +1604,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
 #pragma omp parallel for schedule(dynamic, 1)
   for (int g = 0; g < G; ++g)
     if (galive[g]) dcost[g] = dissolveCost(g);
-  // The parts side by side when there are enough of them to keep every thread busy; otherwise
-  // one after the other, each over its points in parallel (dissolveCost). The same costs.
   auto refreshDissolve = [&](const std::set<int>& parts) {
     const auto t0 = std::chrono::steady_clock::now();
     const std::vector<int> list(parts.begin(), parts.end());
-    const bool side_by_side = static_cast<int>(list.size()) >= omp_get_max_threads();
-#pragma omp parallel for schedule(dynamic, 1) if (side_by_side)
+#pragma omp parallel for schedule(dynamic, 1)
     for (std::size_t i = 0; i < list.size(); ++i)
       dcost[list[i]] = galive[list[i]] ? dissolveCost(list[i]) : kNoDissolve;
     t_dcost += since(t0);
@@ -1651,6 +1664,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     for (std::size_t r = 0; r < rec.size(); ++r) {
       gpts[rec[r]].swap(grown[r]);
       own_known[rec[r]] = 0;
+      ++version[rec[r]];
     }
     gpts[x].clear();
     galive[x] = 0;
@@ -1690,6 +1704,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     t0 = std::chrono::steady_clock::now();
     gpts[a].swap(u);
     own_known[a] = 0;
+    ++version[a];
     for (int i : gpts[b]) part_of[i] = a;
     gpts[b].clear();
     galive[b] = 0;
