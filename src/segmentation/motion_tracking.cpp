@@ -1336,35 +1336,65 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   constexpr int kPartIcp = 8;
   // One motion per frame for a point set: from the best of the given starts, ICP, the better of
   // start and result kept.
-  auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
-                     const std::vector<Pose>* ib) {
-    const Source src = sourceOf(rc, pts, kPartPoints);
-    // Frames in order away from the reference, so that the fit of the previous frame is a start
-    // too: a part that a sample lost in one frame is found again from its own motion. The starts
-    // of frame t: ia[t], the previous frame's fit, ib[t], a constant-velocity guess.
-    auto starts = [&](int t, int dir, const std::vector<Pose>* fit) {
-      std::vector<ChainStart<Pose>> s{{ia[t], false}};
+  // The motions of several point sets (fitAlongChain for each): pts[c], with the starts ia[c]
+  // and ib[c] (null: none). Frames in order away from the reference, so that the fit of the
+  // previous frame is a start too: a part that a sample lost in one frame is found again from its
+  // own motion. The starts of frame t: ia[t], the previous frame's fit, ib[t], a constant-velocity
+  // guess. With many more sets than threads each is a serial chain and the sets run side by side;
+  // otherwise all the sets' frames run side by side (fitAlongChains: the same fits, more work,
+  // but a merge's or a dissolve's one to three parts keep 16 threads busy).
+  auto fitParts = [&](const std::vector<const std::vector<int>*>& pts,
+                      const std::vector<const std::vector<Pose>*>& ia,
+                      const std::vector<const std::vector<Pose>*>& ib) {
+    const int C = static_cast<int>(pts.size());
+    std::vector<Source> src(C);
+    for (int c = 0; c < C; ++c) src[c] = sourceOf(rc, *pts[c], kPartPoints);
+    auto starts = [&](int c, int t, int dir, const std::vector<Pose>* fit) {
+      std::vector<ChainStart<Pose>> s{{(*ia[c])[t], false}};
       if (fit) s.push_back({(*fit)[t - dir], true});
-      if (ib) s.push_back({(*ib)[t], false});
+      if (ib[c]) s.push_back({(*ib[c])[t], false});
       const int tpp = t - 2 * dir;
       if (fit && tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
         s.push_back({(*fit)[t - dir] * (*fit)[tpp].inverse() * (*fit)[t - dir], true});
       return s;
     };
-    auto score = [&](int t, const Pose& P) { return residual(src, P, frames[t]); };
+    auto score = [&](int c, int t, const Pose& P) { return residual(src[c], P, frames[t]); };
     // ICP; the better of start and result kept.
-    auto fitFrom = [&](int t, const Pose& init, double r0) {
-      const Pose cand = icp(src, init, frames[t], kPartIcp, 4.0 * frames[t].spacing);
-      return residual(src, cand, frames[t]) <= r0 ? cand : init;
+    auto fitFrom = [&](int c, int t, const Pose& init, double r0) {
+      const Pose cand = icp(src[c], init, frames[t], kPartIcp, 4.0 * frames[t].spacing);
+      return residual(src[c], cand, frames[t]) <= r0 ? cand : init;
     };
-    // A call of its own (a merge's or a dissolve's fit) runs the frames in parallel; the initial
-    // fits of all parts run in a loop over parts.
     auto same = [](const Pose& p, const Pose& q) { return p.matrix() == q.matrix(); };
-    return fitAlongChain(T, ref, Pose(Pose::Identity()), starts, score, fitFrom, same,
-                         !omp_in_parallel() && omp_get_max_threads() > 1);
+    const Pose identity = Pose::Identity();
+    const int threads = omp_in_parallel() ? 1 : omp_get_max_threads();
+    if (threads > 1 && C < 4 * threads)
+      return fitAlongChains(C, T, ref, identity, starts, score, fitFrom, same);
+    std::vector<std::vector<Pose>> out(C);
+#pragma omp parallel for schedule(dynamic, 1) if (threads > 1)
+    for (int c = 0; c < C; ++c)
+      out[c] = fitAlongChain(
+          T, ref, identity,
+          [&](int t, int dir, const std::vector<Pose>* fit) { return starts(c, t, dir, fit); },
+          [&](int t, const Pose& P) { return score(c, t, P); },
+          [&](int t, const Pose& P, double r0) { return fitFrom(c, t, P, r0); }, same, false);
+    return out;
   };
-#pragma omp parallel for schedule(dynamic, 1)
-  for (int g = 0; g < G; ++g) gpose[g] = fitPart(gpts[g], gpose[g], nullptr);
+  auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
+                     const std::vector<Pose>* ib) {
+    return std::move(fitParts({&pts}, {&ia}, {ib}).front());
+  };
+  // Every group's motion from its own; `only_nonempty`: groups without points keep theirs.
+  auto fitGroups = [&](bool only_nonempty) {
+    std::vector<int> which;
+    for (int g = 0; g < G; ++g)
+      if (!only_nonempty || !gpts[g].empty()) which.push_back(g);
+    std::vector<const std::vector<int>*> pts;
+    std::vector<const std::vector<Pose>*> ia, ib(which.size(), nullptr);
+    for (int g : which) pts.push_back(&gpts[g]), ia.push_back(&gpose[g]);
+    std::vector<std::vector<Pose>> fit = fitParts(pts, ia, ib);
+    for (std::size_t i = 0; i < which.size(); ++i) gpose[which[i]].swap(fit[i]);
+  };
+  fitGroups(false);
   // Groups of phase 1 straddle joints where samples' poses were ambiguous: a few rounds of
   // moving points to the group whose motion explains them (with the motions refit) put the
   // borders where the motion changes before any group is scored as a whole.
@@ -1377,9 +1407,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       for (auto& v : gpts) v.clear();
       for (int i = 0; i < n0; ++i)
         if (plabel[i] >= 0) gpts[plabel[i]].push_back(i);
-#pragma omp parallel for schedule(dynamic, 1)
-      for (int g = 0; g < G; ++g)
-        if (!gpts[g].empty()) gpose[g] = fitPart(gpts[g], gpose[g], nullptr);
+      fitGroups(true);
     }
   }
 
@@ -1655,11 +1683,17 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       std::set_union(gpts[rec[r]].begin(), gpts[rec[r]].end(), add.begin(), add.end(),
                      std::back_inserter(grown[r]));
     }
-    // One receiver after the other, each with its frames in parallel (fitPart): a dissolve has
-    // two or three receivers, too few to keep many cores busy.
+    // The receivers' frames side by side (fitParts): a dissolve has two or three receivers, too
+    // few to keep many cores busy on their own.
     t0 = std::chrono::steady_clock::now();
-    for (std::size_t r = 0; r < rec.size(); ++r)
-      gpose[rec[r]] = fitPart(grown[r], gpose[rec[r]], nullptr);
+    {
+      std::vector<const std::vector<int>*> pts;
+      std::vector<const std::vector<Pose>*> ia, ib(rec.size(), nullptr);
+      for (std::size_t r = 0; r < rec.size(); ++r)
+        pts.push_back(&grown[r]), ia.push_back(&gpose[rec[r]]);
+      std::vector<std::vector<Pose>> fit = fitParts(pts, ia, ib);
+      for (std::size_t r = 0; r < rec.size(); ++r) gpose[rec[r]].swap(fit[r]);
+    }
     t_dfit += since(t0);
     for (std::size_t r = 0; r < rec.size(); ++r) {
       gpts[rec[r]].swap(grown[r]);
