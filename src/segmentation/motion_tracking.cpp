@@ -1989,33 +1989,34 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   absorbRemnants(frames[ref], label);
   timer.lap("labels: part borders");
   // Labels of every frame: the nearest reference point moved by its part's motion, with a
-  // compatible normal.
+  // compatible normal. The frames side by side (each built its tree of the moved reference
+  // serially while 15 threads waited).
   const auto offsets = seq.offsets();
   flat.assign(seq.totalPoints(), -1);
-  for (int t = 0; t < T; ++t) {
-    const Cloud& fc = *frames[t].cloud;
-    Cloud::Ptr moved(new Cloud);
-    moved->resize(n0);
-    for (int i = 0; i < n0; ++i) {
-      const Pose& M = motion[label[i]][t];
-      const Eigen::Vector3d p = M * Eigen::Vector3d(rc[i].x, rc[i].y, rc[i].z);
-      const Eigen::Vector3d nn =
-          M.linear() * Eigen::Vector3d(rc[i].normal_x, rc[i].normal_y, rc[i].normal_z);
-      auto& q = (*moved)[i];
-      q = toPoint(p);
-      q.normal_x = static_cast<float>(nn.x());
-      q.normal_y = static_cast<float>(nn.y());
-      q.normal_z = static_cast<float>(nn.z());
-    }
-    pcl_animseg::KdTree<pcl::PointNormal> mt;
-    mt.setInputCloud(moved);
-    const int n = static_cast<int>(fc.size());
-    const int kq = std::min(8, n0);
+  const int kq = std::min(8, n0);
 #pragma omp parallel
-    {
-      std::vector<int> idx;
-      std::vector<float> d2;
-#pragma omp for schedule(static)
+  {
+    std::vector<int> idx;
+    std::vector<float> d2;
+#pragma omp for schedule(dynamic, 1)
+    for (int t = 0; t < T; ++t) {
+      const Cloud& fc = *frames[t].cloud;
+      Cloud::Ptr moved(new Cloud);
+      moved->resize(n0);
+      for (int i = 0; i < n0; ++i) {
+        const Pose& M = motion[label[i]][t];
+        const Eigen::Vector3d p = M * Eigen::Vector3d(rc[i].x, rc[i].y, rc[i].z);
+        const Eigen::Vector3d nn =
+            M.linear() * Eigen::Vector3d(rc[i].normal_x, rc[i].normal_y, rc[i].normal_z);
+        auto& q = (*moved)[i];
+        q = toPoint(p);
+        q.normal_x = static_cast<float>(nn.x());
+        q.normal_y = static_cast<float>(nn.y());
+        q.normal_z = static_cast<float>(nn.z());
+      }
+      pcl_animseg::KdTree<pcl::PointNormal> mt;
+      mt.setInputCloud(moved);
+      const int n = static_cast<int>(fc.size());
       for (int j = 0; j < n; ++j) {
         mt.nearestKSearch(fc[j], kq, idx, d2);
         int pick = idx.empty() ? -1 : idx[0];
