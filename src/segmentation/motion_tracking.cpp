@@ -268,6 +268,39 @@ std::vector<std::vector<int>> bfsLevels(const Graph& graph, const std::vector<in
   return levels;
 }
 
+/** The frames in the order of a serial run away from the reference (forwards first), and each
+ * frame's direction (+1 / -1; 0 for the reference). */
+void framesAwayFrom(int ref, int T, std::vector<int>& order, std::vector<int>& dir_of) {
+  order.clear();
+  dir_of.assign(T, 0);
+  for (int dir : {+1, -1})
+    for (int t = ref + dir; t >= 0 && t < T; t += dir) order.push_back(t), dir_of[t] = dir;
+}
+
+/** A task graph (runTaskGraph) of one task per (frame, node): task k * n + v is node v of a graph
+ * of n nodes in frame order[k] (framesAwayFrom). It depends on the same node in the frame before
+ * on its side of the reference, and on its graph neighbours of lower level(t, v) in the same
+ * frame; priorities in the order of a serial run (frame, then level). */
+template <class Graph, class Level>
+void frameTaskGraph(const std::vector<int>& order, const std::vector<int>& dir_of,
+                    const Graph& graph, Level level, std::vector<std::vector<int>>& successors,
+                    std::vector<long>& priority) {
+  const int F = static_cast<int>(order.size()), n = static_cast<int>(graph.size());
+  successors.assign(static_cast<std::size_t>(F) * n, {});
+  priority.assign(successors.size(), 0);
+  for (int k = 0; k < F; ++k) {
+    const int t = order[k];
+    const bool chained = k + 1 < F && dir_of[order[k + 1]] == dir_of[t];
+    for (int v = 0; v < n; ++v) {
+      const int task = k * n + v;
+      priority[task] = static_cast<long>(k) * (n + 1) + level(t, v);
+      if (chained) successors[task].push_back(task + n);
+      for (int o : graph[v])
+        if (level(t, v) < level(t, o)) successors[task].push_back(k * n + o);
+    }
+  }
+}
+
 /** Connected components of a graph (adjacency lists of node ids), numbered in the order in which
  * `order` reaches them (every node must be in `order`); comp[v] is v's component. Returns the
  * number of components. */
@@ -600,9 +633,8 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   tr.poses.assign(T, std::vector<Pose>(S, Pose::Identity()));
   tr.residual.assign(T, 0.0);
   // The frames in the order of a serial run: away from the reference, forwards first.
-  std::vector<int> frame_order, dir_of(T, 0);
-  for (int dir : {+1, -1})
-    for (int t = ref + dir; t >= 0 && t < T; t += dir) frame_order.push_back(t), dir_of[t] = dir;
+  std::vector<int> frame_order, dir_of;
+  framesAwayFrom(ref, T, frame_order, dir_of);
   const int F = static_cast<int>(frame_order.size());
   if (progress) progress->begin("tracking samples", static_cast<std::size_t>(T));
   // 1. The whole body's pose in every frame, a chain along each direction: the previous one and
@@ -641,20 +673,10 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   //    neighbours' of earlier levels in the same frame are known (a task graph: the levels of a
   //    frame, one after the other, left most of 16 cores waiting on their narrow first levels).
   //    Task k * S + s is sample s in frame_order[k].
-  std::vector<std::vector<int>> successors(static_cast<std::size_t>(F) * S);
-  std::vector<long> priority(successors.size());
-  for (int k = 0; k < F; ++k) {
-    const int t = frame_order[k];
-    const std::vector<int>& level = level_of[t];
-    const bool chained = k + 1 < F && dir_of[frame_order[k + 1]] == dir_of[t];
-    for (int s = 0; s < S; ++s) {
-      const int task = k * S + s;
-      priority[task] = static_cast<long>(k) * (S + 1) + level[s];
-      if (chained) successors[task].push_back(task + S);
-      for (int o : tr.graph[s])
-        if (level[s] < level[o]) successors[task].push_back(k * S + o);
-    }
-  }
+  std::vector<std::vector<int>> successors;
+  std::vector<long> priority;
+  frameTaskGraph(frame_order, dir_of, tr.graph, [&](int t, int s) { return level_of[t][s]; },
+                 successors, priority);
   std::vector<std::vector<double>> res(T, std::vector<double>(S, 0.0));
   std::vector<int> left(F, S);
   int frames_done = 0;
@@ -1081,22 +1103,12 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   // before and its solved neighbours' (earlier BFS levels) in the same frame are known
   // (runTaskGraph): a frame's levels one after the other, each level's few parts in parallel,
   // left most of 16 cores waiting. Task k * nc + c is part c in frame_order[k].
-  std::vector<int> frame_order, dir_of(T, 0);
-  for (int dir : {+1, -1})
-    for (int t = ref + dir; t >= 0 && t < T; t += dir) frame_order.push_back(t), dir_of[t] = dir;
-  const int F = static_cast<int>(frame_order.size());
-  std::vector<std::vector<int>> successors(static_cast<std::size_t>(F) * nc);
-  std::vector<long> priority(successors.size());
-  for (int k = 0; k < F; ++k) {
-    const bool chained = k + 1 < F && dir_of[frame_order[k + 1]] == dir_of[frame_order[k]];
-    for (int c = 0; c < nc; ++c) {
-      const int task = k * nc + c;
-      priority[task] = static_cast<long>(k) * (nc + 1) + level[c];
-      if (chained) successors[task].push_back(task + nc);
-      for (int o : adj[c])
-        if (level[c] < level[o]) successors[task].push_back(k * nc + o);
-    }
-  }
+  std::vector<int> frame_order, dir_of;
+  framesAwayFrom(ref, T, frame_order, dir_of);
+  std::vector<std::vector<int>> successors;
+  std::vector<long> priority;
+  frameTaskGraph(frame_order, dir_of, adj, [&](int, int c) { return level[c]; }, successors,
+                 priority);
   auto solve = [&](int task) {
     const int t = frame_order[task / nc], c = task % nc;
     if (pts[c].empty()) return;
