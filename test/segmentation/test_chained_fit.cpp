@@ -137,13 +137,17 @@ TEST(ChainedFit, SeveralChainsAtOnceEqualEachChainAlone) {
     auto score = [&](int c, int t, double p) { return toys[c].score(t, p); };
     auto fit = [&](int c, int t, double p, double r0) { return toys[c].fitFrom(t, p, r0); };
     auto same = [](double p, double q) { return p == q; };
-    const std::vector<std::vector<double>> all =
-        seg::fitAlongChains(chains, T, ref, 0.0, starts, score, fit, same);
-    ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
-    for (int c = 0; c < chains; ++c) {
-      const std::vector<double> alone = toys[c].run(ref, false);
-      for (int t = 0; t < T; ++t)
-        EXPECT_EQ(all[c][t], alone[t]) << "chain " << c << " ref " << ref << " frame " << t;
+    // With 0 to 8 parallel rounds before the serial check (the default on 4 threads: 6).
+    for (int rounds : {0, 1, 3, 8, -1}) {
+      const std::vector<std::vector<double>> all =
+          seg::fitAlongChains(chains, T, ref, 0.0, starts, score, fit, same, rounds);
+      ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
+      for (int c = 0; c < chains; ++c) {
+        const std::vector<double> alone = toys[c].run(ref, false);
+        for (int t = 0; t < T; ++t)
+          EXPECT_EQ(all[c][t], alone[t])
+              << "chain " << c << " ref " << ref << " frame " << t << " rounds " << rounds;
+      }
     }
   }
   omp_set_num_threads(before);

@@ -1,5 +1,7 @@
 #pragma once
 /** \file chained_fit.h Per-frame fits chained along a sequence, with the frames in parallel. */
+#include <omp.h>
+
 #include <cstddef>
 #include <limits>
 #include <vector>
@@ -39,7 +41,7 @@ struct ChainStart {
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
                                               Starts starts, Score score, FitFrom fitFrom,
-                                              Same same);
+                                              Same same, int extra_rounds = -1);
 
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts starts, Score score,
@@ -75,12 +77,17 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
  * chains' frames are one parallel loop each, and step 3 runs the chains side by side, so that a
  * few short chains keep many cores busy (the parts of a labelling fitted one after the other,
  * each over its frames, waited three times per part for the slowest of its frames). Returns
- * every chain's fits: the same as fitAlongChain (and the serial chain) gives for each. */
+ * every chain's fits: the same as fitAlongChain (and the serial chain) gives for each.
+ * `extra_rounds` (default: 6 on 4 threads or more, else 0) more parallel rounds before step 3
+ * (see below) move serial fits of step 3 into parallel loops. */
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
                                               Starts starts, Score score, FitFrom fitFrom,
-                                              Same same) {
+                                              Same same, int extra_rounds) {
   const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
+  // Default: 6 more rounds on 4 threads or more (each costs fits that step 3 might not need;
+  // on 2 threads step 3's chains side by side keep both busy).
+  if (extra_rounds < 0) extra_rounds = omp_get_max_threads() >= 4 ? 6 : 0;
   const std::vector<Pose> frames_of(static_cast<std::size_t>(F), identity);
   std::vector<std::vector<Pose>> fit(C, frames_of);
   constexpr double kNone = std::numeric_limits<double>::max();
@@ -130,6 +137,41 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
     const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
     guess[c][t] = s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
   }
+  // More rounds on many threads (a Jacobi iteration of the chain): round r fits again, from
+  // round r-1's fits of the frames before, every frame whose inputs changed in round r-1; the
+  // others keep their fit (the same inputs give the same fit). A run of n frames where the
+  // chained start wins is final after n rounds, which step 3 would fit one after the other.
+  // `before` holds the fits each frame of `guess` was computed from.
+  std::vector<std::vector<Pose>> before = spec;
+  auto inputs = [&](int t, int& t1, int& t2) {  // frames t's chained starts use (t2 < 0: none)
+    const int dir = t > ref ? +1 : -1;
+    t1 = t - dir;
+    t2 = t - 2 * dir;
+    if (!(t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0)) t2 = -1;
+  };
+  for (int round = 2; round <= extra_rounds + 1; ++round) {
+    std::vector<std::pair<int, int>> redo;
+    for (int c = 0; c < C; ++c)
+      for (int t = 0; t < F; ++t) {
+        if (t == ref) continue;
+        int t1, t2;
+        inputs(t, t1, t2);
+        if (!same(guess[c][t1], before[c][t1]) || (t2 >= 0 && !same(guess[c][t2], before[c][t2])))
+          redo.push_back({c, t});
+      }
+    if (redo.empty()) break;
+    std::vector<std::vector<Pose>> next = guess;
+#pragma omp parallel for schedule(dynamic, 1)
+    for (std::size_t j = 0; j < redo.size(); ++j) {
+      const auto [c, t] = redo[j];
+      const auto s = starts(c, t, t > ref ? +1 : -1, &guess[c]);
+      double r0;
+      const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
+      next[c][t] = s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
+    }
+    before.swap(guess);
+    guess.swap(next);
+  }
   // Step 3, each chain on its own (one chain: outside any parallel region, as a caller's fits
   // may use parallel loops of their own). spec[c][ref] is the identity, as fit[c][ref] is.
 #pragma omp parallel for schedule(dynamic, 1) if (C > 1)
@@ -141,7 +183,7 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
         const int t1 = t - dir, t2 = t - 2 * dir;
         const bool t2_used = t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0;
         const bool as_assumed =
-            same(fit[c][t1], spec[c][t1]) && (!t2_used || same(fit[c][t2], spec[c][t2]));
+            same(fit[c][t1], before[c][t1]) && (!t2_used || same(fit[c][t2], before[c][t2]));
         if (as_assumed) {
           fit[c][t] = guess[c][t];
           continue;
