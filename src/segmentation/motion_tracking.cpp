@@ -1074,7 +1074,7 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     }
   }
   std::vector<int> level;
-  const std::vector<std::vector<int>> levels = bfsLevels(adj, by_size, level);
+  bfsLevels(adj, by_size, level);  // each part's level (from the largest part)
   // Joints: the centroid of a part's reference points that border a neighbour. A continuous
   // surface keeps the border in place, so both parts' motions carry it to about the same
   // point; a part whose motion carries it far from where its solved neighbour put it has
