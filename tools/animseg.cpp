@@ -34,6 +34,7 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   os << "{\n  \"input\": \"" << jsonEscape(input) << "\",\n";
   os << "  \"parameters\": " << ctx.optionsJson() << ",\n";
   os << "  \"device\": \"" << r.device_used << "\",\n";
+  os << "  \"threads\": " << ctx.threads << ",\n";
   os << "  \"frames\": " << seq.size() << ",\n  \"points_per_frame\": [";
   for (std::size_t t = 0; t < seq.size(); ++t) os << (t ? ", " : "") << seq.inputSize(t);
   os << "],\n  \"total_points\": " << seq.totalPoints() << ",\n";
@@ -200,7 +201,8 @@ int main(int argc, char** argv) {
             << "  points            " << seq.totalPoints() << "\n"
             << "  keypoints         " << r.keypoints << "\n"
             << "  parts per level   " << parts.str() << "\n"
-            << "  device            " << r.device_used << "\n";
+            << "  device            " << r.device_used << "\n"
+            << "  threads           " << ctx.threads << "\n";
         for (const auto& st : timings) {
           if (st.first.find('/') != std::string::npos) continue;  // sub-stages: see --verbose log
           sum << "  " << std::left << std::setw(18) << (st.first + " (s)") << num(st.second) << "\n";

@@ -15,6 +15,8 @@ struct ToolContext {
   boost::program_options::variables_map vm;
   bool quiet = false;
   bool verbose = false;
+  /** Worker threads the tool runs with (--threads, else OpenMP's default). */
+  int threads = 1;
   /** Path of the --config file that was applied (empty when none). */
   std::string config_path;
   /** Every option's effective value (command line, else config file, else default) as a JSON
@@ -22,9 +24,10 @@ struct ToolContext {
   std::string optionsJson() const;
 };
 
-/** \brief Runs a tool's body: adds --help/--quiet/--verbose/--config to `options`, parses argv
- * (unknown options and missing required ones are errors), prints help on --help, and turns every
- * exception into one line `error: <message>` on stderr with exit code 1. `usage` is the synopsis.
+/** \brief Runs a tool's body: adds --help/--quiet/--verbose/--config/--threads to `options`, parses
+ * argv (unknown options and missing required ones are errors), prints help on --help, and turns
+ * every exception into one line `error: <message>` on stderr with exit code 1. `usage` is the
+ * synopsis.
  *
  * `--config FILE` is a JSON object whose keys are the tool's long option names (without dashes);
  * values are numbers, strings, booleans (for flags) or arrays (joined with commas, e.g.

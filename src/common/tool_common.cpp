@@ -1,11 +1,10 @@
+#include <omp.h>
+#include <pcl/console/print.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/tool_common.h>
 
-#include <pcl/console/print.h>
-
 #include <boost/property_tree/json_parser.hpp>
 #include <boost/property_tree/ptree.hpp>
-
 #include <cmath>
 #include <fstream>
 #include <iostream>
@@ -130,8 +129,12 @@ int runTool(int argc, char** argv, const std::string& name, const std::string& u
   try {
     options.add_options()("help,h", "show this help and exit")(
         "quiet,q", "no progress or timing on stderr")("verbose,v", "more detail on stderr")(
-        "config", po::value<std::string>(), "JSON file of options (keys = long option names; "
-        "the command line wins)");
+        "config", po::value<std::string>(),
+        "JSON file of options (keys = long option names; "
+        "the command line wins)")(
+        "threads", po::value<int>()->default_value(0),
+        "worker threads; 0: OpenMP's default (OMP_NUM_THREADS, else every core). Results do "
+        "not depend on it");
     ToolContext ctx;
     try {
       po::store(po::command_line_parser(argc, argv).options(options).run(), ctx.vm);
@@ -151,6 +154,11 @@ int runTool(int argc, char** argv, const std::string& name, const std::string& u
     } catch (const po::error& e) {
       throw Error(std::string(e.what()) + " (see " + name + " --help)");
     }
+    const int threads = ctx.vm["threads"].as<int>();
+    if (threads < 0)
+      throw Error("--threads must be >= 0 (0: OpenMP's default), got " + std::to_string(threads));
+    if (threads > 0) omp_set_num_threads(threads);
+    ctx.threads = omp_get_max_threads();
     ctx.quiet = ctx.vm.count("quiet") > 0;
     ctx.verbose = ctx.vm.count("verbose") > 0 && !ctx.quiet;
     // PCL's own warnings (e.g. ICP on a part that left the view) are expected and handled by the

@@ -1,7 +1,10 @@
 // The command-line contract of `animseg` (DESIGN.md): outputs, bad input, --config.
-#include "tools/cli_util.h"
-
 #include <gtest/gtest.h>
+
+#include <algorithm>
+#include <map>
+
+#include "tools/cli_util.h"
 
 namespace fs = std::filesystem;
 using namespace cli_test;
@@ -224,4 +227,43 @@ TEST(AnimsegCli, DeterministicAcrossThreadCounts) {
   const std::size_t level1 = transforms.find(",\n    {\"level\": 1");
   ASSERT_NE(level1, std::string::npos);
   EXPECT_EQ(finest.substr(0, finest.find("\n  ]\n}")), transforms.substr(0, level1));
+}
+
+TEST(AnimsegCli, ThreadsChangeNothingButTheTimeAndABadCountIsAnError) {
+  TempDir tmp;
+  const RunResult g = run(tool("animseg_synth") +
+                              " --quiet --plan humanoid --frames 6 --points 1500 "
+                              "--seed 4 --output " +
+                              tmp.str() + "/in",
+                          tmp.dir());
+  ASSERT_EQ(g.code, 0) << g.err;
+  std::map<std::string, std::string> first;
+  for (const int threads : {1, 3}) {
+    const std::string out = tmp.str() + "/out" + std::to_string(threads);
+    const RunResult r = run(tool("animseg") + " --quiet --threads " + std::to_string(threads) +
+                                " --input " + tmp.str() + "/in --output " + out,
+                            tmp.dir());
+    ASSERT_EQ(r.code, 0) << r.err;
+    const std::string summary = slurp(out + "/summary.json");
+    EXPECT_NE(summary.find("\"threads\": " + std::to_string(threads) + ","), std::string::npos)
+        << summary;
+    std::map<std::string, std::string> files;
+    for (const auto& e : fs::directory_iterator(out)) {
+      const std::string name = e.path().filename().string();
+      if (e.path().extension() == ".labels" || name == "transforms.json")
+        files[name] = slurp(e.path().string());
+    }
+    ASSERT_EQ(files.size(), 7u);  // 6 label files and the transforms
+    if (first.empty())
+      first = files;
+    else
+      for (const auto& [name, text] : files) EXPECT_EQ(text, first[name]) << name;
+  }
+  const RunResult bad = run(
+      tool("animseg") + " --threads -2 --input " + tmp.str() + "/in --output " + tmp.str() + "/bad",
+      tmp.dir());
+  EXPECT_EQ(bad.code, 1);
+  EXPECT_NE(bad.err.find("error: --threads must be >= 0"), std::string::npos) << bad.err;
+  EXPECT_EQ(std::count(bad.err.begin(), bad.err.end(), '\n'), 1) << bad.err;
+  EXPECT_FALSE(fs::exists(tmp.dir() / "bad" / "summary.json"));
 }
