@@ -1220,9 +1220,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     for (int t = 0; t < T; ++t) e.cost = std::max(e.cost, cost[t]);
     return e;
   };
-  // evaluate(a, o) for each of `others`, with every (o, frame) in one parallel loop: a merge's
-  // neighbours one after the other, each over its frames, were a parallel loop of a few
-  // microseconds' work per neighbour, and 16 threads spent it starting and joining.
+  // After a merge into a: a's own residuals (self[a]) and evaluate(a, o) for each of `others`,
+  // in one parallel loop over the frames: a merge's neighbours one after the other, each over its
+  // frames, were a parallel loop of a few microseconds' work per neighbour, and 16 threads spent
+  // it starting and joining.
   auto evaluateFrom = [&](int a, const std::vector<int>& others) {
     const std::size_t no = others.size();
     const Source sa = sourceOf(rc, points[a], kSourcePoints);
@@ -1231,18 +1232,22 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     std::vector<Eval> out(no);
     for (Eval& e : out) e.pose.resize(T);
     std::vector<double> cost(no * T, 0.0);
-#pragma omp parallel for schedule(dynamic, 4) if (!omp_in_parallel())
-    for (std::size_t it = 0; it < no * T; ++it) {
-      const std::size_t i = it / T;
-      const int t = static_cast<int>(it % T), b = others[i];
-      if (t == ref) {
-        out[i].pose[t] = pose[a][t];
-        continue;
+    // One frame per item: a's own residual in the frame first (selfResidual's, for the merged
+    // group), then every neighbour's edge in it; one parallel loop per merge.
+#pragma omp parallel for schedule(dynamic, 1) if (!omp_in_parallel())
+    for (int t = 0; t < T; ++t) {
+      self[a][t] = t == ref ? 0.0 : residual(sa, pose[a][t], frames[t]);
+      for (std::size_t i = 0; i < no; ++i) {
+        const int b = others[i];
+        if (t == ref) {
+          out[i].pose[t] = pose[a][t];
+          continue;
+        }
+        const double ca = std::max(self[a][t], residual(sb[i], pose[a][t], frames[t]));
+        const double cb = std::max(residual(sa, pose[b][t], frames[t]), self[b][t]);
+        out[i].pose[t] = ca <= cb ? pose[a][t] : pose[b][t];
+        cost[i * T + t] = std::min(ca, cb);
       }
-      const double ca = std::max(self[a][t], residual(sb[i], pose[a][t], frames[t]));
-      const double cb = std::max(residual(sa, pose[b][t], frames[t]), self[b][t]);
-      out[i].pose[t] = ca <= cb ? pose[a][t] : pose[b][t];
-      cost[it] = std::min(ca, cb);
     }
     for (std::size_t i = 0; i < no; ++i)
       for (int t = 0; t < T; ++t) out[i].cost = std::max(out[i].cost, cost[i * T + t]);
@@ -1271,11 +1276,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
                    std::back_inserter(u));
     points[a].swap(u);
     points[b].clear();
-    selfResidual(a);
     alive[b] = 0;
     const std::set<int> nbrs = detachEdges(edges, a, b);
     const std::vector<int> others(nbrs.begin(), nbrs.end());
-    std::vector<Eval> scored = evaluateFrom(a, others);
+    std::vector<Eval> scored = evaluateFrom(a, others);  // also a's own residuals (self[a])
     for (std::size_t i = 0; i < others.size(); ++i)
       edges[{std::min(a, others[i]), std::max(a, others[i])}] = std::move(scored[i]);
   };
