@@ -16,6 +16,12 @@ struct ChainStart {
   bool chained = false;
 };
 
+// The parallel steps of fitAlongChain, for several chains at once (defined below).
+template <class Pose, class Starts, class Score, class FitFrom, class Same>
+std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
+                                              Starts starts, Score score, FitFrom fitFrom,
+                                              Same same, int extra_rounds = -1);
+
 /** \brief Fits every frame 0..T-1 but `ref` (which gets `identity`), in order away from `ref`
  * (ref+1, ref+2, ..., then ref-1, ref-2, ...), each from the first of its starts with the lowest
  * score.
@@ -34,15 +40,12 @@ struct ChainStart {
  * 1. Every frame is fitted from the best of its unchained starts (in parallel).
  * 2. Every frame's chained starts are built from those fits of the frames before it, scored, and
  *    where one wins, the frame is fitted from it (in parallel).
- * 3. Frame by frame along the chain, the result of step 2 stands where the fits of the two
- *    frames before it are the ones it assumed (most frames); otherwise the frame's chained
+ * 2b. On 4 threads or more, up to 6 more rounds fit again, in parallel, the frames whose inputs
+ *    (the fits of the frames before) changed in the round before.
+ * 3. Frame by frame along the chain, the result of the last round stands where the fits of the
+ *    two frames before it are the ones it assumed (most frames); otherwise the frame's chained
  *    starts are scored, and it is fitted, again.
  * Written by us: the speculation is specific to this fit. */
-template <class Pose, class Starts, class Score, class FitFrom, class Same>
-std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
-                                              Starts starts, Score score, FitFrom fitFrom,
-                                              Same same, int extra_rounds = -1);
-
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts starts, Score score,
                                 FitFrom fitFrom, Same same, bool parallel) {
