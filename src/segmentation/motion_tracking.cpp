@@ -245,27 +245,33 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
 }
 
 /** Breadth-first levels over a graph (adjacency lists of node ids), started from each node of
- * `starts` in turn that is not reached yet; level[v] is the index of v's level (-1: unreached). */
+ * `starts` in turn that is not reached yet (its level follows the last one of the component
+ * before); returns each node's level (-1: unreached). */
 template <class Graph>
-std::vector<std::vector<int>> bfsLevels(const Graph& graph, const std::vector<int>& starts,
-                                        std::vector<int>& level) {
-  level.assign(graph.size(), -1);
-  std::vector<std::vector<int>> levels;
+std::vector<int> bfsLevels(const Graph& graph, const std::vector<int>& starts) {
+  std::vector<int> level(graph.size(), -1);
+  int levels = 0;
   for (int start : starts) {
     if (level[start] >= 0) continue;
     std::vector<int> cur{start};
-    level[start] = static_cast<int>(levels.size());
+    level[start] = levels;
     while (!cur.empty()) {
-      levels.push_back(cur);
+      ++levels;
       std::vector<int> next;
       for (int v : cur)
         for (int o : graph[v])
-          if (level[o] < 0) level[o] = static_cast<int>(levels.size()), next.push_back(o);
-      std::sort(next.begin(), next.end());
+          if (level[o] < 0) level[o] = levels, next.push_back(o);
       cur.swap(next);
     }
   }
-  return levels;
+  return level;
+}
+
+/** The frame two before t on its side of the reference (t - 2 dir), or -1 when there is none:
+ * the second frame of a constant-velocity guess. */
+inline int twoBefore(int t, int dir, int ref, int T) {
+  const int tpp = t - 2 * dir;
+  return tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0 ? tpp : -1;
 }
 
 /** The frames in the order of a serial run away from the reference (forwards first), and each
@@ -643,10 +649,9 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   //    cores). It depends on no sample's pose.
   std::vector<Pose> global(T, Pose::Identity());
   for (int t : frame_order) {
-    const int dir = dir_of[t], tp = t - dir, tpp = t - 2 * dir;
-    const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+    const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
     std::vector<Pose> inits{global[tp]};
-    if (has_pp) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
+    if (tpp >= 0) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
     double best = std::numeric_limits<double>::max();
     for (const Pose& init : inits) {
       const Pose cand = icp(whole, init, frames[t], 30, 10.0 * frames[t].spacing);
@@ -667,7 +672,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     std::iota(order.begin(), order.end(), 0);
     std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return groot[a] < groot[b]; });
     order.insert(order.begin(), root);
-    bfsLevels(tr.graph, order, level_of[t]);
+    level_of[t] = bfsLevels(tr.graph, order);
   }
   // 3. Every (frame, sample) pose, each as soon as its own poses in the two frames before and its
   //    neighbours' of earlier levels in the same frame are known (a task graph: the levels of a
@@ -682,8 +687,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   int frames_done = 0;
   auto solve = [&](int task) {
     const int k = task / S, s = task % S, t = frame_order[k];
-    const int dir = dir_of[t], tp = t - dir, tpp = t - 2 * dir;
-    const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+    const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
     const Frame& f = frames[t];
     const std::vector<int>& level = level_of[t];
     std::vector<Pose>& pose = tr.poses[t];
@@ -694,7 +698,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     // there equally well, and samples of a right shin continued on the left one (humanoid, 4000
     // points, seed 12: 28 of 31 samples).
     std::vector<Pose> cands{tr.poses[tp][s], global[t] * global[tp].inverse() * tr.poses[tp][s]};
-    if (has_pp) cands.push_back(tr.poses[tp][s] * tr.poses[tpp][s].inverse() * tr.poses[tp][s]);
+    if (tpp >= 0) cands.push_back(tr.poses[tp][s] * tr.poses[tpp][s].inverse() * tr.poses[tp][s]);
     for (int o : tr.graph[s])
       if (level[o] < level[s]) cands.push_back(pose[o]);
     // Score every start cheaply, refine the two best: ICP from all would triple the cost for the
@@ -1073,8 +1077,7 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
       v.erase(std::unique(v.begin(), v.end()), v.end());
     }
   }
-  std::vector<int> level;
-  bfsLevels(adj, by_size, level);  // each part's level (from the largest part)
+  const std::vector<int> level = bfsLevels(adj, by_size);  // from the largest part
   // Joints: the centroid of a part's reference points that border a neighbour. A continuous
   // surface keeps the border in place, so both parts' motions carry it to about the same
   // point; a part whose motion carries it far from where its solved neighbour put it has
@@ -1112,12 +1115,11 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   auto solve = [&](int task) {
     const int t = frame_order[task / nc], c = task % nc;
     if (pts[c].empty()) return;
-    const int dir = dir_of[t], tp = t - dir, tpp = t - 2 * dir;
-    const bool has_pp = tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0;
+    const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
     // The starts: the initial motion, the previous frame's, a constant-velocity guess, the
     // samples' rigid fit, and each solved neighbour's motion since the previous frame.
     std::vector<Pose> st{init[c][t], motion[c][tp]};
-    if (has_pp) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
+    if (tpp >= 0) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
     const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
     if (m >= 3) {
       Eigen::Matrix3Xd a(3, m), b(3, m);
@@ -1369,8 +1371,8 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       std::vector<ChainStart<Pose>> s{{(*ia[c])[t], false}};
       if (fit) s.push_back({(*fit)[t - dir], true});
       if (ib[c]) s.push_back({(*ib[c])[t], false});
-      const int tpp = t - 2 * dir;
-      if (fit && tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
+      const int tpp = twoBefore(t, dir, ref, T);
+      if (fit && tpp >= 0)
         s.push_back({(*fit)[t - dir] * (*fit)[tpp].inverse() * (*fit)[t - dir], true});
       return s;
     };
@@ -1381,19 +1383,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       return residual(src[c], cand, frames[t]) <= r0 ? cand : init;
     };
     auto same = [](const Pose& p, const Pose& q) { return p.matrix() == q.matrix(); };
-    const Pose identity = Pose::Identity();
-    const int threads = omp_in_parallel() ? 1 : omp_get_max_threads();
-    if (threads > 1 && C < 4 * threads)
-      return fitAlongChains(C, T, ref, identity, starts, score, fitFrom, same);
-    std::vector<std::vector<Pose>> out(C);
-#pragma omp parallel for schedule(dynamic, 1) if (threads > 1)
-    for (int c = 0; c < C; ++c)
-      out[c] = fitAlongChain(
-          T, ref, identity,
-          [&](int t, int dir, const std::vector<Pose>* fit) { return starts(c, t, dir, fit); },
-          [&](int t, const Pose& P) { return score(c, t, P); },
-          [&](int t, const Pose& P, double r0) { return fitFrom(c, t, P, r0); }, same, false);
-    return out;
+    return fitChains(C, T, ref, Pose(Pose::Identity()), starts, score, fitFrom, same);
   };
   auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
                      const std::vector<Pose>* ib) {
@@ -1584,13 +1574,21 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     }
     c.sum[k] = sum;
   };
+  const int frames_scored = T - (ref >= 0 && ref < T ? 1 : 0);
+  // Whether x could dissolve at all, with the neighbours that could take its points and its
+  // source (dissolveCost's and fillColumns' one test).
+  auto dissolveInput = [&](int x, std::vector<int>& nb, Source& sx) {
+    if (!has_surface || !(params.dissolve_ratio > 0.0) || frames_scored < 1) return false;
+    nb = dissolveCandidates(x);
+    if (nb.size() < 2) return false;
+    sx = sourceOf(rc, gpts[x], kPartPoints);
+    return sx.p.cols() > 0;
+  };
   auto dissolveCost = [&](int x) {
-    const std::vector<int> nb = dissolveCandidates(x);
-    if (nb.size() < 2 || !has_surface || !(params.dissolve_ratio > 0.0)) return kNoDissolve;
-    const Source sx = sourceOf(rc, gpts[x], kPartPoints);
+    std::vector<int> nb;
+    Source sx;
+    if (!dissolveInput(x, nb, sx)) return kNoDissolve;
     const Eigen::Index m = sx.p.cols();
-    const int frames_scored = T - (ref >= 0 && ref < T ? 1 : 0);
-    if (m == 0 || frames_scored < 1) return kNoDissolve;
     // Only a piece without a motion of its own dissolves: its neighbours' motions must explain
     // it about as well as its own does. A short true part between two joints (a neck, a
     // pelvis) fits its own motion far better (measured: 2.3 to 7.6 times) than the ends of
@@ -1674,12 +1672,9 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     constexpr Eigen::Index kBlock = 8;
     for (std::size_t i = 0; i < list.size(); ++i) {
       const int x = list[i];
-      if (!galive[x] || !has_surface || !(params.dissolve_ratio > 0.0)) continue;
-      const std::vector<int> nb = dissolveCandidates(x);
-      if (nb.size() < 2) continue;
-      src[i] = sourceOf(rc, gpts[x], kPartPoints);
+      std::vector<int> nb;
+      if (!galive[x] || !dissolveInput(x, nb, src[i])) continue;
       const Eigen::Index m = src[i].p.cols();
-      if (m == 0) continue;
       if (!own_known[x]) {
         own[i].assign(T, 0.0);
         for (int t = 0; t < T; ++t)

@@ -86,9 +86,6 @@ std::pair<Eigen::Vector3d, double> principalAxis(const Cloud& cloud) {
           ev[1] > 0.0f ? static_cast<double>(ev[2] / ev[1]) : 1e9};
 }
 
-// Each frame's mean point spacing (the ICPs' distances are in these units).
-std::vector<double> frameSpacings(const PointCloudSequence& seq) { return meanSpacings(seq); }
-
 // Points of each of a labelling's parts in frame 0.
 std::vector<std::size_t> frame0Counts(const std::vector<std::vector<int>>& labels, int parts) {
   std::vector<std::size_t> counts(static_cast<std::size_t>(parts), 0);
@@ -332,24 +329,14 @@ class ChainedPart {
   std::vector<Target> targets_;
 };
 
-// The motions of several parts (fitChained each), their frames side by side (fitAlongChains).
+// The motions of several parts (fitChained each), their frames side by side (fitChains).
 void fitChainedParts(std::vector<std::unique_ptr<ChainedPart>>& parts, std::size_t frames) {
   std::vector<ChainedPart*> act;
   for (auto& c : parts)
     if (c->active()) act.push_back(c.get());
   if (act.empty()) return;
   using Link = ChainedPart::Link;
-  if (omp_in_parallel() || omp_get_max_threads() == 1) {  // the plain chains: no speculation
-    for (ChainedPart* c : act)
-      c->finish(fitAlongChain(
-          static_cast<int>(frames), 0, c->first(),
-          [&](int t, int, const std::vector<Link>* fits) { return c->starts(t, fits); },
-          [&](int t, const Link& x) { return c->score(t, x); },
-          [&](int t, const Link& x, double) { return c->fitFrom(t, x); }, ChainedPart::same,
-          false));
-    return;
-  }
-  const std::vector<std::vector<Link>> chains = fitAlongChains(
+  const std::vector<std::vector<Link>> chains = fitChains(
       static_cast<int>(act.size()), static_cast<int>(frames), 0, act.front()->first(),
       [&](int c, int t, int, const std::vector<Link>* fits) { return act[c]->starts(t, fits); },
       [&](int c, int t, const Link& x) { return act[c]->score(t, x); },
@@ -462,7 +449,7 @@ int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>&
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
                                                        int num_parts) const {
   const int np = checkedPartCount(labels, num_parts);
-  return computeParts({&labels}, {np}, {{}}, frameSpacings(*sequence_), {frame0Counts(labels, np)})
+  return computeParts({&labels}, {np}, {{}}, meanSpacings(*sequence_), {frame0Counts(labels, np)})
       .front();
 }
 
@@ -528,7 +515,7 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
       if (fit[l][b]) merged[l].push_back(b), fit[l][b] = 0;
   }
   // Computed once, for the chained fits and the fits from children alike.
-  const std::vector<double> spacing = frameSpacings(*sequence_);
+  const std::vector<double> spacing = meanSpacings(*sequence_);
   std::vector<std::vector<std::size_t>> frame0_points(nl);
   for (std::size_t l = 0; l < nl; ++l) frame0_points[l] = frame0Counts(levels(l), np[l]);
   std::vector<std::vector<PartMotion>> parts = computeParts(sets, np, fit, spacing, frame0_points);

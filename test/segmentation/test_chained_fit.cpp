@@ -137,6 +137,17 @@ TEST(ChainedFit, SeveralChainsAtOnceEqualEachChainAlone) {
     auto score = [&](int c, int t, double p) { return toys[c].score(t, p); };
     auto fit = [&](int c, int t, double p, double r0) { return toys[c].fitFrom(t, p, r0); };
     auto same = [](double p, double q) { return p == q; };
+    // fitChains: 12 chains on 4 threads speculate (fitAlongChains), on 2 threads each is a serial
+    // chain; the same fits.
+    for (int threads : {4, 2}) {
+      omp_set_num_threads(threads);
+      const std::vector<std::vector<double>> all =
+          seg::fitChains(chains, T, ref, 0.0, starts, score, fit, same);
+      ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
+      for (int c = 0; c < chains; ++c)
+        EXPECT_EQ(all[c], toys[c].run(ref, false)) << "chain " << c << " threads " << threads;
+    }
+    omp_set_num_threads(4);
     // With 0 to 8 parallel rounds before the serial check (the default on 4 threads: 6).
     for (int rounds : {0, 1, 3, 8, -1}) {
       const std::vector<std::vector<double>> all =

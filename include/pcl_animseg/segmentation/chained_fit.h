@@ -199,5 +199,28 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
   return fit;
 }
 
+/** \brief The fits of `chains` chains (callables as in fitAlongChains), whichever way keeps the
+ * threads busy: with at least 4 times as many chains as threads (or one thread, or inside a
+ * parallel region) each chain frame after frame, the chains side by side; otherwise
+ * fitAlongChains, whose speculation costs fits that a serial chain does not make. The same fits
+ * either way. */
+template <class Pose, class Starts, class Score, class FitFrom, class Same>
+std::vector<std::vector<Pose>> fitChains(int chains, int T, int ref, const Pose& identity,
+                                         Starts starts, Score score, FitFrom fitFrom, Same same) {
+  const int C = chains > 0 ? chains : 0;
+  const int threads = omp_in_parallel() ? 1 : omp_get_max_threads();
+  if (threads > 1 && C < 4 * threads)
+    return fitAlongChains(C, T, ref, identity, starts, score, fitFrom, same);
+  std::vector<std::vector<Pose>> out(C);
+#pragma omp parallel for schedule(dynamic, 1) if (threads > 1)
+  for (int c = 0; c < C; ++c)
+    out[c] = fitAlongChain(
+        T, ref, identity,
+        [&](int t, int dir, const std::vector<Pose>* fit) { return starts(c, t, dir, fit); },
+        [&](int t, const Pose& P) { return score(c, t, P); },
+        [&](int t, const Pose& P, double r0) { return fitFrom(c, t, P, r0); }, same, false);
+  return out;
+}
+
 }  // namespace segmentation
 }  // namespace pcl_animseg
