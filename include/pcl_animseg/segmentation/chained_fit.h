@@ -129,16 +129,29 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
     }
     spec[c][t] = fitFrom(c, t, s[spec_k[c][t]].pose, spec_r[c][t]);
   }
+  // Frame t of chain c from the best of its starts, the chained ones built from `from` (the fits
+  // of the frames before it), the unchained ones as scored in step 1.
+  auto fitGiven = [&](int c, int t, const std::vector<Pose>& from) {
+    const auto s = starts(c, t, t > ref ? +1 : -1, &from);
+    double r0;
+    const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
+    return s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
+  };
+  // Whether the fits that frame t's chained starts may use are the same in a and b: t - dir, and
+  // t - 2 dir where it is on this side of the reference (the other side's fits are not final
+  // yet).
+  auto sameInputs = [&](int c, int t, const std::vector<std::vector<Pose>>& a,
+                        const std::vector<std::vector<Pose>>& b) {
+    const int dir = t > ref ? +1 : -1, t1 = t - dir, t2 = t - 2 * dir;
+    const bool t2_used = t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0;
+    return same(a[c][t1], b[c][t1]) && (!t2_used || same(a[c][t2], b[c][t2]));
+  };
   // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
   std::vector<std::vector<Pose>> guess(C, frames_of);
 #pragma omp parallel for schedule(dynamic, 1)
   for (long job = 0; job < jobs; ++job) {
     const int c = static_cast<int>(job / F), t = static_cast<int>(job % F);
-    if (t == ref) continue;
-    const auto s = starts(c, t, t > ref ? +1 : -1, &spec[c]);
-    double r0;
-    const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
-    guess[c][t] = s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
+    if (t != ref) guess[c][t] = fitGiven(c, t, spec[c]);
   }
   // More rounds on many threads (a Jacobi iteration of the chain): round r fits again, from
   // round r-1's fits of the frames before, every frame whose inputs changed in round r-1; the
@@ -146,56 +159,28 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
   // chained start wins is final after n rounds, which step 3 would fit one after the other.
   // `before` holds the fits each frame of `guess` was computed from.
   std::vector<std::vector<Pose>> before = spec;
-  auto inputs = [&](int t, int& t1, int& t2) {  // frames t's chained starts use (t2 < 0: none)
-    const int dir = t > ref ? +1 : -1;
-    t1 = t - dir;
-    t2 = t - 2 * dir;
-    if (!(t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0)) t2 = -1;
-  };
   for (int round = 2; round <= extra_rounds + 1; ++round) {
     std::vector<std::pair<int, int>> redo;
     for (int c = 0; c < C; ++c)
-      for (int t = 0; t < F; ++t) {
-        if (t == ref) continue;
-        int t1, t2;
-        inputs(t, t1, t2);
-        if (!same(guess[c][t1], before[c][t1]) || (t2 >= 0 && !same(guess[c][t2], before[c][t2])))
-          redo.push_back({c, t});
-      }
+      for (int t = 0; t < F; ++t)
+        if (t != ref && !sameInputs(c, t, guess, before)) redo.push_back({c, t});
     if (redo.empty()) break;
     std::vector<std::vector<Pose>> next = guess;
 #pragma omp parallel for schedule(dynamic, 1)
-    for (std::size_t j = 0; j < redo.size(); ++j) {
-      const auto [c, t] = redo[j];
-      const auto s = starts(c, t, t > ref ? +1 : -1, &guess[c]);
-      double r0;
-      const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
-      next[c][t] = s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
-    }
+    for (std::size_t j = 0; j < redo.size(); ++j)
+      next[redo[j].first][redo[j].second] =
+          fitGiven(redo[j].first, redo[j].second, guess[redo[j].first]);
     before.swap(guess);
     guess.swap(next);
   }
   // Step 3, each chain on its own (one chain: outside any parallel region, as a caller's fits
-  // may use parallel loops of their own). spec[c][ref] is the identity, as fit[c][ref] is.
+  // may use parallel loops of their own): the last round's fit stands where the frames before it
+  // are as it assumed. spec[c][ref] is the identity, as fit[c][ref] is.
 #pragma omp parallel for schedule(dynamic, 1) if (C > 1)
   for (int c = 0; c < C; ++c)
     for (int dir : {+1, -1})
-      for (int t = ref + dir; t >= 0 && t < F; t += dir) {
-        // The frames that frame t's chained starts may use: t - dir, and t - 2 dir where it is
-        // on this side of the reference (the other side's fits are not final yet).
-        const int t1 = t - dir, t2 = t - 2 * dir;
-        const bool t2_used = t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0;
-        const bool as_assumed =
-            same(fit[c][t1], before[c][t1]) && (!t2_used || same(fit[c][t2], before[c][t2]));
-        if (as_assumed) {
-          fit[c][t] = guess[c][t];
-          continue;
-        }
-        const auto s = starts(c, t, dir, &fit[c]);
-        double r0;
-        const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
-        fit[c][t] = s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
-      }
+      for (int t = ref + dir; t >= 0 && t < F; t += dir)
+        fit[c][t] = sameInputs(c, t, fit, before) ? guess[c][t] : fitGiven(c, t, fit[c]);
   return fit;
 }
 
