@@ -130,13 +130,22 @@ class FlatKdTree3 {
     return static_cast<int>(rows.size());
   }
 
- private:
+  /** \brief A node of the tree, for code that walks it elsewhere (a device copy): node 0 is the
+   * root; an inner node's points with coordinate `dim` below `split` lie under `a`, above it
+   * under `b` (equal: either side). */
   struct Node {
     float split = 0.0f;
     int dim = -1;  ///< -1: leaf
-    int a = 0;     ///< inner: left child; leaf: first point
+    int a = 0;     ///< inner: left child; leaf: first point (leaf order)
     int b = 0;     ///< inner: right child; leaf: end of its points
   };
+  const std::vector<Node>& nodes() const { return nodes_; }
+  /** \brief The points as x, y, z triples in leaf order. */
+  const std::vector<float>& leafPoints() const { return pts_; }
+  /** \brief Input row of each point in leaf order. */
+  const std::vector<int>& leafRows() const { return rows_; }
+
+ private:
   struct StackEntry {
     int node;
     float min_d2;

@@ -122,6 +122,11 @@ class KdTree {
     return static_cast<int>(indices.size());
   }
 
+  /** \brief The tree itself (its rows are the finite points in cloud order: cloudIndex). */
+  const FlatKdTree3& flatTree() const { return tree_; }
+  /** \brief Index in the cloud of the tree's row `row`. */
+  int cloudIndex(int row) const { return map_[static_cast<std::size_t>(row)]; }
+
  private:
   CloudConstPtr cloud_;
   std::vector<int> map_;  ///< tree row -> index in the cloud

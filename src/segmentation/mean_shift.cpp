@@ -1189,7 +1189,15 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     timer.lap("densities + saddles");
   } else {
     detail::StageTimer timer;
-    detail::runMotion(seq, params_, flat, num_clusters, result.merges, progress_);
+    // A device that tracks the samples does so; the rest of the method runs on the CPU.
+    auto motion = [&](MeanShiftDeviceBackend* d) {
+      detail::runMotion(seq, params_, d ? d->sampleTracking() : nullptr, flat, num_clusters,
+                        result.merges, progress_);
+    };
+    if (device && device->sampleTracking())
+      guarded(motion);
+    else
+      motion(nullptr);
     timer.lap("motion method");
     if (!params_.record_densities && (!result.merges.empty() || num_clusters <= 1)) {
       result.num_clusters = num_clusters;

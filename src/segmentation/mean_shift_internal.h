@@ -94,9 +94,10 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, 
                   const std::vector<int>& graph, int k, const JointKernelSum& sums,
                   const Eigen::VectorXf& point_density, SegmentationResult& result);
 
-/** The motion method; fills result.labels, num_clusters and merges. */
+/** The motion method; fills result.labels, num_clusters and merges. `tracking` (nullptr: the
+ * CPU) fits the tracked samples' poses. */
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params,
-               std::vector<int>& flat_labels, int& num_clusters,
+               SampleTrackingDevice* tracking, std::vector<int>& flat_labels, int& num_clusters,
                std::vector<ClusterMerge>& merges, Progress* progress);
 
 }  // namespace detail

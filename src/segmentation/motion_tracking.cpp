@@ -8,6 +8,7 @@
 #include <pcl_animseg/segmentation/chained_fit.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/task_graph.h>
+#include <pcl_animseg/segmentation/tracking_device.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -589,6 +590,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     throw Error("motion tracking: joint weight must be a number >= 0");
   if (!(params.sliver_fraction >= 0.0 && params.sliver_fraction < 1.0))
     throw Error("motion tracking: sliver fraction must be in [0, 1)");
+  detail::StageTimer timer;
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
   const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, 1000);
@@ -647,6 +649,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   //    a constant-velocity guess, the better kept (the body's source is large enough to search its
   //    nearest points in parallel: done serially these ICPs were a quarter of the tracking on 16
   //    cores). It depends on no sample's pose.
+  timer.lap("tracking: samples, graphs, sources");
   std::vector<Pose> global(T, Pose::Identity());
   for (int t : frame_order) {
     const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
@@ -661,6 +664,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   }
   // 2. Each frame's order of the samples: BFS levels over the sample graph from the sample best
   //    explained by the global pose (unreached components start from their own best sample).
+  timer.lap("tracking: global poses");
   std::vector<std::vector<int>> level_of(T);
 #pragma omp parallel for schedule(dynamic, 1)
   for (int k = 0; k < F; ++k) {
@@ -678,6 +682,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   //    neighbours' of earlier levels in the same frame are known (a task graph: the levels of a
   //    frame, one after the other, left most of 16 cores waiting on their narrow first levels).
   //    Task k * S + s is sample s in frame_order[k].
+  timer.lap("tracking: levels");
   std::vector<std::vector<int>> successors;
   std::vector<long> priority;
   frameTaskGraph(frame_order, dir_of, tr.graph, [&](int t, int s) { return level_of[t][s]; },
@@ -718,9 +723,57 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     pose[s] = best_pose;
     res[t][s] = best;
   };
-  runTaskGraph(successors, priority, solve, [&](int task) {
-    if (--left[task / S] == 0 && progress) progress->update(static_cast<std::size_t>(++frames_done));
-  });
+  if (params.device) {
+    // The same fits on a device, wave after wave (tracking_device.h).
+    SampleTrackingProblem problem;
+    problem.frames.resize(T);
+    for (int t = 0; t < T; ++t) {
+      const Frame& f = frames[t];
+      SampleTrackingProblem::Frame& d = problem.frames[t];
+      d.tree = &f.tree.flatTree();
+      const std::vector<int>& rows = d.tree->leafRows();
+      d.leaf_normals.resize(3 * rows.size());
+      for (std::size_t i = 0; i < rows.size(); ++i) {
+        const auto& q = (*f.cloud)[f.tree.cloudIndex(rows[i])];
+        d.leaf_normals[3 * i] = q.normal_x;
+        d.leaf_normals[3 * i + 1] = q.normal_y;
+        d.leaf_normals[3 * i + 2] = q.normal_z;
+      }
+      d.spacing = f.spacing;
+      d.unoriented = f.unoriented;
+    }
+    problem.samples = S;
+    problem.icp_iterations = params.icp_iterations;
+    problem.normal_cos = kNormalCos;
+    problem.clip = kClip;
+    for (int s = 0; s < S; ++s) {
+      problem.source_p.push_back(src[s].p);
+      problem.source_n.push_back(src[s].n);
+      problem.probe_p.push_back(probe[s].p);
+      problem.probe_n.push_back(probe[s].n);
+    }
+    problem.graph = tr.graph;
+    problem.level = level_of;
+    problem.before.assign(T, -1);
+    problem.two_before.assign(T, -1);
+    for (int t : frame_order) {
+      problem.before[t] = t - dir_of[t];
+      problem.two_before[t] = twoBefore(t, dir_of[t], ref, T);
+    }
+    problem.global = global;
+    problem.waves = taskWaves(successors);
+    for (std::vector<int>& wave : problem.waves)
+      for (int& task : wave) task = frame_order[task / S] * S + task % S;
+    timer.lap("tracking: device problem");
+    params.device->solve(problem, tr.poses, res);
+    if (progress) progress->update(static_cast<std::size_t>(F));
+  } else {
+    runTaskGraph(successors, priority, solve, [&](int task) {
+      if (--left[task / S] == 0 && progress)
+        progress->update(static_cast<std::size_t>(++frames_done));
+    });
+  }
+  timer.lap("tracking: sample poses");
   for (int t : frame_order)
     tr.residual[t] = std::accumulate(res[t].begin(), res[t].end(), 0.0) / S;
   tr.positions.resize(T);
@@ -728,7 +781,9 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     tr.positions[t].resize(3, S);
     for (int s = 0; s < S; ++s) tr.positions[t].col(s) = tr.poses[t][s] * p0.col(s);
   }
-  if (progress) progress->end(std::to_string(S) + " samples");
+  if (progress)
+    progress->end(std::to_string(S) + " samples" +
+                  (params.device ? ", poses fitted on " + params.device->name() : std::string()));
   return tr;
 }
 

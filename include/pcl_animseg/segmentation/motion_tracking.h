@@ -56,6 +56,8 @@ namespace pcl_animseg {
 class Progress;
 namespace segmentation {
 
+class SampleTrackingDevice;
+
 /** \brief Knobs of the tracked-sample decomposition. */
 struct MotionTrackingParams {
   /** Number of tracked samples; 0: one per 8 reference points, in [16, 1000]. */
@@ -119,6 +121,9 @@ struct MotionTrackingParams {
    * part borders). */
   int point_neighbours = 10;
   unsigned seed = 1;
+  /** Fits the tracking's per-sample poses on a device (tracking_device.h; not owned). nullptr:
+   * the CPU. A device's fits agree with the CPU's to rounding, not bit for bit. */
+  SampleTrackingDevice* device = nullptr;
 };
 
 /** \brief Trajectories of the tracked samples. */

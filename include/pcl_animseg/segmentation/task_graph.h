@@ -101,5 +101,36 @@ void runTaskGraph(const std::vector<std::vector<int>>& successors,
   if (error) std::rethrow_exception(error);
 }
 
+/** \brief The tasks of a graph (`successors` as for runTaskGraph) in waves: wave 0 holds the
+ * tasks that depend on none, wave w those whose longest chain of dependencies has w tasks
+ * before them; each wave in increasing task order. A device that runs a wave at once (one kernel
+ * launch) needs only as many launches as the graph's longest chain. Throws Error on a cycle or
+ * a successor out of range. */
+inline std::vector<std::vector<int>> taskWaves(const std::vector<std::vector<int>>& successors) {
+  const int n = static_cast<int>(successors.size());
+  std::vector<int> pending(n, 0), wave_of(n, 0);
+  for (const std::vector<int>& s : successors)
+    for (int j : s) {
+      if (j < 0 || j >= n) throw Error("task graph: a successor out of range");
+      ++pending[j];
+    }
+  std::vector<int> order;  // Kahn's order: every task after the tasks it depends on
+  order.reserve(n);
+  for (int i = 0; i < n; ++i)
+    if (pending[i] == 0) order.push_back(i);
+  for (std::size_t k = 0; k < order.size(); ++k)
+    for (int j : successors[order[k]]) {
+      wave_of[j] = std::max(wave_of[j], wave_of[order[k]] + 1);
+      if (--pending[j] == 0) order.push_back(j);
+    }
+  if (static_cast<int>(order.size()) != n) throw Error("task graph: the dependencies form a cycle");
+  std::vector<std::vector<int>> waves;
+  for (int i = 0; i < n; ++i) {
+    if (wave_of[i] >= static_cast<int>(waves.size())) waves.resize(wave_of[i] + 1);
+    waves[wave_of[i]].push_back(i);
+  }
+  return waves;
+}
+
 }  // namespace segmentation
 }  // namespace pcl_animseg

@@ -1,0 +1,138 @@
+// Packs a segmentation::SampleTrackingProblem into plain arrays for tracking_kernels.cu.
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/sample_tracking.h>
+
+#include <string>
+
+#include "tracking_kernels.h"
+
+namespace pcl_animseg {
+namespace gpu {
+
+namespace {
+
+void appendPose(const Eigen::Isometry3d& a, std::vector<double>& out) {
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) out.push_back(a.linear()(i, j));
+  for (int i = 0; i < 3; ++i) out.push_back(a.translation()(i));
+}
+
+void appendPoints(const Eigen::Matrix3Xd& p, const Eigen::Matrix3Xd& n, std::vector<double>& out,
+                  std::vector<int>& begin) {
+  if (p.cols() != n.cols())
+    throw Error("GPU tracking: a source has positions and normals of different counts");
+  for (Eigen::Index i = 0; i < p.cols(); ++i) {
+    for (int k = 0; k < 3; ++k) out.push_back(p(k, i));
+    for (int k = 0; k < 3; ++k) out.push_back(n(k, i));
+  }
+  begin.push_back(static_cast<int>(out.size() / 6));
+}
+
+}  // namespace
+
+std::string SampleTracking::name() const {
+  try {
+    return "gpu (" + deviceInfo().name + ")";
+  } catch (const Error&) {
+    return "gpu";
+  }
+}
+
+void SampleTracking::solve(const segmentation::SampleTrackingProblem& problem,
+                           std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                           std::vector<std::vector<double>>& residual) {
+  const int T = static_cast<int>(problem.frames.size()), S = problem.samples;
+  const std::size_t uS = static_cast<std::size_t>(S);
+  if (S < 0 || problem.source_p.size() != uS || problem.source_n.size() != uS ||
+      problem.probe_p.size() != uS || problem.probe_n.size() != uS || problem.graph.size() != uS ||
+      problem.level.size() != static_cast<std::size_t>(T) ||
+      problem.before.size() != static_cast<std::size_t>(T) ||
+      problem.two_before.size() != static_cast<std::size_t>(T) ||
+      problem.global.size() != static_cast<std::size_t>(T))
+    throw Error("GPU tracking: the problem's arrays do not match its frames and samples");
+  detail::TrackingArrays a;
+  a.frames = T;
+  a.samples = S;
+  a.iterations = problem.icp_iterations;
+  a.normal_cos = problem.normal_cos;
+  a.clip = problem.clip;
+  for (int t = 0; t < T; ++t) {
+    const segmentation::SampleTrackingProblem::Frame& f = problem.frames[t];
+    if (!f.tree) throw Error("GPU tracking: frame " + std::to_string(t) + " has no tree");
+    const int node0 = static_cast<int>(a.nodes.size());
+    const int point0 = static_cast<int>(a.points.size() / 4);
+    const std::vector<float>& xyz = f.tree->leafPoints();
+    if (f.leaf_normals.size() != xyz.size())
+      throw Error("GPU tracking: frame " + std::to_string(t) +
+                  " has one normal per point expected");
+    for (const FlatKdTree3::Node& n : f.tree->nodes()) {
+      detail::TrackNode d{n.split, n.dim, n.a, n.b};
+      if (n.dim >= 0)
+        d.a += node0, d.b += node0;
+      else
+        d.a += point0, d.b += point0;
+      a.nodes.push_back(d);
+    }
+    a.root.push_back(f.tree->nodes().empty() ? -1 : node0);
+    for (std::size_t i = 0; i < xyz.size(); i += 3) {
+      for (int k = 0; k < 3; ++k) a.points.push_back(xyz[i + k]);
+      a.points.push_back(0.0f);
+      for (int k = 0; k < 3; ++k) a.normals.push_back(f.leaf_normals[i + k]);
+      a.normals.push_back(0.0f);
+    }
+    a.spacing.push_back(f.spacing);
+    a.unoriented.push_back(f.unoriented ? 1 : 0);
+    appendPose(problem.global[t], a.global);
+    a.before.push_back(problem.before[t]);
+    a.two_before.push_back(problem.two_before[t]);
+    if (problem.level[t].empty())
+      a.level.insert(a.level.end(), uS, 0);
+    else if (problem.level[t].size() != uS)
+      throw Error("GPU tracking: frame " + std::to_string(t) +
+                  " has one level per sample expected");
+    else
+      a.level.insert(a.level.end(), problem.level[t].begin(), problem.level[t].end());
+  }
+  a.source_begin.push_back(0);
+  a.probe_begin.push_back(0);
+  a.adjacency_begin.push_back(0);
+  for (int s = 0; s < S; ++s) {
+    appendPoints(problem.source_p[s], problem.source_n[s], a.source, a.source_begin);
+    appendPoints(problem.probe_p[s], problem.probe_n[s], a.probe, a.probe_begin);
+    for (int o : problem.graph[s]) {
+      if (o < 0 || o >= S) throw Error("GPU tracking: a sample neighbour out of range");
+      a.adjacency.push_back(o);
+    }
+    a.adjacency_begin.push_back(static_cast<int>(a.adjacency.size()));
+  }
+  a.wave_begin.push_back(0);
+  const long long TS = static_cast<long long>(T) * S;
+  for (const std::vector<int>& wave : problem.waves) {
+    for (int task : wave) {
+      const int t = S > 0 ? task / S : -1;
+      if (task < 0 || task >= TS || problem.before[t] < 0 || problem.before[t] >= T)
+        throw Error("GPU tracking: a task out of range or without a frame before it");
+      a.tasks.push_back(task);
+    }
+    a.wave_begin.push_back(static_cast<int>(a.tasks.size()));
+  }
+  waves_ = static_cast<int>(problem.waves.size());
+  std::vector<double> flat_poses, flat_res;
+  device_seconds_ = detail::runTracking(a, flat_poses, flat_res);
+  poses.assign(T, std::vector<Eigen::Isometry3d>(uS, Eigen::Isometry3d::Identity()));
+  residual.assign(T, std::vector<double>(uS, 0.0));
+  for (int t = 0; t < T; ++t)
+    for (int s = 0; s < S; ++s) {
+      const double* p = &flat_poses[(static_cast<std::size_t>(t) * uS + s) * detail::kPoseDoubles];
+      Eigen::Isometry3d& pose = poses[t][s];
+      pose.setIdentity();
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) pose.linear()(i, j) = p[3 * i + j];
+      for (int i = 0; i < 3; ++i) pose.translation()(i) = p[9 + i];
+      residual[t][s] = flat_res[static_cast<std::size_t>(t) * uS + s];
+    }
+}
+
+}  // namespace gpu
+}  // namespace pcl_animseg

@@ -1,0 +1,206 @@
+// The motion method's tracking handed to a device (tracking_device.h), without a GPU: what a device
+// is given (waves in dependency order, the frames' trees and normals, the starts' inputs), that
+// its poses are what the rest of the method uses, and that a failing device either stops the
+// stage with its error or, with the fall-back on, leaves the CPU's result.
+#include <gtest/gtest.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/segmentation/mean_shift.h>
+#include <pcl_animseg/segmentation/motion_tracking.h>
+#include <pcl_animseg/segmentation/task_graph.h>
+#include <pcl_animseg/segmentation/tracking_device.h>
+
+#include <cmath>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "synthetic_parts.h"
+
+namespace seg = pcl_animseg::segmentation;
+
+namespace {
+
+// A chain of four tubes bending at three joints, sampled anew in every frame.
+pcl_animseg::PointCloudSequence::Ptr chain(int frames, int points, unsigned seed) {
+  return std::make_shared<pcl_animseg::PointCloudSequence>(
+      animseg_test::makeTubeChain({0.8, 0.7, 0.9, 0.6}, {0.9, -1.0, 1.2}, frames, points, 0.0, seed)
+          .sequence);
+}
+
+// Checks what it is given, then answers with poses it was handed (the CPU's), or throws.
+class RecordingDevice : public seg::SampleTrackingDevice {
+ public:
+  std::string name() const override { return "recording device"; }
+  void solve(const seg::SampleTrackingProblem& p,
+             std::vector<std::vector<Eigen::Isometry3d>>& poses,
+             std::vector<std::vector<double>>& residual) override {
+    ++calls;
+    const int T = static_cast<int>(p.frames.size()), S = p.samples;
+    // Every fit once, each after the fits its starts read: the same sample in the frame before
+    // (and two before) and the sample's neighbours of lower level in its own frame.
+    std::vector<int> wave_of(static_cast<std::size_t>(T) * S, -1);
+    int tasks = 0;
+    for (std::size_t w = 0; w < p.waves.size(); ++w)
+      for (int task : p.waves[w]) {
+        EXPECT_EQ(wave_of[task], -1) << "task " << task << " twice";
+        wave_of[task] = static_cast<int>(w);
+        ++tasks;
+      }
+    int reference = -1;
+    for (int t = 0; t < T; ++t)
+      if (p.before[t] < 0) reference = t;
+    EXPECT_EQ(tasks, (T - 1) * S);
+    for (int t = 0; t < T; ++t) {
+      const auto& f = p.frames[t];
+      ASSERT_NE(f.tree, nullptr);
+      EXPECT_EQ(f.leaf_normals.size(), f.tree->leafPoints().size());
+      // The normals are in the tree's leaf order: each is a unit vector of the frame's point.
+      for (std::size_t i = 0; i < f.leaf_normals.size(); i += 3)
+        EXPECT_NEAR(std::hypot(f.leaf_normals[i], f.leaf_normals[i + 1], f.leaf_normals[i + 2]),
+                    1.0, 1e-3);
+      EXPECT_GT(f.spacing, 0.0);
+      if (t == reference) continue;
+      for (int s = 0; s < S; ++s) {
+        const int w = wave_of[t * S + s];
+        ASSERT_GE(w, 0) << "frame " << t << " sample " << s << " never fitted";
+        const int tp = p.before[t];
+        if (tp != reference) EXPECT_LT(wave_of[tp * S + s], w);
+        if (p.two_before[t] >= 0 && p.two_before[t] != reference)
+          EXPECT_LT(wave_of[p.two_before[t] * S + s], w);
+        for (int o : p.graph[s])
+          if (p.level[t][o] < p.level[t][s]) {
+            EXPECT_LT(wave_of[t * S + o], w);
+          }
+      }
+    }
+    if (fail) throw pcl_animseg::Error("recording device: out of device memory");
+    poses = answer;
+    residual.assign(T, std::vector<double>(S, 0.5));
+  }
+  int calls = 0;
+  bool fail = false;
+  std::vector<std::vector<Eigen::Isometry3d>> answer;
+};
+
+// Lends a RecordingDevice to MeanShiftSegmentation.
+class RecordingBackend : public seg::MeanShiftDeviceBackend {
+ public:
+  std::string name() const override { return "recording backend"; }
+  void seekModes(const Eigen::MatrixXf&, const Eigen::RowVectorXf&, const Eigen::RowVectorXf&,
+                 const std::vector<char>&, const seg::MeanShiftParams&, Eigen::MatrixXf&,
+                 Eigen::VectorXf&) override {
+    throw pcl_animseg::Error("not used");
+  }
+  void density(const Eigen::MatrixXf&, const Eigen::RowVectorXf&, const Eigen::RowVectorXf&,
+               const std::vector<char>&, const seg::MeanShiftParams&, const Eigen::MatrixXf&,
+               const std::vector<char>&, Eigen::VectorXf&) override {
+    throw pcl_animseg::Error("not used");
+  }
+  seg::SampleTrackingDevice* sampleTracking() override { return &device; }
+  RecordingDevice device;
+};
+
+std::vector<int> flatLabels(const seg::SegmentationResult& r) {
+  std::vector<int> flat;
+  for (const auto& f : r.labels) flat.insert(flat.end(), f.begin(), f.end());
+  return flat;
+}
+
+}  // namespace
+
+TEST(TrackingDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
+  const auto seq = chain(7, 3000, 3);
+  seg::MotionTrackingParams params;
+  params.reference_frame = 3;  // frames on both sides: two chains away from the reference
+  const seg::SampleTracks cpu = seg::trackSamples(*seq, params);
+  RecordingDevice device;
+  device.answer = cpu.poses;
+  params.device = &device;
+  const seg::SampleTracks dev = seg::trackSamples(*seq, params);
+  EXPECT_EQ(device.calls, 1);
+  // The device's poses are the tracks' poses and positions.
+  ASSERT_EQ(dev.poses.size(), cpu.poses.size());
+  for (std::size_t t = 0; t < cpu.poses.size(); ++t) {
+    for (std::size_t s = 0; s < cpu.poses[t].size(); ++s)
+      EXPECT_TRUE(dev.poses[t][s].isApprox(cpu.poses[t][s], 0.0)) << t << " " << s;
+    EXPECT_EQ((dev.positions[t] - cpu.positions[t]).norm(), 0.0);
+    if (static_cast<int>(t) != params.reference_frame) EXPECT_DOUBLE_EQ(dev.residual[t], 0.5);
+  }
+}
+
+TEST(TrackingDevice, TheCpusPosesFromADeviceGiveTheCpusLabels) {
+  const auto seq = chain(8, 3000, 4);
+  seg::MeanShiftParams params;
+  params.method = seg::MeanShiftMethod::Motion;
+  params.record_densities = false;  // as the pipeline runs it: the backend only tracks
+  seg::MeanShiftSegmentation cpu;
+  cpu.setInputSequence(seq);
+  cpu.setParams(params);
+  seg::SegmentationResult expected;
+  cpu.segment(expected);
+  EXPECT_EQ(cpu.deviceUsed(), "cpu");
+
+  auto backend = std::make_shared<RecordingBackend>();
+  seg::MotionTrackingParams mp;
+  mp.point_neighbours = params.neighbours;
+  backend->device.answer = seg::trackSamples(*seq, mp).poses;
+  seg::MeanShiftSegmentation dev;
+  dev.setInputSequence(seq);
+  dev.setParams(params);
+  dev.setDeviceBackend(backend);
+  seg::SegmentationResult got;
+  dev.segment(got);
+  EXPECT_EQ(backend->device.calls, 1);
+  EXPECT_EQ(dev.deviceUsed(), "recording backend");
+  EXPECT_EQ(got.num_clusters, expected.num_clusters);
+  EXPECT_EQ(flatLabels(got), flatLabels(expected));
+}
+
+TEST(TrackingDevice, AFailingDeviceStopsTheStageOrFallsBackToTheCpu) {
+  const auto seq = chain(6, 2500, 5);
+  seg::MeanShiftParams params;
+  params.method = seg::MeanShiftMethod::Motion;
+  params.record_densities = false;  // as the pipeline runs it: the backend only tracks
+  seg::MeanShiftSegmentation cpu;
+  cpu.setInputSequence(seq);
+  cpu.setParams(params);
+  seg::SegmentationResult expected;
+  cpu.segment(expected);
+
+  auto backend = std::make_shared<RecordingBackend>();
+  backend->device.fail = true;
+  seg::MeanShiftSegmentation strict;
+  strict.setInputSequence(seq);
+  strict.setParams(params);
+  strict.setDeviceBackend(backend, /*cpu_fallback=*/false);
+  seg::SegmentationResult none;
+  try {
+    strict.segment(none);
+    ADD_FAILURE() << "a failing device must stop the stage";
+  } catch (const pcl_animseg::Error& e) {
+    EXPECT_NE(std::string(e.what()).find("out of device memory"), std::string::npos);
+  }
+
+  seg::MeanShiftSegmentation lenient;
+  lenient.setInputSequence(seq);
+  lenient.setParams(params);
+  lenient.setDeviceBackend(backend, /*cpu_fallback=*/true);
+  seg::SegmentationResult got;
+  lenient.segment(got);
+  EXPECT_EQ(lenient.deviceUsed(), "cpu");
+  EXPECT_NE(lenient.fallbackReason().find("out of device memory"), std::string::npos);
+  EXPECT_EQ(flatLabels(got), flatLabels(expected));
+}
+
+TEST(TaskWaves, EachTaskInTheWaveAfterItsLongestChain) {
+  // 0 -> 1 -> 3, 0 -> 2, 2 -> 3, 4 alone; 3 waits for its longest chain (0, 1 or 0, 2).
+  const std::vector<std::vector<int>> succ{{1, 2}, {3}, {3}, {}, {}};
+  const auto waves = seg::taskWaves(succ);
+  ASSERT_EQ(waves.size(), 3u);
+  EXPECT_EQ(waves[0], (std::vector<int>{0, 4}));
+  EXPECT_EQ(waves[1], (std::vector<int>{1, 2}));
+  EXPECT_EQ(waves[2], (std::vector<int>{3}));
+  EXPECT_THROW(seg::taskWaves({{1}, {0}}), pcl_animseg::Error);
+  EXPECT_THROW(seg::taskWaves({{5}}), pcl_animseg::Error);
+  EXPECT_TRUE(seg::taskWaves({}).empty());
+}
