@@ -1,4 +1,4 @@
-// The motion method's sample tracking on the GPU (segmentation/tracking_device.h): one warp per
+// The motion method's sample tracking on the GPU (segmentation/motion_device.h): one warp per
 // (frame, sample) fit, one kernel launch per wave of fits that depend only on earlier waves.
 //
 // Each warp does what the CPU's task does (src/segmentation/motion_tracking.cpp, trackSamplesOn
@@ -11,6 +11,7 @@
 // query finds the CPU's point; the sums run in another order than the CPU's, so poses agree to
 // rounding. Written by us: no kept library fits many small ICPs at once on a GPU.
 #include <pcl_animseg/gpu/device_array.h>
+#include <pcl_animseg/segmentation/icp_step.h>
 
 #include <cfloat>
 #include <chrono>
@@ -54,62 +55,27 @@ struct Dev {
   double clip;
 };
 
-struct Pose {
-  double r[9];
-  double t[3];
-};
+namespace icp_step = segmentation::icp_step;
+using icp_step::Rigid;
 
-__device__ Pose loadPose(const double* p) {
-  Pose a;
+__device__ Rigid loadPose(const double* p) {
+  Rigid a;
   for (int k = 0; k < 9; ++k) a.r[k] = p[k];
   for (int k = 0; k < 3; ++k) a.t[k] = p[9 + k];
   return a;
 }
 
-__device__ void storePose(double* p, const Pose& a) {
+__device__ void storePose(double* p, const Rigid& a) {
   for (int k = 0; k < 9; ++k) p[k] = a.r[k];
   for (int k = 0; k < 3; ++k) p[9 + k] = a.t[k];
 }
 
-__device__ Pose mul(const Pose& a, const Pose& b) {
-  Pose c;
-  for (int i = 0; i < 3; ++i) {
-    for (int j = 0; j < 3; ++j)
-      c.r[3 * i + j] =
-          a.r[3 * i] * b.r[j] + a.r[3 * i + 1] * b.r[3 + j] + a.r[3 * i + 2] * b.r[6 + j];
-    c.t[i] = a.r[3 * i] * b.t[0] + a.r[3 * i + 1] * b.t[1] + a.r[3 * i + 2] * b.t[2] + a.t[i];
-  }
-  return c;
-}
-
-__device__ Pose inverse(const Pose& a) {  // a rigid motion: R^T, -R^T t
-  Pose b;
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) b.r[3 * i + j] = a.r[3 * j + i];
-  for (int i = 0; i < 3; ++i)
-    b.t[i] = -(b.r[3 * i] * a.t[0] + b.r[3 * i + 1] * a.t[1] + b.r[3 * i + 2] * a.t[2]);
-  return b;
-}
-
-__device__ void rotate(const Pose& a, const double* v, double* out) {
-  for (int i = 0; i < 3; ++i)
-    out[i] = a.r[3 * i] * v[0] + a.r[3 * i + 1] * v[1] + a.r[3 * i + 2] * v[2];
-}
-
-__device__ void apply(const Pose& a, const double* v, double* out) {
-  rotate(a, v, out);
-  for (int i = 0; i < 3; ++i) out[i] += a.t[i];
-}
-
-__device__ __forceinline__ double warpSum(double v) {
-  for (int m = kWarp / 2; m > 0; m /= 2) v += __shfl_xor_sync(0xffffffffu, v, m);
-  return v;
-}
-
-__device__ __forceinline__ int warpSum(int v) {
-  for (int m = kWarp / 2; m > 0; m /= 2) v += __shfl_xor_sync(0xffffffffu, v, m);
-  return v;
-}
+// Per warp: the values of up to 32 points (one per lane), added in point order by the lanes that
+// own the sums (sum q by lane q), so that every sum runs in the CPU's order.
+constexpr int kCols = icp_step::kTerms + 1;  // the terms, then whether the point counts
+struct Scratch {
+  double v[kWarp][kCols];
+};
 
 // FlatKdTree3::nearest (flat_kdtree.h) on the frame's copy: the nearest point with squared
 // distance < bound2, or -1. Distances in the CPU's float order, without contraction.
@@ -158,158 +124,108 @@ __device__ int nearestWithin(const Dev& d, int frame, const double* y, float max
   return nearest(d, d.root[frame], qx, qy, qz, nextafterf(max_d2, FLT_MAX), d2);
 }
 
-__device__ double normalCos(double c, const Dev& d, int frame) {
-  return d.unoriented[frame] ? fabs(c) : c;
+// Adds column q of the scratch rows 0..rows-1 that count, in row order, to `sum` (lane q).
+__device__ void addRows(const Scratch& sc, int rows, int q, double& sum) {
+  for (int j = 0; j < rows; ++j)
+    if (sc.v[j][kCols - 1] != 0.0) sum += sc.v[j][q];
 }
 
-// motion_tracking.cpp's surfaceError: squared clipped surface error in spacings^2.
-__device__ double surfaceError(const Dev& d, int frame, const double* y, const double* n) {
-  const double clip2 = d.clip * d.clip;
+// RMS surface error of a source (6 doubles per point) under a pose, the errors added in point
+// order (motion_tracking.cpp's residual); the same in every lane.
+__device__ double residual(const Dev& d, int frame, const double* src, int m, const Rigid& T,
+                           int lane, Scratch& sc) {
+  if (m == 0) return 0.0;
   const double spacing = d.spacing[frame];
   const double bound = (d.clip + 1.5) * spacing;
-  float d2;
-  const int k = nearestWithin(d, frame, y, static_cast<float>(bound * bound), d2);
-  if (k < 0) return clip2;
-  const float4 tn = d.nrm[k];
-  const float4 tp = d.pts[k];
-  if (normalCos(n[0] * tn.x + n[1] * tn.y + n[2] * tn.z, d, frame) <= d.normal_cos) return clip2;
-  const double inv_s = 1.0 / spacing;
-  const double pl = ((y[0] - tp.x) * tn.x + (y[1] - tp.y) * tn.y + (y[2] - tp.z) * tn.z) * inv_s;
-  const double far = fmax(0.0, sqrt(static_cast<double>(d2)) * inv_s - 1.5);
-  return fmin(clip2, pl * pl + far * far);
-}
-
-// RMS surface error of a source (6 doubles per point) under a pose; the same in every lane.
-__device__ double residual(const Dev& d, int frame, const double* src, int m, const Pose& T,
-                           int lane) {
-  if (m == 0) return 0.0;
+  const float bound2 = static_cast<float>(bound * bound);
   double sum = 0.0;
-  for (int i = lane; i < m; i += kWarp) {
-    double y[3], n[3];
-    apply(T, src + 6 * i, y);
-    rotate(T, src + 6 * i + 3, n);
-    sum += surfaceError(d, frame, y, n);
+  for (int base = 0; base < m; base += kWarp) {
+    const int i = base + lane;
+    if (i < m) {
+      double y[3], n[3];
+      icp_step::apply(T, src + 6 * i, y);
+      icp_step::rotate(T, src + 6 * i + 3, n);
+      float d2 = 0.0f;
+      const int k = nearestWithin(d, frame, y, bound2, d2);
+      double tp[3] = {0.0, 0.0, 0.0}, tn[3] = {0.0, 0.0, 0.0};
+      if (k >= 0) {
+        const float4 p = d.pts[k], q = d.nrm[k];
+        tp[0] = p.x, tp[1] = p.y, tp[2] = p.z;
+        tn[0] = q.x, tn[1] = q.y, tn[2] = q.z;
+      }
+      sc.v[lane][0] = icp_step::surfaceError(k >= 0, d2, y, n, tp, tn, spacing,
+                                             d.unoriented[frame] != 0, d.normal_cos, d.clip);
+      sc.v[lane][kCols - 1] = 1.0;
+    }
+    __syncwarp();
+    if (lane == 0) addRows(sc, min(kWarp, m - base), 0, sum);
+    __syncwarp();
   }
-  return sqrt(warpSum(sum) / static_cast<double>(m));
+  sum = __shfl_sync(0xffffffffu, sum, 0);
+  return sqrt(sum / static_cast<double>(m));
 }
 
-// Upper triangle of a symmetric 6 x 6 matrix, row by row.
-__device__ __forceinline__ int upper(int i, int j) { return i * 6 - i * (i - 1) / 2 + (j - i); }
-
-// motion_tracking.cpp's icp(): damped point-to-plane ICP with a weak point-to-point term.
-__device__ Pose icp(const Dev& d, int frame, const double* src, int m, const Pose& init,
-                    double max_dist, int lane) {
-  Pose T = init;
+// motion_tracking.cpp's icp(): the same steps (icp_step.h), the same sums in the same order.
+__device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Rigid& init,
+                     double max_dist, int lane, Scratch& sc) {
+  Rigid T = init;
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double spacing = d.spacing[frame];
+  const bool unoriented = d.unoriented[frame] != 0;
   for (int it = 0; it < d.iterations; ++it) {
+    // The moved source's centroid, summed in point order by lanes 0-2.
     double c[3] = {0.0, 0.0, 0.0};
-    for (int i = lane; i < m; i += kWarp) {
-      double y[3];
-      apply(T, src + 6 * i, y);
-      for (int k = 0; k < 3; ++k) c[k] += y[k];
+    double mine = 0.0;
+    for (int base = 0; base < m; base += kWarp) {
+      const int i = base + lane;
+      if (i < m) {
+        icp_step::apply(T, src + 6 * i, sc.v[lane]);
+        sc.v[lane][kCols - 1] = 1.0;
+      }
+      __syncwarp();
+      if (lane < 3) addRows(sc, min(kWarp, m - base), lane, mine);
+      __syncwarp();
     }
-    for (int k = 0; k < 3; ++k) c[k] = warpSum(c[k]) / static_cast<double>(m > 1 ? m : 1);
-    double A[21], b[6];
-    for (int k = 0; k < 21; ++k) A[k] = 0.0;
-    for (int k = 0; k < 6; ++k) b[k] = 0.0;
+    const double count = static_cast<double>(m > 1 ? m : 1);
+    for (int k = 0; k < 3; ++k) c[k] = __shfl_sync(0xffffffffu, mine, k) / count;
+    // The matched points' terms, summed in point order: term q by lane q, the count by lane 27.
+    double sum = 0.0;
     int used = 0;
-    for (int i = lane; i < m; i += kWarp) {
-      double yw[3], nr[3];
-      apply(T, src + 6 * i, yw);
-      float d2;
-      const int k = nearestWithin(d, frame, yw, max_d2, d2);
-      if (k < 0) continue;
-      const float4 tnf = d.nrm[k], tpf = d.pts[k];
-      const double tn[3] = {tnf.x, tnf.y, tnf.z}, tp[3] = {tpf.x, tpf.y, tpf.z};
-      rotate(T, src + 6 * i + 3, nr);
-      if (normalCos(nr[0] * tn[0] + nr[1] * tn[1] + nr[2] * tn[2], d, frame) < d.normal_cos)
-        continue;
-      const double y[3] = {yw[0] - c[0], yw[1] - c[1], yw[2] - c[2]};
-      ++used;
-      double J[6] = {y[1] * tn[2] - y[2] * tn[1],
-                     y[2] * tn[0] - y[0] * tn[2],
-                     y[0] * tn[1] - y[1] * tn[0],
-                     tn[0],
-                     tn[1],
-                     tn[2]};
-      const double r = (yw[0] - tp[0]) * tn[0] + (yw[1] - tp[1]) * tn[1] + (yw[2] - tp[2]) * tn[2];
-      // Jp = [S | I], S = [[0, y.z, -y.y], [-y.z, 0, y.x], [y.y, -y.x, 0]].
-      const double Jp[3][6] = {{0.0, y[2], -y[1], 1.0, 0.0, 0.0},
-                               {-y[2], 0.0, y[0], 0.0, 1.0, 0.0},
-                               {y[1], -y[0], 0.0, 0.0, 0.0, 1.0}};
-      const double e[3] = {yw[0] - tp[0], yw[1] - tp[1], yw[2] - tp[2]};
-      for (int a = 0; a < 6; ++a) {
-        for (int bb = a; bb < 6; ++bb)
-          A[upper(a, bb)] += J[a] * J[bb] + 0.1 * (Jp[0][a] * Jp[0][bb] + Jp[1][a] * Jp[1][bb] +
-                                                   Jp[2][a] * Jp[2][bb]);
-        b[a] += J[a] * r + 0.1 * (Jp[0][a] * e[0] + Jp[1][a] * e[1] + Jp[2][a] * e[2]);
+    for (int base = 0; base < m; base += kWarp) {
+      const int i = base + lane;
+      if (i < m) {
+        sc.v[lane][kCols - 1] = 0.0;
+        double yw[3];
+        icp_step::apply(T, src + 6 * i, yw);
+        float d2;
+        const int k = nearestWithin(d, frame, yw, max_d2, d2);
+        if (k >= 0) {
+          const float4 p = d.pts[k], q = d.nrm[k];
+          const double tp[3] = {p.x, p.y, p.z}, tn[3] = {q.x, q.y, q.z};
+          double n[3];
+          icp_step::rotate(T, src + 6 * i + 3, n);
+          const double cs = icp_step::dot3(n, tn);
+          if (!((unoriented ? fabs(cs) : cs) < d.normal_cos)) {  // the CPU's test, NaN too
+            icp_step::pointTerms(yw, c, tp, tn, sc.v[lane]);
+            sc.v[lane][kCols - 1] = 1.0;
+          }
+        }
       }
+      __syncwarp();
+      const int rows = min(kWarp, m - base);
+      if (lane < icp_step::kTerms) addRows(sc, rows, lane, sum);
+      if (lane == icp_step::kTerms)
+        for (int j = 0; j < rows; ++j) used += sc.v[j][kCols - 1] != 0.0;
+      __syncwarp();
     }
-    used = warpSum(used);
-    for (int k = 0; k < 21; ++k) A[k] = warpSum(A[k]);
-    for (int k = 0; k < 6; ++k) b[k] = warpSum(b[k]);
+    used = __shfl_sync(0xffffffffu, used, icp_step::kTerms);
     if (used < 6) break;
-    double M[6][6];
-    for (int a = 0; a < 6; ++a)
-      for (int bb = a; bb < 6; ++bb) M[a][bb] = M[bb][a] = A[upper(a, bb)];
-    const double tr_rot = (M[0][0] + M[1][1] + M[2][2]) / 3.0 + 1e-12;
-    const double tr_tr = (M[3][3] + M[4][4] + M[5][5]) / 3.0 + 1e-12;
-    for (int k = 0; k < 3; ++k) M[k][k] += 0.02 * tr_rot, M[k + 3][k + 3] += 0.02 * tr_tr;
-    // Cholesky of the damped (positive definite) system, then x = -M^-1 b.
-    bool ok = true;
-    for (int j = 0; j < 6 && ok; ++j) {
-      double s = M[j][j];
-      for (int k = 0; k < j; ++k) s -= M[j][k] * M[j][k];
-      if (!(s > 0.0)) {
-        ok = false;
-        break;
-      }
-      M[j][j] = sqrt(s);
-      for (int i = j + 1; i < 6; ++i) {
-        double v = M[i][j];
-        for (int k = 0; k < j; ++k) v -= M[i][k] * M[j][k];
-        M[i][j] = v / M[j][j];
-      }
-    }
-    if (!ok) break;
+    double sums[icp_step::kTerms];
+    for (int q = 0; q < icp_step::kTerms; ++q) sums[q] = __shfl_sync(0xffffffffu, sum, q);
     double x[6];
-    for (int i = 0; i < 6; ++i) {
-      double v = -b[i];
-      for (int k = 0; k < i; ++k) v -= M[i][k] * x[k];
-      x[i] = v / M[i][i];
-    }
-    for (int i = 5; i >= 0; --i) {
-      double v = x[i];
-      for (int k = i + 1; k < 6; ++k) v -= M[k][i] * x[k];
-      x[i] = v / M[i][i];
-    }
-    bool finite = true;
-    for (int k = 0; k < 6; ++k) finite = finite && isfinite(x[k]);
-    if (!finite) break;
-    const double angle = sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
-    Pose D;
-    for (int k = 0; k < 9; ++k) D.r[k] = (k % 4 == 0) ? 1.0 : 0.0;
-    if (angle > 1e-12) {  // Eigen's AngleAxis::toRotationMatrix
-      const double ax = x[0] / angle, ay = x[1] / angle, az = x[2] / angle;
-      const double s = sin(angle), co = cos(angle), o = 1.0 - co;
-      D.r[0] = o * ax * ax + co;
-      D.r[4] = o * ay * ay + co;
-      D.r[8] = o * az * az + co;
-      D.r[1] = o * ax * ay - s * az;
-      D.r[3] = o * ax * ay + s * az;
-      D.r[2] = o * ax * az + s * ay;
-      D.r[6] = o * ax * az - s * ay;
-      D.r[5] = o * ay * az - s * ax;
-      D.r[7] = o * ay * az + s * ax;
-    }
-    // y' = dR (y - c) + c + dt.
-    double rc[3];
-    rotate(D, c, rc);
-    for (int k = 0; k < 3; ++k) D.t[k] = c[k] - rc[k] + x[3 + k];
-    T = mul(D, T);
-    const double step = sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5]);
-    if (angle < 1e-4 && step < 1e-3 * spacing) break;
+    if (!icp_step::solveStep(sums, x)) break;
+    T = icp_step::compose(icp_step::stepMotion(x, c), T);
+    if (icp_step::converged(x, spacing)) break;
   }
   return T;
 }
@@ -317,19 +233,22 @@ __device__ Pose icp(const Dev& d, int frame, const double* src, int m, const Pos
 // The start `c` of a task: 0 the previous pose, 1 the body's motion since the previous frame
 // applied to it, 2 (when there is a frame two before) a constant-velocity guess, then the poses
 // of the sample's graph neighbours of lower level in this frame (trackSamplesOn's order).
-__device__ Pose start(const Dev& d, int t, int s, int c) {
+__device__ Rigid start(const Dev& d, int t, int s, int c) {
   const int S = d.S, tp = d.before[t], tpp = d.two_before[t];
-  const Pose prev = loadPose(d.poses + (static_cast<long long>(tp) * S + s) * kPoseDoubles);
+  const Rigid prev = loadPose(d.poses + (static_cast<long long>(tp) * S + s) * kPoseDoubles);
   if (c == 0) return prev;
   if (c == 1)
-    return mul(
-        mul(loadPose(d.global + t * kPoseDoubles), inverse(loadPose(d.global + tp * kPoseDoubles))),
+    return icp_step::compose(
+        icp_step::compose(loadPose(d.global + t * kPoseDoubles),
+                          icp_step::inverse(loadPose(d.global + tp * kPoseDoubles))),
         prev);
   if (tpp >= 0) {
     if (c == 2)
-      return mul(mul(prev, inverse(loadPose(d.poses +
-                                            (static_cast<long long>(tpp) * S + s) * kPoseDoubles))),
-                 prev);
+      return icp_step::compose(
+          icp_step::compose(
+              prev, icp_step::inverse(
+                        loadPose(d.poses + (static_cast<long long>(tpp) * S + s) * kPoseDoubles))),
+          prev);
     --c;
   }
   c -= 2;
@@ -343,9 +262,11 @@ __device__ Pose start(const Dev& d, int t, int s, int c) {
 }
 
 __global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
+  __shared__ Scratch scratch[kWarpsPerBlock];
   const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
   const int lane = threadIdx.x % kWarp;
   if (w >= n) return;  // the whole warp
+  Scratch& sc = scratch[threadIdx.x / kWarp];
   const int task = tasks[w];
   const int S = d.S, t = task / S, s = task % S;
   const int* lev = d.level + static_cast<long long>(t) * S;
@@ -358,7 +279,7 @@ __global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
   double s0 = DBL_MAX, s1 = DBL_MAX;
   int i0 = -1, i1 = -1;
   for (int c = 0; c < starts; ++c) {
-    const double r = residual(d, t, probe, pm, start(d, t, s, c), lane);
+    const double r = residual(d, t, probe, pm, start(d, t, s, c), lane, sc);
     if (i0 < 0 || r < s0) {
       s1 = s0, i1 = i0;
       s0 = r, i0 = c;
@@ -369,12 +290,12 @@ __global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
   const double* src = d.source + 6LL * d.source_begin[s];
   const int m = d.source_begin[s + 1] - d.source_begin[s];
   double best = DBL_MAX;
-  Pose best_pose = start(d, t, s, i0);
+  Rigid best_pose = start(d, t, s, i0);
   const int tried[2] = {i0, i1};
   for (int k = 0; k < 2; ++k) {
     if (tried[k] < 0) continue;
-    const Pose fit = icp(d, t, src, m, start(d, t, s, tried[k]), 4.0 * d.spacing[t], lane);
-    const double r = residual(d, t, src, m, fit, lane);
+    const Rigid fit = icp(d, t, src, m, start(d, t, s, tried[k]), 4.0 * d.spacing[t], lane, sc);
+    const double r = residual(d, t, src, m, fit, lane, sc);
     if (r < best) best = r, best_pose = fit;
   }
   if (lane == 0) {
@@ -383,18 +304,58 @@ __global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
   }
 }
 
+// One residual per warp (motion_tracking.cpp's residual of one job).
+__global__ void residualJobs(Dev d, const double* __restrict__ points,
+                             const int* __restrict__ source_begin,
+                             const double* __restrict__ motions,
+                             const ResidualJob* __restrict__ jobs, int n, double* out) {
+  __shared__ Scratch scratch[kWarpsPerBlock];
+  const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
+  const int lane = threadIdx.x % kWarp;
+  if (w >= n) return;  // the whole warp
+  const ResidualJob job = jobs[w];
+  const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
+  const double r = residual(d, job.frame, points + 6LL * b, m,
+                            loadPose(motions + static_cast<long long>(job.motion) * kPoseDoubles),
+                            lane, scratch[threadIdx.x / kWarp]);
+  if (lane == 0) out[w] = r;
+}
+
+Dev frameView(const FrameStore& f) {
+  Dev d{};
+  d.nodes = f.nodes.ptr();
+  d.pts = reinterpret_cast<const float4*>(f.points.ptr());
+  d.nrm = reinterpret_cast<const float4*>(f.normals.ptr());
+  d.root = f.root.ptr();
+  d.spacing = f.spacing.ptr();
+  d.unoriented = f.unoriented.ptr();
+  d.normal_cos = f.normal_cos;
+  d.clip = f.clip;
+  return d;
+}
+
+int blocksFor(long long warps) {
+  return static_cast<int>((warps + kWarpsPerBlock - 1) / kWarpsPerBlock);
+}
+
 }  // namespace
 
-double runTracking(const TrackingArrays& in, std::vector<double>& poses,
+void uploadFrames(const FrameArrays& in, FrameStore& store) {
+  store.frames = in.frames;
+  store.normal_cos = in.normal_cos;
+  store.clip = in.clip;
+  store.nodes.upload(in.nodes);
+  store.root.upload(in.root);
+  store.points.upload(in.points);
+  store.normals.upload(in.normals);
+  store.spacing.upload(in.spacing);
+  store.unoriented.upload(in.unoriented);
+}
+
+double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vector<double>& poses,
                    std::vector<double>& residual) {
   const auto t0 = std::chrono::steady_clock::now();
-  const long long TS = static_cast<long long>(in.frames) * in.samples;
-  DeviceArray<TrackNode> nodes(in.nodes.data(), in.nodes.size());
-  DeviceArray<float> pts(in.points.data(), in.points.size());
-  DeviceArray<float> nrm(in.normals.data(), in.normals.size());
-  DeviceArray<int> root(in.root.data(), in.root.size());
-  DeviceArray<double> spacing(in.spacing.data(), in.spacing.size());
-  DeviceArray<int> unoriented(in.unoriented.data(), in.unoriented.size());
+  const long long TS = static_cast<long long>(frames.frames) * in.samples;
   DeviceArray<double> source(in.source.data(), in.source.size());
   DeviceArray<int> source_begin(in.source_begin.data(), in.source_begin.size());
   DeviceArray<double> probe(in.probe.data(), in.probe.size());
@@ -414,13 +375,7 @@ double runTracking(const TrackingArrays& in, std::vector<double>& poses,
   DeviceArray<double> d_res(static_cast<std::size_t>(TS));
   d_res.setZero();
 
-  Dev d;
-  d.nodes = nodes.ptr();
-  d.pts = reinterpret_cast<const float4*>(pts.ptr());
-  d.nrm = reinterpret_cast<const float4*>(nrm.ptr());
-  d.root = root.ptr();
-  d.spacing = spacing.ptr();
-  d.unoriented = unoriented.ptr();
+  Dev d = frameView(frames);
   d.source = source.ptr();
   d.source_begin = source_begin.ptr();
   d.probe = probe.ptr();
@@ -435,15 +390,11 @@ double runTracking(const TrackingArrays& in, std::vector<double>& poses,
   d.residual = d_res.ptr();
   d.S = in.samples;
   d.iterations = in.iterations;
-  d.normal_cos = in.normal_cos;
-  d.clip = in.clip;
   const int waves = static_cast<int>(in.wave_begin.size()) - 1;
   for (int w = 0; w < waves; ++w) {
     const int n = in.wave_begin[w + 1] - in.wave_begin[w];
     if (n <= 0) continue;
-    const int threads = kWarp * kWarpsPerBlock;
-    const int blocks = (n + kWarpsPerBlock - 1) / kWarpsPerBlock;
-    trackWave<<<blocks, threads>>>(d, tasks.ptr() + in.wave_begin[w], n);
+    trackWave<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, tasks.ptr() + in.wave_begin[w], n);
     cudaCheckLaunch();
   }
   cudaSafeCall(cudaDeviceSynchronize());
@@ -451,6 +402,34 @@ double runTracking(const TrackingArrays& in, std::vector<double>& poses,
   residual.resize(static_cast<std::size_t>(TS));
   d_res.download(residual);
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void runResiduals(FrameStore& frames, const std::vector<double>& points,
+                  const std::vector<int>& source_begin, const std::vector<double>& motions,
+                  const std::vector<ResidualJob>& jobs, std::vector<double>& out) {
+  out.assign(jobs.size(), 0.0);
+  if (jobs.empty()) return;
+  auto put = [](DeviceMemory& m, const void* host, std::size_t bytes) {
+    if (m.sizeBytes() < bytes) m.create(bytes + bytes / 2);
+    m.uploadBytes(host, bytes);
+  };
+  put(frames.job_points, points.data(), points.size() * sizeof(double));
+  put(frames.job_begin, source_begin.data(), source_begin.size() * sizeof(int));
+  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
+  put(frames.job_list, jobs.data(), jobs.size() * sizeof(ResidualJob));
+  if (frames.job_out.sizeBytes() < jobs.size() * sizeof(double))
+    frames.job_out.create(jobs.size() * sizeof(double) * 3 / 2);
+  const Dev d = frameView(frames);
+  const long long n = static_cast<long long>(jobs.size());
+  residualJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
+      d, static_cast<const double*>(frames.job_points.rawPtr()),
+      static_cast<const int*>(frames.job_begin.rawPtr()),
+      static_cast<const double*>(frames.job_motions.rawPtr()),
+      static_cast<const ResidualJob*>(frames.job_list.rawPtr()), static_cast<int>(n),
+      static_cast<double*>(frames.job_out.rawPtr()));
+  cudaCheckLaunch();
+  // Synchronises, and reports a kernel fault.
+  frames.job_out.downloadBytes(out.data(), out.size() * sizeof(double));
 }
 
 }  // namespace detail

@@ -1,7 +1,9 @@
 #pragma once
-// Internal: the motion method's sample tracking on the GPU (sample_tracking.cpp packs a
-// segmentation::SampleTrackingProblem into these plain arrays; tracking_kernels.cu fits them).
-// No Eigen or PCL here: this header is read by nvcc.
+// Internal: the motion method's fits and residuals on the GPU (motion_tracking.cpp packs the
+// segmentation structures into these plain arrays; tracking_kernels.cu runs them). No Eigen or
+// PCL here: this header is read by nvcc.
+#include <pcl_animseg/gpu/device_array.h>
+
 #include <vector>
 
 namespace pcl_animseg {
@@ -9,7 +11,7 @@ namespace gpu {
 namespace detail {
 
 /** A kd-tree node of FlatKdTree3 with its indices made global: an inner node's children index
- * TrackingArrays::nodes, a leaf's [a, b) index TrackingArrays::points. */
+ * the nodes, a leaf's [a, b) the points. */
 struct TrackNode {
   float split;
   int dim;  // -1: leaf
@@ -20,18 +22,40 @@ struct TrackNode {
 /** A pose as 12 doubles: the rotation row by row, then the translation. */
 constexpr int kPoseDoubles = 12;
 
-struct TrackingArrays {
+/** The frames on the host, packed. */
+struct FrameArrays {
   int frames = 0;
-  int samples = 0;
-  int iterations = 8;
   double normal_cos = 0.3;
   double clip = 4.0;
   std::vector<TrackNode> nodes;
-  std::vector<int> root;                        // per frame: root node, -1 when empty
-  std::vector<float> points;                    // 4 per point (x, y, z, 0), leaf order
-  std::vector<float> normals;                   // 4 per point
-  std::vector<double> spacing;                  // per frame
-  std::vector<int> unoriented;                  // per frame
+  std::vector<int> root;        // per frame: root node, -1 when empty
+  std::vector<float> points;    // 4 per point (x, y, z, 0), leaf order
+  std::vector<float> normals;   // 4 per point
+  std::vector<double> spacing;  // per frame
+  std::vector<int> unoriented;  // per frame
+};
+
+/** The frames on the device (setFrames), kept for the calls that follow. */
+struct FrameStore {
+  int frames = 0;
+  double normal_cos = 0.3;
+  double clip = 4.0;
+  DeviceArray<TrackNode> nodes;
+  DeviceArray<int> root;
+  DeviceArray<float> points, normals;
+  DeviceArray<double> spacing;
+  DeviceArray<int> unoriented;
+  /** Residual batches' buffers, grown as needed and kept: a merge loop asks for hundreds of
+   * small batches, and an allocation each would cost more than the batch. */
+  DeviceMemory job_points, job_begin, job_motions, job_list, job_out;
+};
+
+void uploadFrames(const FrameArrays& in, FrameStore& store);
+
+/** The tracking's fits besides the frames. */
+struct TrackingArrays {
+  int samples = 0;
+  int iterations = 8;
   std::vector<double> source, probe;            // 6 per point: position, normal
   std::vector<int> source_begin, probe_begin;   // per sample, plus the end
   std::vector<int> adjacency, adjacency_begin;  // sample graph, CSR
@@ -41,11 +65,23 @@ struct TrackingArrays {
   std::vector<int> tasks, wave_begin;           // tasks t * samples + s by wave, CSR
 };
 
-/** Fits every task; poses (frames x samples x 12, the reference frame's entries the identity
- * on entry) and residual (frames x samples) are filled. Returns the seconds spent on the device
- * (uploads, kernels, downloads). Throws Error on a CUDA failure. */
-double runTracking(const TrackingArrays& in, std::vector<double>& poses,
+/** Fits every task; poses (frames x samples x 12, the reference frame's entries the identity)
+ * and residual (frames x samples) are filled. Returns the seconds spent (uploads, kernels,
+ * downloads). Throws Error on a CUDA failure. */
+double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vector<double>& poses,
                    std::vector<double>& residual);
+
+/** A residual job: source, motion (12 doubles), frame. */
+struct ResidualJob {
+  int source;
+  int motion;
+  int frame;
+};
+
+/** One residual per job (points: 6 per point; source_begin: per source plus the end). */
+void runResiduals(FrameStore& frames, const std::vector<double>& points,
+                  const std::vector<int>& source_begin, const std::vector<double>& motions,
+                  const std::vector<ResidualJob>& jobs, std::vector<double>& out);
 
 }  // namespace detail
 }  // namespace gpu

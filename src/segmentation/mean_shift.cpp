@@ -1191,10 +1191,10 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     detail::StageTimer timer;
     // A device that tracks the samples does so; the rest of the method runs on the CPU.
     auto motion = [&](MeanShiftDeviceBackend* d) {
-      detail::runMotion(seq, params_, d ? d->sampleTracking() : nullptr, flat, num_clusters,
+      detail::runMotion(seq, params_, d ? d->motionDevice() : nullptr, flat, num_clusters,
                         result.merges, progress_);
     };
-    if (device && device->sampleTracking())
+    if (device && device->motionDevice())
       guarded(motion);
     else
       motion(nullptr);

@@ -96,9 +96,9 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, 
 
 /** The motion method; fills result.labels, num_clusters and merges. `tracking` (nullptr: the
  * CPU) fits the tracked samples' poses. */
-void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params,
-               SampleTrackingDevice* tracking, std::vector<int>& flat_labels, int& num_clusters,
-               std::vector<ClusterMerge>& merges, Progress* progress);
+void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, MotionDevice* tracking,
+               std::vector<int>& flat_labels, int& num_clusters, std::vector<ClusterMerge>& merges,
+               Progress* progress);
 
 }  // namespace detail
 }  // namespace segmentation

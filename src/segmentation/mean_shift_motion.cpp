@@ -32,9 +32,9 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
 
 }  // namespace
 
-void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params,
-               SampleTrackingDevice* tracking, std::vector<int>& flat, int& num_clusters,
-               std::vector<ClusterMerge>& merges, Progress* progress) {
+void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, MotionDevice* tracking,
+               std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
+               Progress* progress) {
   if (!(sequenceScale(seq) > 0.0)) {
     // Every point of every frame coincides: one part, nothing to track (and no point spacing).
     flat.assign(seq.totalPoints(), 0);

@@ -6,9 +6,10 @@
 #include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/chained_fit.h>
+#include <pcl_animseg/segmentation/icp_step.h>
+#include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/task_graph.h>
-#include <pcl_animseg/segmentation/tracking_device.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -98,6 +99,31 @@ std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
   return frames;
 }
 
+/** The frames as a device takes them (motion_device.h): each kd-tree with its points' normals
+ * in the tree's leaf order. */
+DeviceFrames deviceFrames(const std::vector<Frame>& frames) {
+  DeviceFrames out;
+  out.normal_cos = kNormalCos;
+  out.clip = kClip;
+  out.frames.resize(frames.size());
+  for (std::size_t t = 0; t < frames.size(); ++t) {
+    const Frame& f = frames[t];
+    DeviceFrames::Frame& d = out.frames[t];
+    d.tree = &f.tree.flatTree();
+    const std::vector<int>& rows = d.tree->leafRows();
+    d.leaf_normals.resize(3 * rows.size());
+    for (std::size_t i = 0; i < rows.size(); ++i) {
+      const auto& q = (*f.cloud)[f.tree.cloudIndex(rows[i])];
+      d.leaf_normals[3 * i] = q.normal_x;
+      d.leaf_normals[3 * i + 1] = q.normal_y;
+      d.leaf_normals[3 * i + 2] = q.normal_z;
+    }
+    d.spacing = f.spacing;
+    d.unoriented = f.unoriented;
+  }
+  return out;
+}
+
 struct Source {
   Eigen::Matrix3Xd p;
   Eigen::Matrix3Xd n;
@@ -125,26 +151,52 @@ inline pcl::PointNormal toPoint(const Eigen::Vector3d& y) {
   return q;
 }
 
-/** Squared surface error of a moved point (position y, normal n) against a frame, in spacings^2:
- * the distance to the nearest point's tangent plane, plus how far beyond 1.5 spacings that point
- * is; clipped at kClip^2, and kClip^2 when the normals disagree. The tangent-plane distance does
- * not see the sampling of the two clouds (a point-to-point distance is ~1 spacing for a perfect
- * fit), so small rigid deviations stand out. */
-inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, const Frame& f) {
-  const double clip2 = kClip * kClip;
-  // Beyond (kClip + 1.5) spacings the error is clip2 whatever the nearest point is: the search
+inline icp_step::Rigid toRigid(const Pose& a) {
+  icp_step::Rigid r;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) r.r[3 * i + j] = a.linear()(i, j);
+    r.t[i] = a.translation()(i);
+  }
+  return r;
+}
+
+inline Pose toPose(const icp_step::Rigid& r) {
+  Pose a = Pose::Identity();
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) a.linear()(i, j) = r.r[3 * i + j];
+    a.translation()(i) = r.t[i];
+  }
+  return a;
+}
+
+/** a * b in icp_step's arithmetic (the tracking's starts; the same bits as its device). */
+inline Pose compose(const Pose& a, const Pose& b) {
+  return toPose(icp_step::compose(toRigid(a), toRigid(b)));
+}
+inline Pose inverse(const Pose& a) { return toPose(icp_step::inverse(toRigid(a))); }
+
+/** Squared surface error of a moved point (position y, normal n) against a frame, in spacings^2
+ * (icp_step::surfaceError): the distance to the nearest point's tangent plane, plus how far
+ * beyond 1.5 spacings that point is; clipped at kClip^2, and kClip^2 when the normals disagree.
+ * The tangent-plane distance does not see the sampling of the two clouds (a point-to-point
+ * distance is ~1 spacing for a perfect fit), so small rigid deviations stand out. */
+inline double surfaceError(const double* y, const double* n, const Frame& f) {
+  // Beyond (kClip + 1.5) spacings the error is clip^2 whatever the nearest point is: the search
   // is bounded there.
-  float d2;
-  const int k = f.tree.nearest(static_cast<float>(y.x()), static_cast<float>(y.y()),
-                               static_cast<float>(y.z()), f.error_bound2, d2);
-  if (k < 0) return clip2;
-  const auto& t = (*f.cloud)[k];
-  const Eigen::Vector3d tn(t.normal_x, t.normal_y, t.normal_z);
-  if (normalCos(n.dot(tn), f) <= kNormalCos) return clip2;
-  const double inv_s = 1.0 / f.spacing;
-  const double pl = (y - Eigen::Vector3d(t.x, t.y, t.z)).dot(tn) * inv_s;
-  const double far = std::max(0.0, std::sqrt(static_cast<double>(d2)) * inv_s - 1.5);
-  return std::min(clip2, pl * pl + far * far);
+  float d2 = 0.0f;
+  const int k = f.tree.nearest(static_cast<float>(y[0]), static_cast<float>(y[1]),
+                               static_cast<float>(y[2]), f.error_bound2, d2);
+  double tp[3] = {0.0, 0.0, 0.0}, tn[3] = {0.0, 0.0, 0.0};
+  if (k >= 0) {
+    const auto& t = (*f.cloud)[k];
+    tp[0] = t.x, tp[1] = t.y, tp[2] = t.z;
+    tn[0] = t.normal_x, tn[1] = t.normal_y, tn[2] = t.normal_z;
+  }
+  return icp_step::surfaceError(k >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented, kNormalCos,
+                                kClip);
+}
+inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, const Frame& f) {
+  return surfaceError(y.data(), n.data(), f);
 }
 
 /** A source this large, outside any parallel region (the whole body's ICP of the tracking),
@@ -155,94 +207,83 @@ bool searchInParallel(const Source& src) {
   return src.p.cols() >= kParallelSource && !omp_in_parallel() && omp_get_max_threads() > 1;
 }
 
-/** RMS over the source of the surface error (in the frame's spacings). */
+/** RMS over the source of the surface error (in the frame's spacings); the errors are added in
+ * point order. */
 double residual(const Source& src, const Pose& T, const Frame& f) {
-  if (src.p.cols() == 0) return 0.0;
+  const Eigen::Index m = src.p.cols();
+  if (m == 0) return 0.0;
+  const icp_step::Rigid R = toRigid(T);
+  auto error = [&](Eigen::Index i) {
+    double y[3], n[3];
+    icp_step::apply(R, src.p.col(i).data(), y);
+    icp_step::rotate(R, src.n.col(i).data(), n);
+    return surfaceError(y, n, f);
+  };
   double sum = 0.0;
-  const Eigen::Matrix3d R = T.linear();
   if (searchInParallel(src)) {
-    std::vector<double> e(static_cast<std::size_t>(src.p.cols()));
+    std::vector<double> e(static_cast<std::size_t>(m));
 #pragma omp parallel for schedule(static)
-    for (Eigen::Index i = 0; i < src.p.cols(); ++i)
-      e[i] = surfaceError(T * src.p.col(i), R * src.n.col(i), f);
+    for (Eigen::Index i = 0; i < m; ++i) e[i] = error(i);
     for (double v : e) sum += v;
   } else {
-    for (Eigen::Index i = 0; i < src.p.cols(); ++i)
-      sum += surfaceError(T * src.p.col(i), R * src.n.col(i), f);
+    for (Eigen::Index i = 0; i < m; ++i) sum += error(i);
   }
-  return std::sqrt(sum / static_cast<double>(src.p.cols()));
+  return std::sqrt(sum / static_cast<double>(m));
 }
 
 /** Damped point-to-plane ICP (plus a weak point-to-point term against sliding on symmetric
- * surfaces), linearised about the moved source's centroid for conditioning. The Levenberg
- * damping keeps the directions the source does not constrain (rotation about and translation
- * along a capsule) near the initial pose, which comes from a neighbour on the same part. */
+ * surfaces), linearised about the moved source's centroid for conditioning (icp_step.h: the
+ * arithmetic, shared with the GPU's tracking). The Levenberg damping keeps the directions the
+ * source does not constrain (rotation about and translation along a capsule) near the initial
+ * pose, which comes from a neighbour on the same part. Every sum runs in point order. */
 Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, double max_dist) {
-  Pose T = init;
+  icp_step::Rigid T = toRigid(init);
+  const Eigen::Index m = src.p.cols();
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const bool parallel = searchInParallel(src);
-  std::vector<int> match(parallel ? static_cast<std::size_t>(src.p.cols()) : 0);
-  Eigen::Matrix3Xd moved(3, src.p.cols());  // the source under T, once per iteration
-  auto nearestTo = [&](const Eigen::Vector3d& y) {
+  std::vector<int> match(parallel ? static_cast<std::size_t>(m) : 0);
+  Eigen::Matrix3Xd moved(3, m);  // the source under T, once per iteration
+  auto nearestTo = [&](Eigen::Index i) {
     float d2;
-    return f.tree.nearest(static_cast<float>(y.x()), static_cast<float>(y.y()),
-                          static_cast<float>(y.z()), max_d2, d2);
+    const double* y = moved.col(i).data();
+    return f.tree.nearest(static_cast<float>(y[0]), static_cast<float>(y[1]),
+                          static_cast<float>(y[2]), max_d2, d2);
   };
   for (int it = 0; it < iterations; ++it) {
-    const Eigen::Matrix3d R = T.linear();
-    Eigen::Vector3d c = Eigen::Vector3d::Zero();
-    for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
-      moved.col(i) = T * src.p.col(i);
-      c += moved.col(i);
+    double c[3] = {0.0, 0.0, 0.0};
+    for (Eigen::Index i = 0; i < m; ++i) {
+      icp_step::apply(T, src.p.col(i).data(), moved.col(i).data());
+      for (int k = 0; k < 3; ++k) c[k] += moved(k, i);
     }
-    c /= static_cast<double>(std::max<Eigen::Index>(1, src.p.cols()));
-    Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
-    Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
+    const double count = static_cast<double>(std::max<Eigen::Index>(1, m));
+    for (int k = 0; k < 3; ++k) c[k] /= count;
+    double sums[icp_step::kTerms] = {};
     int used = 0;
     if (parallel) {  // the searches first, the sums below in point order as without
 #pragma omp parallel for schedule(static)
-      for (Eigen::Index i = 0; i < src.p.cols(); ++i) match[i] = nearestTo(moved.col(i));
+      for (Eigen::Index i = 0; i < m; ++i) match[i] = nearestTo(i);
     }
-    for (Eigen::Index i = 0; i < src.p.cols(); ++i) {
-      const Eigen::Vector3d yw = moved.col(i);
-      const int k = parallel ? match[i] : nearestTo(yw);
+    for (Eigen::Index i = 0; i < m; ++i) {
+      const int k = parallel ? match[i] : nearestTo(i);
       if (k < 0) continue;
       const auto& t = (*f.cloud)[k];
-      const Eigen::Vector3d tn(t.normal_x, t.normal_y, t.normal_z);
-      if (normalCos((R * src.n.col(i)).dot(tn), f) < kNormalCos) continue;
-      const Eigen::Vector3d tp(t.x, t.y, t.z);
-      const Eigen::Vector3d y = yw - c;
+      const double tn[3] = {t.normal_x, t.normal_y, t.normal_z};
+      const double tp[3] = {t.x, t.y, t.z};
+      double n[3];
+      icp_step::rotate(T, src.n.col(i).data(), n);
+      if (normalCos(icp_step::dot3(n, tn), f) < kNormalCos) continue;
       ++used;
-      Eigen::Matrix<double, 6, 1> J;
-      J.head<3>() = y.cross(tn);
-      J.tail<3>() = tn;
-      const double r = (yw - tp).dot(tn);
-      A.noalias() += J * J.transpose();
-      b.noalias() += J * r;
-      Eigen::Matrix<double, 3, 6> Jp;
-      Jp.block<3, 3>(0, 0) << 0, y.z(), -y.y(), -y.z(), 0, y.x(), y.y(), -y.x(), 0;
-      Jp.block<3, 3>(0, 3).setIdentity();
-      A.noalias() += 0.1 * Jp.transpose() * Jp;
-      b.noalias() += 0.1 * Jp.transpose() * (yw - tp);
+      double terms[icp_step::kTerms];
+      icp_step::pointTerms(moved.col(i).data(), c, tp, tn, terms);
+      for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
     }
     if (used < 6) break;
-    const double tr_rot = A.block<3, 3>(0, 0).trace() / 3.0 + 1e-12;
-    const double tr_tr = A.block<3, 3>(3, 3).trace() / 3.0 + 1e-12;
-    for (int k = 0; k < 3; ++k) A(k, k) += 0.02 * tr_rot, A(k + 3, k + 3) += 0.02 * tr_tr;
-    const Eigen::Matrix<double, 6, 1> x = A.ldlt().solve(-b);
-    if (!x.allFinite()) break;
-    const Eigen::Vector3d w = x.head<3>();
-    const double angle = w.norm();
-    Eigen::Matrix3d dR = Eigen::Matrix3d::Identity();
-    if (angle > 1e-12) dR = Eigen::AngleAxisd(angle, w / angle).toRotationMatrix();
-    // y' = dR (y - c) + c + dt.
-    Pose D = Pose::Identity();
-    D.linear() = dR;
-    D.translation() = c - dR * c + x.tail<3>();
-    T = D * T;
-    if (angle < 1e-4 && x.tail<3>().norm() < 1e-3 * f.spacing) break;
+    double x[6];
+    if (!icp_step::solveStep(sums, x)) break;
+    T = icp_step::compose(icp_step::stepMotion(x, c), T);
+    if (icp_step::converged(x, f.spacing)) break;
   }
-  return T;
+  return toPose(T);
 }
 
 /** Breadth-first levels over a graph (adjacency lists of node ids), started from each node of
@@ -702,8 +743,12 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     // the body, which in a walk is where the other leg is half a stride later; both legs fit
     // there equally well, and samples of a right shin continued on the left one (humanoid, 4000
     // points, seed 12: 28 of 31 samples).
-    std::vector<Pose> cands{tr.poses[tp][s], global[t] * global[tp].inverse() * tr.poses[tp][s]};
-    if (tpp >= 0) cands.push_back(tr.poses[tp][s] * tr.poses[tpp][s].inverse() * tr.poses[tp][s]);
+    // (Composed in icp_step's arithmetic, as the tracking's device composes them.)
+    std::vector<Pose> cands{tr.poses[tp][s],
+                            compose(compose(global[t], inverse(global[tp])), tr.poses[tp][s])};
+    if (tpp >= 0)
+      cands.push_back(
+          compose(compose(tr.poses[tp][s], inverse(tr.poses[tpp][s])), tr.poses[tp][s]));
     for (int o : tr.graph[s])
       if (level[o] < level[s]) cands.push_back(pose[o]);
     // Score every start cheaply, refine the two best: ICP from all would triple the cost for the
@@ -724,28 +769,10 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     res[t][s] = best;
   };
   if (params.device) {
-    // The same fits on a device, wave after wave (tracking_device.h).
+    // The same fits on a device, wave after wave (motion_device.h; its frames are set).
     SampleTrackingProblem problem;
-    problem.frames.resize(T);
-    for (int t = 0; t < T; ++t) {
-      const Frame& f = frames[t];
-      SampleTrackingProblem::Frame& d = problem.frames[t];
-      d.tree = &f.tree.flatTree();
-      const std::vector<int>& rows = d.tree->leafRows();
-      d.leaf_normals.resize(3 * rows.size());
-      for (std::size_t i = 0; i < rows.size(); ++i) {
-        const auto& q = (*f.cloud)[f.tree.cloudIndex(rows[i])];
-        d.leaf_normals[3 * i] = q.normal_x;
-        d.leaf_normals[3 * i + 1] = q.normal_y;
-        d.leaf_normals[3 * i + 2] = q.normal_z;
-      }
-      d.spacing = f.spacing;
-      d.unoriented = f.unoriented;
-    }
     problem.samples = S;
     problem.icp_iterations = params.icp_iterations;
-    problem.normal_cos = kNormalCos;
-    problem.clip = kClip;
     for (int s = 0; s < S; ++s) {
       problem.source_p.push_back(src[s].p);
       problem.source_n.push_back(src[s].n);
@@ -765,7 +792,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     for (std::vector<int>& wave : problem.waves)
       for (int& task : wave) task = frame_order[task / S] * S + task % S;
     timer.lap("tracking: device problem");
-    params.device->solve(problem, tr.poses, res);
+    params.device->trackSamples(problem, tr.poses, res);
     if (progress) progress->update(static_cast<std::size_t>(F));
   } else {
     runTaskGraph(successors, priority, solve, [&](int task) {
@@ -1214,6 +1241,62 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   return motion;
 }
 
+/** Residuals (residual()) of many sources under many motions against the frames, computed at
+ * once: on the device when there is one (motion_device.h), else in one parallel loop; the same
+ * values either way. Add the sources and motions, then the jobs; run() returns one residual per
+ * job, in job order. */
+class ResidualBatch {
+ public:
+  ResidualBatch(const std::vector<Frame>& frames, MotionDevice* device)
+      : frames_(frames), device_(device) {}
+  int addSource(Source s) {
+    sources_.push_back(std::move(s));
+    return static_cast<int>(sources_.size()) - 1;
+  }
+  int addMotion(const Pose& p) {
+    motions_.push_back(p);
+    return static_cast<int>(motions_.size()) - 1;
+  }
+  int motions() const { return static_cast<int>(motions_.size()); }
+  void add(int source, int motion, int frame) { jobs_.push_back({source, motion, frame}); }
+
+  std::vector<double> run() const {
+    std::vector<double> out(jobs_.size(), 0.0);
+    if (device_) {
+      ResidualJobs d;
+      for (const Source& s : sources_) {
+        for (Eigen::Index i = 0; i < s.p.cols(); ++i) {
+          for (int k = 0; k < 3; ++k) d.points.push_back(s.p(k, i));
+          for (int k = 0; k < 3; ++k) d.points.push_back(s.n(k, i));
+        }
+        d.source_begin.push_back(static_cast<int>(d.points.size() / 6));
+      }
+      for (const Pose& m : motions_) {
+        const icp_step::Rigid r = toRigid(m);
+        d.motions.insert(d.motions.end(), r.r, r.r + 9);
+        d.motions.insert(d.motions.end(), r.t, r.t + 3);
+      }
+      d.jobs = jobs_;
+      device_->residuals(d, out);
+      return out;
+    }
+    const long n = static_cast<long>(jobs_.size());
+#pragma omp parallel for schedule(dynamic, 16) if (!omp_in_parallel() && n > 1)
+    for (long j = 0; j < n; ++j) {
+      const ResidualJobs::Job& job = jobs_[j];
+      out[j] = residual(sources_[job.source], motions_[job.motion], frames_[job.frame]);
+    }
+    return out;
+  }
+
+ private:
+  const std::vector<Frame>& frames_;
+  MotionDevice* device_;
+  std::vector<Source> sources_;
+  std::vector<Pose> motions_;
+  std::vector<ResidualJobs::Job> jobs_;
+};
+
 TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const SampleTracks& tr,
                                          const MotionTrackingParams& params) {
   const int S = static_cast<int>(tr.sample_points.size());
@@ -1238,15 +1321,6 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
 
   // Each group's residual under its own pose, per frame (half of every evaluation's work).
   std::vector<std::vector<double>> self(S, std::vector<double>(T, 0.0));
-  // The per-frame loops below run over the frames in parallel when called on their own (a
-  // merge's updates) and serially inside the parallel scoring of all groups and edges.
-  auto selfResidual = [&](int g) {
-    const Source sg = sourceOf(rc, points[g], kSourcePoints);
-#pragma omp parallel for schedule(static) if (!omp_in_parallel())
-    for (int t = 0; t < T; ++t) self[g][t] = t == ref ? 0.0 : residual(sg, pose[g][t], frames[t]);
-  };
-#pragma omp parallel for schedule(dynamic, 8)
-  for (int g = 0; g < S; ++g) selfResidual(g);
 
   // Cost of merging A and B, per frame: the better of the two groups' poses, scored by the worse
   // of A's and B's surface residuals under it (each side on its own, so that a small limb cannot
@@ -1257,69 +1331,91 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     double cost = 0.0;
     std::vector<Pose> pose;
   };
-  auto evaluate = [&](int a, int b) {
-    const Source sa = sourceOf(rc, points[a], kSourcePoints);
-    const Source sb = sourceOf(rc, points[b], kSourcePoints);
+  // The edge (a, b) from b's residuals under a's poses (b_in_a[t]) and a's under b's, given
+  // both groups' own residuals (self).
+  auto edgeOf = [&](int a, int b, const double* b_in_a, const double* a_in_b) {
     Eval e;
     e.pose.resize(T);
-    std::vector<double> cost(T, 0.0);
-#pragma omp parallel for schedule(static) if (!omp_in_parallel())
     for (int t = 0; t < T; ++t) {
       if (t == ref) {
         e.pose[t] = pose[a][t];
         continue;
       }
-      const double ca = std::max(self[a][t], residual(sb, pose[a][t], frames[t]));
-      const double cb = std::max(residual(sa, pose[b][t], frames[t]), self[b][t]);
+      const double ca = std::max(self[a][t], b_in_a[t]);
+      const double cb = std::max(a_in_b[t], self[b][t]);
       e.pose[t] = ca <= cb ? pose[a][t] : pose[b][t];
-      cost[t] = std::min(ca, cb);
+      e.cost = std::max(e.cost, std::min(ca, cb));
     }
-    for (int t = 0; t < T; ++t) e.cost = std::max(e.cost, cost[t]);
     return e;
   };
-  // After a merge into a: a's own residuals (self[a]) and evaluate(a, o) for each of `others`,
-  // in one parallel loop over the frames: a merge's neighbours one after the other, each over its
-  // frames, were a parallel loop of a few microseconds' work per neighbour, and 16 threads spent
-  // it starting and joining.
+  // Every residual of a batch at once (ResidualBatch: the device's when there is one).
+  auto addGroup = [&](ResidualBatch& batch, int g) {
+    const int src = batch.addSource(sourceOf(rc, points[g], kSourcePoints));
+    const int mot = batch.motions();
+    for (int t = 0; t < T; ++t) batch.addMotion(pose[g][t]);
+    return std::make_pair(src, mot);
+  };
+  // After a merge into a: a's own residuals (self[a]) and the edges to each of `others`, in one
+  // batch.
   auto evaluateFrom = [&](int a, const std::vector<int>& others) {
     const std::size_t no = others.size();
-    const Source sa = sourceOf(rc, points[a], kSourcePoints);
-    std::vector<Source> sb(no);
-    for (std::size_t i = 0; i < no; ++i) sb[i] = sourceOf(rc, points[others[i]], kSourcePoints);
-    std::vector<Eval> out(no);
-    for (Eval& e : out) e.pose.resize(T);
-    std::vector<double> cost(no * T, 0.0);
-    // One frame per item: a's own residual in the frame first (selfResidual's, for the merged
-    // group), then every neighbour's edge in it; one parallel loop per merge.
-#pragma omp parallel for schedule(dynamic, 1) if (!omp_in_parallel())
+    ResidualBatch batch(frames, params.device);
+    const auto [sa, ma] = addGroup(batch, a);
+    std::vector<std::pair<int, int>> ob(no);
+    for (std::size_t i = 0; i < no; ++i) ob[i] = addGroup(batch, others[i]);
+    // Per frame: a's own residual, then b's under a's pose and a's under b's for every b.
     for (int t = 0; t < T; ++t) {
-      self[a][t] = t == ref ? 0.0 : residual(sa, pose[a][t], frames[t]);
+      batch.add(sa, ma + t, t);
       for (std::size_t i = 0; i < no; ++i) {
-        const int b = others[i];
-        if (t == ref) {
-          out[i].pose[t] = pose[a][t];
-          continue;
-        }
-        const double ca = std::max(self[a][t], residual(sb[i], pose[a][t], frames[t]));
-        const double cb = std::max(residual(sa, pose[b][t], frames[t]), self[b][t]);
-        out[i].pose[t] = ca <= cb ? pose[a][t] : pose[b][t];
-        cost[i * T + t] = std::min(ca, cb);
+        batch.add(ob[i].first, ma + t, t);
+        batch.add(sa, ob[i].second + t, t);
       }
     }
-    for (std::size_t i = 0; i < no; ++i)
-      for (int t = 0; t < T; ++t) out[i].cost = std::max(out[i].cost, cost[i * T + t]);
+    const std::vector<double> r = batch.run();
+    const std::size_t per = 1 + 2 * no;
+    for (int t = 0; t < T; ++t) self[a][t] = t == ref ? 0.0 : r[t * per];
+    std::vector<Eval> out(no);
+    std::vector<double> b_in_a(T), a_in_b(T);
+    for (std::size_t i = 0; i < no; ++i) {
+      for (int t = 0; t < T; ++t) {
+        b_in_a[t] = r[t * per + 1 + 2 * i];
+        a_in_b[t] = r[t * per + 2 + 2 * i];
+      }
+      out[i] = edgeOf(a, others[i], b_in_a.data(), a_in_b.data());
+    }
     return out;
   };
   std::map<std::pair<int, int>, Eval> edges;
   {
+    // Every group's own residuals and every edge's, in one batch.
     std::vector<std::pair<int, int>> pairs;
     for (int s = 0; s < S; ++s)
       for (int o : tr.graph[s])
         if (s < o) pairs.push_back({s, o});
-    std::vector<Eval> c(pairs.size());
-#pragma omp parallel for schedule(dynamic, 16)
-    for (std::size_t i = 0; i < pairs.size(); ++i) c[i] = evaluate(pairs[i].first, pairs[i].second);
-    for (std::size_t i = 0; i < pairs.size(); ++i) edges[pairs[i]] = std::move(c[i]);
+    ResidualBatch batch(frames, params.device);
+    std::vector<std::pair<int, int>> of(S);
+    for (int g = 0; g < S; ++g) of[g] = addGroup(batch, g);
+    for (int g = 0; g < S; ++g)
+      for (int t = 0; t < T; ++t)
+        if (t != ref) batch.add(of[g].first, of[g].second + t, t);
+    for (const auto& [a, b] : pairs)
+      for (int t = 0; t < T; ++t) {
+        batch.add(of[b].first, of[a].second + t, t);
+        batch.add(of[a].first, of[b].second + t, t);
+      }
+    const std::vector<double> r = batch.run();
+    std::size_t k = 0;
+    for (int g = 0; g < S; ++g)
+      for (int t = 0; t < T; ++t)
+        if (t != ref) self[g][t] = r[k++];
+    std::vector<double> b_in_a(T), a_in_b(T);
+    for (const auto& [a, b] : pairs) {
+      for (int t = 0; t < T; ++t) {
+        b_in_a[t] = r[k++];
+        a_in_b[t] = r[k++];
+      }
+      edges[{a, b}] = edgeOf(a, b, b_in_a.data(), a_in_b.data());
+    }
   }
   timer.lap("clustering: sample edges");
   const int min_size = std::max(1, params.min_group_samples);
@@ -1984,13 +2080,17 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
 
 SampleTracks trackSamples(const PointCloudSequence& seq, const MotionTrackingParams& params,
                           Progress* progress) {
-  return trackSamplesOn(seq, makeFrames(seq), params, progress);
+  const std::vector<Frame> frames = makeFrames(seq);
+  if (params.device) params.device->setFrames(deviceFrames(frames));
+  return trackSamplesOn(seq, frames, params, progress);
 }
 
 TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const SampleTracks& tr,
                                        const MotionTrackingParams& params) {
   if (tr.sample_points.empty()) return TrajectoryClusters();
-  return clusterTrajectoriesOn(makeFrames(seq), tr, params);
+  const std::vector<Frame> frames = makeFrames(seq);
+  if (params.device) params.device->setFrames(deviceFrames(frames));
+  return clusterTrajectoriesOn(frames, tr, params);
 }
 
 void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams& params,
@@ -1998,6 +2098,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
                        Progress* progress) {
   // The frames (kd-tree and spacing of each) are built once for the three steps.
   const std::vector<Frame> frames = makeFrames(seq);
+  if (params.device) params.device->setFrames(deviceFrames(frames));
   const SampleTracks tr = trackSamplesOn(seq, frames, params, progress);
   if (progress) progress->begin("clustering trajectories", 0);
   const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);

@@ -36,8 +36,8 @@
  */
 #include <pcl/PointIndices.h>
 #include <pcl_animseg/filters/gaussian_kdtree.h>
+#include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/segmentation/segmentation_result.h>
-#include <pcl_animseg/segmentation/tracking_device.h>
 #include <pcl_animseg/sequence.h>
 
 #include <Eigen/Core>
@@ -168,9 +168,9 @@ class MeanShiftDeviceBackend {
                        const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
                        const MeanShiftParams& params, const Eigen::MatrixXf& queries,
                        const std::vector<char>& query_key, Eigen::VectorXf& out) = 0;
-  /** \brief The motion method's sample tracking on the same device (tracking_device.h), owned by
+  /** \brief The motion method's sample tracking on the same device (motion_device.h), owned by
    * this backend; nullptr (the default): the motion method runs on the CPU. */
-  virtual SampleTrackingDevice* sampleTracking() { return nullptr; }
+  virtual MotionDevice* motionDevice() { return nullptr; }
 };
 
 /** \brief Segments a whole sequence so that a label means the same part in every frame.
@@ -219,7 +219,7 @@ class MeanShiftSegmentation {
   void setProgress(Progress* progress) { progress_ = progress; }
   /** \brief Runs the kernel sums on a device (see MeanShiftDeviceBackend): the paper method
    * entirely (iteration and densities), the motion method its sample tracking (when the
-   * backend offers it: sampleTracking()) and densities. nullptr: the CPU.
+   * backend offers it: motionDevice()) and densities. nullptr: the CPU.
    * With `cpu_fallback`, a device failure (Error from the backend) is not fatal: the stage
    * reruns that part on the CPU and fallbackReason() says why; otherwise the Error propagates. */
   void setDeviceBackend(std::shared_ptr<MeanShiftDeviceBackend> backend,

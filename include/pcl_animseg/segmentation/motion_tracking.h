@@ -56,7 +56,7 @@ namespace pcl_animseg {
 class Progress;
 namespace segmentation {
 
-class SampleTrackingDevice;
+class MotionDevice;
 
 /** \brief Knobs of the tracked-sample decomposition. */
 struct MotionTrackingParams {
@@ -121,9 +121,9 @@ struct MotionTrackingParams {
    * part borders). */
   int point_neighbours = 10;
   unsigned seed = 1;
-  /** Fits the tracking's per-sample poses on a device (tracking_device.h; not owned). nullptr:
+  /** Fits the tracking's per-sample poses on a device (motion_device.h; not owned). nullptr:
    * the CPU. A device's fits agree with the CPU's to rounding, not bit for bit. */
-  SampleTrackingDevice* device = nullptr;
+  MotionDevice* device = nullptr;
 };
 
 /** \brief Trajectories of the tracked samples. */

@@ -13,14 +13,14 @@
  * \endcode
  *
  * The paper method runs its iteration (gpu::MeanShift) and its densities on the device; the
- * motion method its sample tracking (gpu::SampleTracking) and densities. Kernel sums use the
+ * motion method its sample tracking (gpu::MotionTracking) and densities. Kernel sums use the
  * Gaussian kd-tree with MeanShiftParams::gkdtree, exactly the CPU filter's tree, so the labels
  * agree with the CPU's gkdtree backend. The exact refinement of the end points
  * (MeanShiftParams::refine_iterations) stays on the CPU. Every CUDA failure throws
  * pcl_animseg::Error.
  */
 #include <pcl_animseg/gpu/mean_shift.h>
-#include <pcl_animseg/gpu/sample_tracking.h>
+#include <pcl_animseg/gpu/motion_tracking.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
 
 #include <memory>
@@ -42,14 +42,14 @@ class MeanShiftBackend : public segmentation::MeanShiftDeviceBackend {
                const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
                const segmentation::MeanShiftParams& params, const Eigen::MatrixXf& queries,
                const std::vector<char>& query_key, Eigen::VectorXf& out) override;
-  /** \brief The motion method's sample tracking on this device (sample_tracking.h). */
-  segmentation::SampleTrackingDevice* sampleTracking() override { return &tracking_; }
+  /** \brief The motion method's fits and residuals on this device (motion_tracking.h). */
+  segmentation::MotionDevice* motionDevice() override { return &tracking_; }
   /** \brief Timings and memory of the last seekModes. */
   const MeanShiftStats& lastStats() const { return stats_; }
 
  private:
   MeanShiftStats stats_;
-  SampleTracking tracking_;
+  MotionTracking tracking_;
 };
 
 /** \brief A MeanShiftBackend; throws Error when no usable GPU is present (check gpuAvailable

@@ -1,13 +1,14 @@
-// The motion method's tracking handed to a device (tracking_device.h), without a GPU: what a device
+// The motion method's tracking handed to a device (motion_device.h), without a GPU: what a device
 // is given (waves in dependency order, the frames' trees and normals, the starts' inputs), that
 // its poses are what the rest of the method uses, and that a failing device either stops the
 // stage with its error or, with the fall-back on, leaves the CPU's result.
 #include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
+#include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/task_graph.h>
-#include <pcl_animseg/segmentation/tracking_device.h>
 
 #include <cmath>
 #include <memory>
@@ -27,15 +28,28 @@ pcl_animseg::PointCloudSequence::Ptr chain(int frames, int points, unsigned seed
           .sequence);
 }
 
-// Checks what it is given, then answers with poses it was handed (the CPU's), or throws.
-class RecordingDevice : public seg::SampleTrackingDevice {
+// A device on the CPU: checks what it is given, answers the tracking with poses it was handed
+// (the CPU's) and computes residuals from what it was given alone (the frames' trees and leaf
+// normals, the batch's sources and motions) with icp_step's arithmetic, as the GPU does; or
+// throws.
+class RecordingDevice : public seg::MotionDevice {
  public:
   std::string name() const override { return "recording device"; }
-  void solve(const seg::SampleTrackingProblem& p,
-             std::vector<std::vector<Eigen::Isometry3d>>& poses,
-             std::vector<std::vector<double>>& residual) override {
+  void setFrames(const seg::DeviceFrames& f) override {
+    ++frame_calls;
+    frames = f;
+    leaf_of.assign(f.frames.size(), {});
+    for (std::size_t t = 0; t < f.frames.size(); ++t) {
+      const auto& rows = f.frames[t].tree->leafRows();
+      leaf_of[t].resize(rows.size());
+      for (std::size_t i = 0; i < rows.size(); ++i) leaf_of[t][rows[i]] = static_cast<int>(i);
+    }
+  }
+  void trackSamples(const seg::SampleTrackingProblem& p,
+                    std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                    std::vector<std::vector<double>>& residual) override {
     ++calls;
-    const int T = static_cast<int>(p.frames.size()), S = p.samples;
+    const int T = static_cast<int>(frames.frames.size()), S = p.samples;
     // Every fit once, each after the fits its starts read: the same sample in the frame before
     // (and two before) and the sample's neighbours of lower level in its own frame.
     std::vector<int> wave_of(static_cast<std::size_t>(T) * S, -1);
@@ -51,7 +65,7 @@ class RecordingDevice : public seg::SampleTrackingDevice {
       if (p.before[t] < 0) reference = t;
     EXPECT_EQ(tasks, (T - 1) * S);
     for (int t = 0; t < T; ++t) {
-      const auto& f = p.frames[t];
+      const auto& f = frames.frames[t];
       ASSERT_NE(f.tree, nullptr);
       EXPECT_EQ(f.leaf_normals.size(), f.tree->leafPoints().size());
       // The normals are in the tree's leaf order: each is a unit vector of the frame's point.
@@ -77,8 +91,47 @@ class RecordingDevice : public seg::SampleTrackingDevice {
     poses = answer;
     residual.assign(T, std::vector<double>(S, 0.5));
   }
-  int calls = 0;
+  void residuals(const seg::ResidualJobs& b, std::vector<double>& out) override {
+    namespace icp = seg::icp_step;
+    ++batches;
+    jobs += b.jobs.size();
+    out.clear();
+    for (const auto& job : b.jobs) {
+      const auto& f = frames.frames[job.frame];
+      icp::Rigid m;
+      for (int k = 0; k < 9; ++k) m.r[k] = b.motions[12 * job.motion + k];
+      for (int k = 0; k < 3; ++k) m.t[k] = b.motions[12 * job.motion + 9 + k];
+      const double bound = (frames.clip + 1.5) * f.spacing;
+      const float bound2 = static_cast<float>(bound * bound);
+      double sum = 0.0;
+      const int first = b.source_begin[job.source], end = b.source_begin[job.source + 1];
+      for (int i = first; i < end; ++i) {
+        double y[3], n[3];
+        icp::apply(m, &b.points[6 * i], y);
+        icp::rotate(m, &b.points[6 * i + 3], n);
+        const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                            static_cast<float>(y[2])};
+        float d2 = 0.0f;
+        const int row = f.tree->nearest(q, std::nextafter(bound2, 1e30f), d2);
+        double tp[3] = {0, 0, 0}, tn[3] = {0, 0, 0};
+        if (row >= 0) {
+          const int leaf = leaf_of[job.frame][row];
+          for (int k = 0; k < 3; ++k) {
+            tp[k] = f.tree->leafPoints()[3 * leaf + k];
+            tn[k] = f.leaf_normals[3 * leaf + k];
+          }
+        }
+        sum += icp::surfaceError(row >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented,
+                                 frames.normal_cos, frames.clip);
+      }
+      out.push_back(end > first ? std::sqrt(sum / (end - first)) : 0.0);
+    }
+  }
+  int calls = 0, frame_calls = 0, batches = 0;
+  std::size_t jobs = 0;
   bool fail = false;
+  seg::DeviceFrames frames;
+  std::vector<std::vector<int>> leaf_of;  // per frame: tree row -> leaf index
   std::vector<std::vector<Eigen::Isometry3d>> answer;
 };
 
@@ -96,7 +149,7 @@ class RecordingBackend : public seg::MeanShiftDeviceBackend {
                const std::vector<char>&, Eigen::VectorXf&) override {
     throw pcl_animseg::Error("not used");
   }
-  seg::SampleTrackingDevice* sampleTracking() override { return &device; }
+  seg::MotionDevice* motionDevice() override { return &device; }
   RecordingDevice device;
 };
 
@@ -151,6 +204,9 @@ TEST(TrackingDevice, TheCpusPosesFromADeviceGiveTheCpusLabels) {
   seg::SegmentationResult got;
   dev.segment(got);
   EXPECT_EQ(backend->device.calls, 1);
+  EXPECT_EQ(backend->device.frame_calls, 1);
+  EXPECT_GT(backend->device.batches, 1);  // the edges, then one batch per merge
+  EXPECT_GT(backend->device.jobs, 1000u);
   EXPECT_EQ(dev.deviceUsed(), "recording backend");
   EXPECT_EQ(got.num_clusters, expected.num_clusters);
   EXPECT_EQ(flatLabels(got), flatLabels(expected));

@@ -1,7 +1,8 @@
-// Packs a segmentation::SampleTrackingProblem into plain arrays for tracking_kernels.cu.
+// Packs the motion method's device structures (segmentation/motion_device.h) into plain arrays for
+// tracking_kernels.cu.
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/gpu/device.h>
-#include <pcl_animseg/gpu/sample_tracking.h>
+#include <pcl_animseg/gpu/motion_tracking.h>
 
 #include <string>
 
@@ -31,7 +32,10 @@ void appendPoints(const Eigen::Matrix3Xd& p, const Eigen::Matrix3Xd& n, std::vec
 
 }  // namespace
 
-std::string SampleTracking::name() const {
+MotionTracking::MotionTracking() = default;
+MotionTracking::~MotionTracking() = default;
+
+std::string MotionTracking::name() const {
   try {
     return "gpu (" + deviceInfo().name + ")";
   } catch (const Error&) {
@@ -39,26 +43,13 @@ std::string SampleTracking::name() const {
   }
 }
 
-void SampleTracking::solve(const segmentation::SampleTrackingProblem& problem,
-                           std::vector<std::vector<Eigen::Isometry3d>>& poses,
-                           std::vector<std::vector<double>>& residual) {
-  const int T = static_cast<int>(problem.frames.size()), S = problem.samples;
-  const std::size_t uS = static_cast<std::size_t>(S);
-  if (S < 0 || problem.source_p.size() != uS || problem.source_n.size() != uS ||
-      problem.probe_p.size() != uS || problem.probe_n.size() != uS || problem.graph.size() != uS ||
-      problem.level.size() != static_cast<std::size_t>(T) ||
-      problem.before.size() != static_cast<std::size_t>(T) ||
-      problem.two_before.size() != static_cast<std::size_t>(T) ||
-      problem.global.size() != static_cast<std::size_t>(T))
-    throw Error("GPU tracking: the problem's arrays do not match its frames and samples");
-  detail::TrackingArrays a;
-  a.frames = T;
-  a.samples = S;
-  a.iterations = problem.icp_iterations;
-  a.normal_cos = problem.normal_cos;
-  a.clip = problem.clip;
-  for (int t = 0; t < T; ++t) {
-    const segmentation::SampleTrackingProblem::Frame& f = problem.frames[t];
+void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
+  detail::FrameArrays a;
+  a.frames = static_cast<int>(in.frames.size());
+  a.normal_cos = in.normal_cos;
+  a.clip = in.clip;
+  for (std::size_t t = 0; t < in.frames.size(); ++t) {
+    const segmentation::DeviceFrames::Frame& f = in.frames[t];
     if (!f.tree) throw Error("GPU tracking: frame " + std::to_string(t) + " has no tree");
     const int node0 = static_cast<int>(a.nodes.size());
     const int point0 = static_cast<int>(a.points.size() / 4);
@@ -83,6 +74,27 @@ void SampleTracking::solve(const segmentation::SampleTrackingProblem& problem,
     }
     a.spacing.push_back(f.spacing);
     a.unoriented.push_back(f.unoriented ? 1 : 0);
+  }
+  auto store = std::make_unique<detail::FrameStore>();
+  detail::uploadFrames(a, *store);
+  frames_ = std::move(store);
+}
+
+void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,
+                                  std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                                  std::vector<std::vector<double>>& residual) {
+  if (!frames_) throw Error("GPU tracking: no frames were set");
+  const int T = frames_->frames, S = problem.samples;
+  const std::size_t uS = static_cast<std::size_t>(S), uT = static_cast<std::size_t>(T);
+  if (S < 0 || problem.source_p.size() != uS || problem.source_n.size() != uS ||
+      problem.probe_p.size() != uS || problem.probe_n.size() != uS || problem.graph.size() != uS ||
+      problem.level.size() != uT || problem.before.size() != uT ||
+      problem.two_before.size() != uT || problem.global.size() != uT)
+    throw Error("GPU tracking: the problem's arrays do not match its frames and samples");
+  detail::TrackingArrays a;
+  a.samples = S;
+  a.iterations = problem.icp_iterations;
+  for (int t = 0; t < T; ++t) {
     appendPose(problem.global[t], a.global);
     a.before.push_back(problem.before[t]);
     a.two_before.push_back(problem.two_before[t]);
@@ -110,28 +122,47 @@ void SampleTracking::solve(const segmentation::SampleTrackingProblem& problem,
   const long long TS = static_cast<long long>(T) * S;
   for (const std::vector<int>& wave : problem.waves) {
     for (int task : wave) {
-      const int t = S > 0 ? task / S : -1;
-      if (task < 0 || task >= TS || problem.before[t] < 0 || problem.before[t] >= T)
-        throw Error("GPU tracking: a task out of range or without a frame before it");
+      if (task < 0 || task >= TS) throw Error("GPU tracking: a task out of range");
+      const int before = problem.before[task / S];
+      if (before < 0 || before >= T)
+        throw Error("GPU tracking: a task in a frame without a frame before it");
       a.tasks.push_back(task);
     }
     a.wave_begin.push_back(static_cast<int>(a.tasks.size()));
   }
   waves_ = static_cast<int>(problem.waves.size());
   std::vector<double> flat_poses, flat_res;
-  device_seconds_ = detail::runTracking(a, flat_poses, flat_res);
-  poses.assign(T, std::vector<Eigen::Isometry3d>(uS, Eigen::Isometry3d::Identity()));
-  residual.assign(T, std::vector<double>(uS, 0.0));
-  for (int t = 0; t < T; ++t)
-    for (int s = 0; s < S; ++s) {
-      const double* p = &flat_poses[(static_cast<std::size_t>(t) * uS + s) * detail::kPoseDoubles];
+  device_seconds_ = detail::runTracking(*frames_, a, flat_poses, flat_res);
+  poses.assign(uT, std::vector<Eigen::Isometry3d>(uS, Eigen::Isometry3d::Identity()));
+  residual.assign(uT, std::vector<double>(uS, 0.0));
+  for (std::size_t t = 0; t < uT; ++t)
+    for (std::size_t s = 0; s < uS; ++s) {
+      const double* p = &flat_poses[(t * uS + s) * detail::kPoseDoubles];
       Eigen::Isometry3d& pose = poses[t][s];
-      pose.setIdentity();
       for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) pose.linear()(i, j) = p[3 * i + j];
       for (int i = 0; i < 3; ++i) pose.translation()(i) = p[9 + i];
-      residual[t][s] = flat_res[static_cast<std::size_t>(t) * uS + s];
+      residual[t][s] = flat_res[t * uS + s];
     }
+}
+
+void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) {
+  if (!frames_) throw Error("GPU residuals: no frames were set");
+  const int sources = static_cast<int>(jobs.source_begin.size()) - 1;
+  const int motions = static_cast<int>(jobs.motions.size() / detail::kPoseDoubles);
+  if (sources < 0 || jobs.source_begin.front() != 0 ||
+      static_cast<std::size_t>(jobs.source_begin.back()) * 6 != jobs.points.size() ||
+      jobs.motions.size() % detail::kPoseDoubles != 0)
+    throw Error("GPU residuals: the sources or motions are malformed");
+  std::vector<detail::ResidualJob> list;
+  list.reserve(jobs.jobs.size());
+  for (const segmentation::ResidualJobs::Job& j : jobs.jobs) {
+    if (j.source < 0 || j.source >= sources || j.motion < 0 || j.motion >= motions || j.frame < 0 ||
+        j.frame >= frames_->frames)
+      throw Error("GPU residuals: a job out of range");
+    list.push_back({j.source, j.motion, j.frame});
+  }
+  detail::runResiduals(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, out);
 }
 
 }  // namespace gpu

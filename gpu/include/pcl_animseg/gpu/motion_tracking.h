@@ -1,0 +1,55 @@
+#pragma once
+/** \file motion_tracking.h The motion method's fits and residuals on the current CUDA device.
+ *
+ * \code
+ * pcl_animseg::gpu::MotionTracking gpu_motion;
+ * pcl_animseg::segmentation::MotionTrackingParams params;
+ * params.device = &gpu_motion;   // segmentByTracking fits and scores on the GPU
+ * \endcode
+ *
+ * gpu::MeanShiftBackend owns one (MeanShiftDeviceBackend::motionDevice), so that
+ * `animseg --device gpu|auto` runs the default method's tracking and merge scores on the GPU.
+ * One warp fits one (frame, sample) pose, one kernel launch fits a wave of them; one warp
+ * computes one residual of a batch. The arithmetic and the order of every sum are the CPU's
+ * (segmentation/icp_step.h): the results are the CPU's bit for bit.
+ */
+#include <pcl_animseg/segmentation/motion_device.h>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace pcl_animseg {
+namespace gpu {
+
+namespace detail {
+struct FrameStore;
+}
+
+/** \brief segmentation::MotionDevice on the current CUDA device. */
+class MotionTracking : public segmentation::MotionDevice {
+ public:
+  MotionTracking();
+  ~MotionTracking() override;
+  std::string name() const override;
+  /** \brief Throws Error on a CUDA failure or frames without a tree. */
+  void setFrames(const segmentation::DeviceFrames& frames) override;
+  /** \brief Throws Error on a CUDA failure, no frames set, or a problem whose arrays do not
+   * match. */
+  void trackSamples(const segmentation::SampleTrackingProblem& problem,
+                    std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                    std::vector<std::vector<double>>& residual) override;
+  void residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) override;
+  /** \brief Seconds of the last trackSamples on the device (uploads, kernels, downloads). */
+  double lastDeviceSeconds() const { return device_seconds_; }
+  /** \brief Kernel launches (waves) of the last trackSamples. */
+  int lastWaves() const { return waves_; }
+
+ private:
+  std::unique_ptr<detail::FrameStore> frames_;
+  double device_seconds_ = 0.0;
+  int waves_ = 0;
+};
+
+}  // namespace gpu
+}  // namespace pcl_animseg

@@ -1,0 +1,93 @@
+#pragma once
+/** \file motion_device.h The motion method's fits and residuals handed to a device.
+ *
+ * Step 2 of motion_tracking.h fits, for every frame t and tracked sample s, the pose that carries
+ * the sample's reference neighbourhood onto frame t: its starts are scored on a fifth of the
+ * neighbourhood, the two best refined by damped point-to-plane ICP, the better fit kept. The
+ * CPU runs these fits as a task graph; a device (the CUDA module's gpu::MotionTracking) gets them
+ * here as waves: every fit of a wave depends only on fits of earlier waves. Step 3 scores merges
+ * by residuals (RMS surface errors) of many sources under many motions, which a device computes
+ * as one batch.
+ *
+ * The device computes with the CPU's arithmetic (icp_step.h) and adds in the CPU's order, so its
+ * poses and residuals are the CPU's bit for bit, and so are the labels downstream. The
+ * segmentation module never links a device library: it only sees this interface.
+ */
+#include <pcl_animseg/flat_kdtree.h>
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <string>
+#include <vector>
+
+namespace pcl_animseg {
+namespace segmentation {
+
+/** \brief The frames of a sequence as a device sees them. */
+struct DeviceFrames {
+  /** \brief One frame: its kd-tree (over the frame's points) and the normals of the tree's
+   * points in the tree's leaf order (FlatKdTree3::leafPoints), 3 floats each. */
+  struct Frame {
+    const FlatKdTree3* tree = nullptr;
+    std::vector<float> leaf_normals;
+    double spacing = 1.0;     ///< mean point spacing
+    bool unoriented = false;  ///< normals compared by |n . n'| (their sign is a guess)
+  };
+  std::vector<Frame> frames;
+  double normal_cos = 0.3;  ///< points whose normals' cosine is below this are not matched
+  double clip = 4.0;        ///< surface errors are clipped at clip^2 (spacings^2)
+};
+
+/** \brief Everything the tracking's per-sample poses depend on besides the frames. */
+struct SampleTrackingProblem {
+  int samples = 0;  ///< S; task t * S + s is sample s in frame t
+  int icp_iterations = 8;
+  /** Each sample's ICP source and its probe (the points that score the starts), reference
+   * coordinates: positions and normals, one column per point. */
+  std::vector<Eigen::Matrix3Xd> source_p, source_n, probe_p, probe_n;
+  std::vector<std::vector<int>> graph;    ///< sample adjacency
+  std::vector<std::vector<int>> level;    ///< level[t][s]: s's BFS level in frame t
+  std::vector<int> before;                ///< per frame: the frame before it (-1: the reference)
+  std::vector<int> two_before;            ///< per frame: the frame two before it, or -1
+  std::vector<Eigen::Isometry3d> global;  ///< the whole body's pose in every frame
+  /** The fits in dependency order: every task of waves[w] depends only on tasks of earlier
+   * waves (and on the reference frame, whose poses are the identity). */
+  std::vector<std::vector<int>> waves;
+};
+
+/** \brief Residuals for a device to compute: job j is the RMS surface error (in spacings) of
+ * source jobs[j].source moved by motion jobs[j].motion against frame jobs[j].frame. */
+struct ResidualJobs {
+  struct Job {
+    int source;
+    int motion;
+    int frame;
+  };
+  std::vector<double> points;        ///< 6 per point: position, normal (reference coordinates)
+  std::vector<int> source_begin{0};  ///< source k: points source_begin[k] .. source_begin[k+1]-1
+  std::vector<double> motions;       ///< 12 per motion: the rotation row by row, the translation
+  std::vector<Job> jobs;
+};
+
+/** \brief A device for the motion method's fits and residuals (see the file comment). Every
+ * method throws Error on a device failure (no device, out of memory, kernel fault): never a
+ * silent wrong result. */
+class MotionDevice {
+ public:
+  virtual ~MotionDevice() = default;
+  /** \brief For logs, e.g. "gpu (NVIDIA H100 80GB HBM3)". */
+  virtual std::string name() const = 0;
+  /** \brief Copies the frames to the device; the calls below use them until the next call. */
+  virtual void setFrames(const DeviceFrames& frames) = 0;
+  /** \brief Fits every task of every wave: poses[t][s] (reference -> frame t; the entries of the
+   * reference frame are read as the identity) and residual[t][s] (RMS surface error of the kept
+   * fit, in spacings). Both come sized T x S. */
+  virtual void trackSamples(const SampleTrackingProblem& problem,
+                            std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                            std::vector<std::vector<double>>& residual) = 0;
+  /** \brief One residual per job, in job order. */
+  virtual void residuals(const ResidualJobs& jobs, std::vector<double>& out) = 0;
+};
+
+}  // namespace segmentation
+}  // namespace pcl_animseg
