@@ -1258,7 +1258,11 @@ class ResidualBatch {
     return static_cast<int>(motions_.size()) - 1;
   }
   int motions() const { return static_cast<int>(motions_.size()); }
-  void add(int source, int motion, int frame) { jobs_.push_back({source, motion, frame}); }
+  /** Returns the job's index. */
+  int add(int source, int motion, int frame) {
+    jobs_.push_back({source, motion, frame});
+    return static_cast<int>(jobs_.size()) - 1;
+  }
 
   std::vector<double> run() const {
     std::vector<double> out(jobs_.size(), 0.0);
@@ -1332,7 +1336,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     std::vector<Pose> pose;
   };
   // The edge (a, b) from b's residuals under a's poses (b_in_a[t]) and a's under b's, given
-  // both groups' own residuals (self).
+  // both groups' own residuals (self); the reference frame's entries are not read.
   auto edgeOf = [&](int a, int b, const double* b_in_a, const double* a_in_b) {
     Eval e;
     e.pose.resize(T);
@@ -1363,24 +1367,27 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     const auto [sa, ma] = addGroup(batch, a);
     std::vector<std::pair<int, int>> ob(no);
     for (std::size_t i = 0; i < no; ++i) ob[i] = addGroup(batch, others[i]);
-    // Per frame: a's own residual, then b's under a's pose and a's under b's for every b.
+    // Per frame but the reference: a's own residual, then b's under a's pose and a's under b's
+    // for every b (jobs in the order of a loop over the frames: each frame's tree stays warm).
+    std::vector<int> self_job(T, -1), b_job(no * T, -1), a_job(no * T, -1);
     for (int t = 0; t < T; ++t) {
-      batch.add(sa, ma + t, t);
+      if (t == ref) continue;
+      self_job[t] = batch.add(sa, ma + t, t);
       for (std::size_t i = 0; i < no; ++i) {
-        batch.add(ob[i].first, ma + t, t);
-        batch.add(sa, ob[i].second + t, t);
+        b_job[i * T + t] = batch.add(ob[i].first, ma + t, t);
+        a_job[i * T + t] = batch.add(sa, ob[i].second + t, t);
       }
     }
     const std::vector<double> r = batch.run();
-    const std::size_t per = 1 + 2 * no;
-    for (int t = 0; t < T; ++t) self[a][t] = t == ref ? 0.0 : r[t * per];
+    for (int t = 0; t < T; ++t) self[a][t] = t == ref ? 0.0 : r[self_job[t]];
     std::vector<Eval> out(no);
-    std::vector<double> b_in_a(T), a_in_b(T);
+    std::vector<double> b_in_a(T, 0.0), a_in_b(T, 0.0);
     for (std::size_t i = 0; i < no; ++i) {
-      for (int t = 0; t < T; ++t) {
-        b_in_a[t] = r[t * per + 1 + 2 * i];
-        a_in_b[t] = r[t * per + 2 + 2 * i];
-      }
+      for (int t = 0; t < T; ++t)
+        if (t != ref) {
+          b_in_a[t] = r[b_job[i * T + t]];
+          a_in_b[t] = r[a_job[i * T + t]];
+        }
       out[i] = edgeOf(a, others[i], b_in_a.data(), a_in_b.data());
     }
     return out;
@@ -1399,21 +1406,23 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       for (int t = 0; t < T; ++t)
         if (t != ref) batch.add(of[g].first, of[g].second + t, t);
     for (const auto& [a, b] : pairs)
-      for (int t = 0; t < T; ++t) {
-        batch.add(of[b].first, of[a].second + t, t);
-        batch.add(of[a].first, of[b].second + t, t);
-      }
+      for (int t = 0; t < T; ++t)
+        if (t != ref) {
+          batch.add(of[b].first, of[a].second + t, t);
+          batch.add(of[a].first, of[b].second + t, t);
+        }
     const std::vector<double> r = batch.run();
     std::size_t k = 0;
     for (int g = 0; g < S; ++g)
       for (int t = 0; t < T; ++t)
         if (t != ref) self[g][t] = r[k++];
-    std::vector<double> b_in_a(T), a_in_b(T);
+    std::vector<double> b_in_a(T, 0.0), a_in_b(T, 0.0);
     for (const auto& [a, b] : pairs) {
-      for (int t = 0; t < T; ++t) {
-        b_in_a[t] = r[k++];
-        a_in_b[t] = r[k++];
-      }
+      for (int t = 0; t < T; ++t)
+        if (t != ref) {
+          b_in_a[t] = r[k++];
+          a_in_b[t] = r[k++];
+        }
       edges[{a, b}] = edgeOf(a, b, b_in_a.data(), a_in_b.data());
     }
   }
