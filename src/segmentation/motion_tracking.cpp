@@ -1612,28 +1612,36 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   // a small relative motion there (a pelvis under a torso) must not merge before the pieces of one
   // part do. A part rigidly attached across a crease (a hat on a head) merges as usual.
   const double crease_min = kCreaseMotion * params.threshold;
-  // Several pairs at once: their frames form one parallel loop, so that a merge's handful of
-  // neighbours keeps many cores busy (before, each pair's frames ran as a loop of their own, and
-  // inside a loop over pairs one after the other).
+  // Several pairs at once: all their residuals form one batch (ResidualBatch: one parallel loop,
+  // or the device), so that a merge's handful of neighbours keeps many cores busy.
   auto evaluatePairs = [&](const std::vector<std::pair<int, int>>& list) {
     const std::size_t np = list.size();
-    std::vector<Source> sa(np), sb(np);
+    ResidualBatch batch(frames, params.device);
+    // Per pair and frame but the reference: A's and B's residuals under A's motion, then under
+    // B's (four jobs from first[i * T + t]).
+    std::vector<int> first(np * T, -1);
     for (std::size_t i = 0; i < np; ++i) {
-      sa[i] = sourceOf(rc, gpts[list[i].first], kPartPoints);
-      sb[i] = sourceOf(rc, gpts[list[i].second], kPartPoints);
-    }
-    std::vector<double> cost(np * T, 0.0);
-#pragma omp parallel for schedule(dynamic, 1) if (!omp_in_parallel())
-    for (std::size_t it = 0; it < np * T; ++it) {
-      const std::size_t i = it / T;
-      const int t = static_cast<int>(it % T);
-      if (t == ref) continue;
       const auto [a, b] = list[i];
-      const double ca = std::max(residual(sa[i], gpose[a][t], frames[t]),
-                                 residual(sb[i], gpose[a][t], frames[t]));
-      const double cb = std::max(residual(sa[i], gpose[b][t], frames[t]),
-                                 residual(sb[i], gpose[b][t], frames[t]));
-      cost[it] = std::min(ca, cb);
+      const int sa = batch.addSource(sourceOf(rc, gpts[a], kPartPoints));
+      const int sb = batch.addSource(sourceOf(rc, gpts[b], kPartPoints));
+      const int ma = batch.motions();
+      for (int t = 0; t < T; ++t) batch.addMotion(gpose[a][t]);
+      const int mb = batch.motions();
+      for (int t = 0; t < T; ++t) batch.addMotion(gpose[b][t]);
+      for (int t = 0; t < T; ++t) {
+        if (t == ref) continue;
+        first[i * T + t] = batch.add(sa, ma + t, t);
+        batch.add(sb, ma + t, t);
+        batch.add(sa, mb + t, t);
+        batch.add(sb, mb + t, t);
+      }
+    }
+    const std::vector<double> r = batch.run();
+    std::vector<double> cost(np * T, 0.0);
+    for (std::size_t it = 0; it < np * T; ++it) {
+      const int j = first[it];
+      if (j < 0) continue;
+      cost[it] = std::min(std::max(r[j], r[j + 1]), std::max(r[j + 2], r[j + 3]));
     }
     std::vector<PartEdge> out(np);
     for (std::size_t i = 0; i < np; ++i) {
