@@ -153,6 +153,25 @@ class RecordingBackend : public seg::MeanShiftDeviceBackend {
   RecordingDevice device;
 };
 
+// The motion method as the pipeline runs it (no densities: a device backend only fits and
+// scores), on the CPU or with `backend`.
+seg::MeanShiftParams motionParams() {
+  seg::MeanShiftParams params;
+  params.method = seg::MeanShiftMethod::Motion;
+  params.record_densities = false;
+  return params;
+}
+
+seg::SegmentationResult segmentOnCpu(const pcl_animseg::PointCloudSequence::Ptr& seq) {
+  seg::MeanShiftSegmentation cpu;
+  cpu.setInputSequence(seq);
+  cpu.setParams(motionParams());
+  seg::SegmentationResult result;
+  cpu.segment(result);
+  EXPECT_EQ(cpu.deviceUsed(), "cpu");
+  return result;
+}
+
 std::vector<int> flatLabels(const seg::SegmentationResult& r) {
   std::vector<int> flat;
   for (const auto& f : r.labels) flat.insert(flat.end(), f.begin(), f.end());
@@ -161,7 +180,7 @@ std::vector<int> flatLabels(const seg::SegmentationResult& r) {
 
 }  // namespace
 
-TEST(TrackingDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
+TEST(MotionDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
   const auto seq = chain(7, 3000, 3);
   seg::MotionTrackingParams params;
   params.reference_frame = 3;  // frames on both sides: two chains away from the reference
@@ -181,17 +200,10 @@ TEST(TrackingDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
   }
 }
 
-TEST(TrackingDevice, TheCpusPosesFromADeviceGiveTheCpusLabels) {
+TEST(MotionDevice, ADeviceWithTheCpusPosesAndResidualsGivesTheCpusLabels) {
   const auto seq = chain(8, 3000, 4);
-  seg::MeanShiftParams params;
-  params.method = seg::MeanShiftMethod::Motion;
-  params.record_densities = false;  // as the pipeline runs it: the backend only tracks
-  seg::MeanShiftSegmentation cpu;
-  cpu.setInputSequence(seq);
-  cpu.setParams(params);
-  seg::SegmentationResult expected;
-  cpu.segment(expected);
-  EXPECT_EQ(cpu.deviceUsed(), "cpu");
+  const seg::MeanShiftParams params = motionParams();
+  const seg::SegmentationResult expected = segmentOnCpu(seq);
 
   auto backend = std::make_shared<RecordingBackend>();
   seg::MotionTrackingParams mp;
@@ -212,16 +224,10 @@ TEST(TrackingDevice, TheCpusPosesFromADeviceGiveTheCpusLabels) {
   EXPECT_EQ(flatLabels(got), flatLabels(expected));
 }
 
-TEST(TrackingDevice, AFailingDeviceStopsTheStageOrFallsBackToTheCpu) {
+TEST(MotionDevice, AFailingDeviceStopsTheStageOrFallsBackToTheCpu) {
   const auto seq = chain(6, 2500, 5);
-  seg::MeanShiftParams params;
-  params.method = seg::MeanShiftMethod::Motion;
-  params.record_densities = false;  // as the pipeline runs it: the backend only tracks
-  seg::MeanShiftSegmentation cpu;
-  cpu.setInputSequence(seq);
-  cpu.setParams(params);
-  seg::SegmentationResult expected;
-  cpu.segment(expected);
+  const seg::MeanShiftParams params = motionParams();
+  const seg::SegmentationResult expected = segmentOnCpu(seq);
 
   auto backend = std::make_shared<RecordingBackend>();
   backend->device.fail = true;
