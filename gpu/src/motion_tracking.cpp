@@ -165,5 +165,24 @@ void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vect
   detail::runResiduals(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, out);
 }
 
+void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) {
+  if (!frames_) throw Error("GPU point costs: no frames were set");
+  const int T = frames_->frames;
+  const int points = static_cast<int>(jobs.points.size() / 6);
+  const std::size_t per_motion = static_cast<std::size_t>(T) * detail::kPoseDoubles;
+  if (jobs.points.size() % 6 != 0 || per_motion == 0 || jobs.motions.size() % per_motion != 0 ||
+      jobs.reference_frame < 0 || jobs.reference_frame >= T)
+    throw Error("GPU point costs: the points, motions or reference frame are malformed");
+  const int motions = static_cast<int>(jobs.motions.size() / per_motion);
+  std::vector<detail::PointCostJob> list;
+  list.reserve(jobs.jobs.size());
+  for (const segmentation::PointCostJobs::Job& j : jobs.jobs) {
+    if (j.point < 0 || j.point >= points || j.motion < 0 || j.motion >= motions)
+      throw Error("GPU point costs: a job out of range");
+    list.push_back({j.point, j.motion});
+  }
+  detail::runPointCosts(*frames_, jobs.reference_frame, jobs.points, jobs.motions, list, out);
+}
+
 }  // namespace gpu
 }  // namespace pcl_animseg

@@ -321,6 +321,39 @@ __global__ void residualJobs(Dev d, const double* __restrict__ points,
   if (lane == 0) out[w] = r;
 }
 
+// One point cost per thread (motion_tracking.cpp's pointCost): the point's surface errors under
+// its motion's pose in every frame but the reference, added in frame order.
+__global__ void pointCostJobs(Dev d, int frames, int ref, const double* __restrict__ points,
+                              const double* __restrict__ motions,
+                              const PointCostJob* __restrict__ jobs, int n, double* out) {
+  const int j = blockIdx.x * blockDim.x + threadIdx.x;
+  if (j >= n) return;
+  const PointCostJob job = jobs[j];
+  const double* p = points + 6LL * job.point;
+  double sum = 0.0;
+  for (int t = 0; t < frames; ++t) {
+    if (t == ref) continue;
+    const Rigid m =
+        loadPose(motions + (static_cast<long long>(job.motion) * frames + t) * kPoseDoubles);
+    double y[3], nr[3];
+    icp_step::apply(m, p, y);
+    icp_step::rotate(m, p + 3, nr);
+    const double spacing = d.spacing[t];
+    const double bound = (d.clip + 1.5) * spacing;
+    float d2 = 0.0f;
+    const int k = nearestWithin(d, t, y, static_cast<float>(bound * bound), d2);
+    double tp[3] = {0.0, 0.0, 0.0}, tn[3] = {0.0, 0.0, 0.0};
+    if (k >= 0) {
+      const float4 a = d.pts[k], b = d.nrm[k];
+      tp[0] = a.x, tp[1] = a.y, tp[2] = a.z;
+      tn[0] = b.x, tn[1] = b.y, tn[2] = b.z;
+    }
+    sum += icp_step::surfaceError(k >= 0, d2, y, nr, tp, tn, spacing, d.unoriented[t] != 0,
+                                  d.normal_cos, d.clip);
+  }
+  out[j] = sum;
+}
+
 Dev frameView(const FrameStore& f) {
   Dev d{};
   d.nodes = f.nodes.ptr();
@@ -429,6 +462,32 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
       static_cast<double*>(frames.job_out.rawPtr()));
   cudaCheckLaunch();
   // Synchronises, and reports a kernel fault.
+  frames.job_out.downloadBytes(out.data(), out.size() * sizeof(double));
+}
+
+void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& points,
+                   const std::vector<double>& motions, const std::vector<PointCostJob>& jobs,
+                   std::vector<double>& out) {
+  out.assign(jobs.size(), 0.0);
+  if (jobs.empty()) return;
+  auto put = [](DeviceMemory& m, const void* host, std::size_t bytes) {
+    if (m.sizeBytes() < bytes) m.create(bytes + bytes / 2);
+    m.uploadBytes(host, bytes);
+  };
+  put(frames.job_points, points.data(), points.size() * sizeof(double));
+  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
+  put(frames.job_list, jobs.data(), jobs.size() * sizeof(PointCostJob));
+  if (frames.job_out.sizeBytes() < jobs.size() * sizeof(double))
+    frames.job_out.create(jobs.size() * sizeof(double) * 3 / 2);
+  const Dev d = frameView(frames);
+  const int n = static_cast<int>(jobs.size());
+  constexpr int kThreads = 128;
+  pointCostJobs<<<(n + kThreads - 1) / kThreads, kThreads>>>(
+      d, frames.frames, ref, static_cast<const double*>(frames.job_points.rawPtr()),
+      static_cast<const double*>(frames.job_motions.rawPtr()),
+      static_cast<const PointCostJob*>(frames.job_list.rawPtr()), n,
+      static_cast<double*>(frames.job_out.rawPtr()));
+  cudaCheckLaunch();
   frames.job_out.downloadBytes(out.data(), out.size() * sizeof(double));
 }
 

@@ -83,6 +83,17 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
                   const std::vector<int>& source_begin, const std::vector<double>& motions,
                   const std::vector<ResidualJob>& jobs, std::vector<double>& out);
 
+/** A point-cost job: point, motion (frames x 12 doubles). */
+struct PointCostJob {
+  int point;
+  int motion;
+};
+
+/** One point cost per job: the surface errors summed over the frames but `ref`. */
+void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& points,
+                   const std::vector<double>& motions, const std::vector<PointCostJob>& jobs,
+                   std::vector<double>& out);
+
 }  // namespace detail
 }  // namespace gpu
 }  // namespace pcl_animseg

@@ -818,11 +818,15 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
  * (in spacings^2). */
 double pointCost(const pcl::PointNormal& q, const std::vector<Frame>& frames, int ref,
                  const std::vector<Pose>& motion) {
-  const Eigen::Vector3d p(q.x, q.y, q.z), n(q.normal_x, q.normal_y, q.normal_z);
+  const double p[3] = {q.x, q.y, q.z}, n[3] = {q.normal_x, q.normal_y, q.normal_z};
   double sum = 0.0;
   for (std::size_t t = 0; t < frames.size(); ++t) {
     if (static_cast<int>(t) == ref) continue;
-    sum += surfaceError(motion[t] * p, motion[t].linear() * n, frames[t]);
+    const icp_step::Rigid m = toRigid(motion[t]);
+    double y[3], r[3];
+    icp_step::apply(m, p, y);
+    icp_step::rotate(m, n, r);
+    sum += surfaceError(y, r, frames[t]);
   }
   return sum;
 }
@@ -831,9 +835,67 @@ double pointCost(const pcl::PointNormal& q, const std::vector<Frame>& frames, in
  * its surface neighbourhood, the part whose motion keeps the neighbourhood on the surface best
  * over all frames (costs averaged over the point and its surface neighbours: one point's residual
  * is noisy). Labels < 0 and parts without a motion are left alone. Returns the points changed. */
+/** Point costs (pointCost) of many (reference point, motion) pairs, computed at once: on the
+ * device when there is one (motion_device.h), else in one parallel loop; the same values either
+ * way. Add the motions (one pose per frame) and the jobs; run() returns one cost per job, in job
+ * order. */
+class PointCostBatch {
+ public:
+  PointCostBatch(const Cloud& rc, const std::vector<Frame>& frames, int ref, MotionDevice* device)
+      : rc_(rc), frames_(frames), ref_(ref), device_(device) {}
+  int addMotion(const std::vector<Pose>* motion) {
+    motions_.push_back(motion);
+    return static_cast<int>(motions_.size()) - 1;
+  }
+  void add(int point, int motion) { jobs_.push_back({point, motion}); }
+
+  std::vector<double> run() const {
+    std::vector<double> out(jobs_.size(), 0.0);
+    if (device_ && !jobs_.empty()) {
+      PointCostJobs d;
+      d.reference_frame = ref_;
+      std::vector<int> row(rc_.size(), -1);
+      for (const PointCostJobs::Job& j : jobs_) {
+        int& r = row[static_cast<std::size_t>(j.point)];
+        if (r < 0) {
+          r = static_cast<int>(d.points.size() / 6);
+          const auto& q = rc_[static_cast<std::size_t>(j.point)];
+          d.points.insert(d.points.end(), {q.x, q.y, q.z, q.normal_x, q.normal_y, q.normal_z});
+        }
+        d.jobs.push_back({r, j.motion});
+      }
+      for (const std::vector<Pose>* m : motions_) {
+        if (m->size() != frames_.size()) throw Error("motion tracking: a motion without a frame");
+        for (const Pose& p : *m) {
+          const icp_step::Rigid r = toRigid(p);
+          d.motions.insert(d.motions.end(), r.r, r.r + 9);
+          d.motions.insert(d.motions.end(), r.t, r.t + 3);
+        }
+      }
+      device_->pointCosts(d, out);
+      return out;
+    }
+    const long n = static_cast<long>(jobs_.size());
+#pragma omp parallel for schedule(dynamic, 32) if (!omp_in_parallel() && n > 1)
+    for (long j = 0; j < n; ++j)
+      out[j] = pointCost(rc_[static_cast<std::size_t>(jobs_[j].point)], frames_, ref_,
+                         *motions_[jobs_[j].motion]);
+    return out;
+  }
+
+ private:
+  const Cloud& rc_;
+  const std::vector<Frame>& frames_;
+  int ref_;
+  MotionDevice* device_;
+  std::vector<const std::vector<Pose>*> motions_;
+  std::vector<PointCostJobs::Job> jobs_;
+};
+
 int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surface,
                      const std::vector<Frame>& frames, int ref,
-                     const std::vector<std::vector<Pose>>& motion, std::vector<int>& label) {
+                     const std::vector<std::vector<Pose>>& motion, std::vector<int>& label,
+                     MotionDevice* device) {
   const int n = static_cast<int>(rc.size());
   std::vector<std::vector<int>> cand(n);
   std::vector<std::vector<int>> need(n);
@@ -850,14 +912,22 @@ int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surfa
     }
   }
   std::vector<std::vector<std::pair<int, double>>> cost(n);
-#pragma omp parallel for schedule(dynamic, 32)
+  PointCostBatch batch(rc, frames, ref, device);
+  std::vector<int> motion_id(motion.size(), -1);
   for (int j = 0; j < n; ++j) {
     auto& nd = need[j];
     if (nd.empty()) continue;
     std::sort(nd.begin(), nd.end());
     nd.erase(std::unique(nd.begin(), nd.end()), nd.end());
-    for (int g : nd) cost[j].push_back({g, pointCost(rc[j], frames, ref, motion[g])});
+    for (int g : nd) {
+      if (motion_id[g] < 0) motion_id[g] = batch.addMotion(&motion[g]);
+      batch.add(j, motion_id[g]);
+    }
   }
+  const std::vector<double> costs = batch.run();
+  std::size_t next = 0;
+  for (int j = 0; j < n; ++j)
+    for (int g : need[j]) cost[j].push_back({g, costs[next++]});
   auto costOf = [&](int j, int g) {
     for (const auto& [h, c] : cost[j])
       if (h == g) return c;
@@ -934,7 +1004,7 @@ bool absorbRemnants(const Frame& ref_frame, std::vector<int>& label) {
 int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& surface,
                        const std::vector<Frame>& frames, int ref,
                        const std::vector<std::vector<Pose>>& motion, std::vector<int>& label,
-                       double smooth, int hops) {
+                       double smooth, int hops, MotionDevice* device) {
   const int n = static_cast<int>(rc.size());
   const int T = static_cast<int>(frames.size());
   if (T < 2 || n == 0) return 0;
@@ -956,12 +1026,21 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
   // Unary costs of the candidates.
   std::vector<std::vector<double>> unary(n);
   const double inv_frames = 1.0 / (T - 1);
-#pragma omp parallel for schedule(dynamic, 32)
+  PointCostBatch batch(rc, frames, ref, device);
+  std::vector<int> motion_id(motion.size(), -1);
+  for (int i = 0; i < n; ++i) {
+    if (cand[i].size() < 2) continue;
+    for (int l : cand[i]) {
+      if (motion_id[l] < 0) motion_id[l] = batch.addMotion(&motion[l]);
+      batch.add(i, motion_id[l]);
+    }
+  }
+  const std::vector<double> costs = batch.run();
+  std::size_t next = 0;
   for (int i = 0; i < n; ++i) {
     if (cand[i].size() < 2) continue;
     unary[i].resize(cand[i].size());
-    for (std::size_t k = 0; k < cand[i].size(); ++k)
-      unary[i][k] = inv_frames * pointCost(rc[i], frames, ref, motion[cand[i][k]]);
+    for (std::size_t k = 0; k < cand[i].size(); ++k) unary[i][k] = inv_frames * costs[next++];
   }
   auto unaryOf = [&](int i, int l) {
     const auto it = std::lower_bound(cand[i].begin(), cand[i].end(), l);
@@ -1569,7 +1648,7 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     for (int g = 0; g < G; ++g)
       for (int i : gpts[g]) plabel[i] = g;
     for (int round = 0; round < 3; ++round) {
-      if (reassignByMotion(rc, tr.surface, frames, ref, gpose, plabel) == 0) break;
+      if (reassignByMotion(rc, tr.surface, frames, ref, gpose, plabel, params.device) == 0) break;
       for (auto& v : gpts) v.clear();
       for (int i = 0; i < n0; ++i)
         if (plabel[i] >= 0) gpts[plabel[i]].push_back(i);
@@ -1888,10 +1967,15 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     // the part (one point's residual is noisy).
     auto t0 = std::chrono::steady_clock::now();
     std::vector<std::vector<double>> c(px.size(), std::vector<double>(nb.size()));
-#pragma omp parallel for schedule(dynamic, 16)
-    for (std::size_t k = 0; k < px.size(); ++k)
-      for (std::size_t y = 0; y < nb.size(); ++y)
-        c[k][y] = pointCost(rc[px[k]], frames, ref, gpose[nb[y]]);
+    {
+      PointCostBatch batch(rc, frames, ref, params.device);
+      for (int y : nb) batch.addMotion(&gpose[y]);
+      for (std::size_t k = 0; k < px.size(); ++k)
+        for (std::size_t y = 0; y < nb.size(); ++y) batch.add(px[k], static_cast<int>(y));
+      const std::vector<double> costs = batch.run();
+      for (std::size_t k = 0; k < px.size(); ++k)
+        for (std::size_t y = 0; y < nb.size(); ++y) c[k][y] = costs[k * nb.size() + y];
+    }
     std::vector<int> to(px.size(), nb[0]);
     for (std::size_t k = 0; k < px.size(); ++k) {
       std::vector<double> sum(c[k]);
@@ -2161,10 +2245,10 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   if (tr.surface.size() == static_cast<std::size_t>(n0)) {
     if (params.border_smoothness > 0.0) {
       reassignByGraphCut(rc, tr.surface, frames, ref, motion, label, params.border_smoothness,
-                         params.border_hops);
+                         params.border_hops, params.device);
     } else {
       for (int round = 0; round < 2; ++round)
-        if (reassignByMotion(rc, tr.surface, frames, ref, motion, label) == 0) break;
+        if (reassignByMotion(rc, tr.surface, frames, ref, motion, label, params.device) == 0) break;
     }
   }
   // A part left with a handful of reference points (an isolated point whose group was moved away

@@ -91,43 +91,67 @@ class RecordingDevice : public seg::MotionDevice {
     poses = answer;
     residual.assign(T, std::vector<double>(S, 0.5));
   }
+  // icp_step's surface error of a moved point against frame t, from the frames given.
+  double surfaceError(int t, const double* y, const double* n) const {
+    const auto& f = frames.frames[t];
+    const double bound = (frames.clip + 1.5) * f.spacing;
+    const float bound2 = static_cast<float>(bound * bound);
+    const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                        static_cast<float>(y[2])};
+    float d2 = 0.0f;
+    const int row = f.tree->nearest(q, std::nextafter(bound2, 1e30f), d2);
+    double tp[3] = {0, 0, 0}, tn[3] = {0, 0, 0};
+    if (row >= 0) {
+      const int leaf = leaf_of[t][row];
+      for (int k = 0; k < 3; ++k) {
+        tp[k] = f.tree->leafPoints()[3 * leaf + k];
+        tn[k] = f.leaf_normals[3 * leaf + k];
+      }
+    }
+    return seg::icp_step::surfaceError(row >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented,
+                                       frames.normal_cos, frames.clip);
+  }
+  static seg::icp_step::Rigid motionAt(const std::vector<double>& motions, std::size_t k) {
+    seg::icp_step::Rigid m;
+    for (int i = 0; i < 9; ++i) m.r[i] = motions[12 * k + i];
+    for (int i = 0; i < 3; ++i) m.t[i] = motions[12 * k + 9 + i];
+    return m;
+  }
   void residuals(const seg::ResidualJobs& b, std::vector<double>& out) override {
-    namespace icp = seg::icp_step;
     ++batches;
     jobs += b.jobs.size();
     out.clear();
     for (const auto& job : b.jobs) {
-      const auto& f = frames.frames[job.frame];
-      icp::Rigid m;
-      for (int k = 0; k < 9; ++k) m.r[k] = b.motions[12 * job.motion + k];
-      for (int k = 0; k < 3; ++k) m.t[k] = b.motions[12 * job.motion + 9 + k];
-      const double bound = (frames.clip + 1.5) * f.spacing;
-      const float bound2 = static_cast<float>(bound * bound);
+      const seg::icp_step::Rigid m = motionAt(b.motions, job.motion);
       double sum = 0.0;
       const int first = b.source_begin[job.source], end = b.source_begin[job.source + 1];
       for (int i = first; i < end; ++i) {
         double y[3], n[3];
-        icp::apply(m, &b.points[6 * i], y);
-        icp::rotate(m, &b.points[6 * i + 3], n);
-        const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                            static_cast<float>(y[2])};
-        float d2 = 0.0f;
-        const int row = f.tree->nearest(q, std::nextafter(bound2, 1e30f), d2);
-        double tp[3] = {0, 0, 0}, tn[3] = {0, 0, 0};
-        if (row >= 0) {
-          const int leaf = leaf_of[job.frame][row];
-          for (int k = 0; k < 3; ++k) {
-            tp[k] = f.tree->leafPoints()[3 * leaf + k];
-            tn[k] = f.leaf_normals[3 * leaf + k];
-          }
-        }
-        sum += icp::surfaceError(row >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented,
-                                 frames.normal_cos, frames.clip);
+        seg::icp_step::apply(m, &b.points[6 * i], y);
+        seg::icp_step::rotate(m, &b.points[6 * i + 3], n);
+        sum += surfaceError(job.frame, y, n);
       }
       out.push_back(end > first ? std::sqrt(sum / (end - first)) : 0.0);
     }
   }
-  int calls = 0, frame_calls = 0, batches = 0;
+  void pointCosts(const seg::PointCostJobs& b, std::vector<double>& out) override {
+    ++cost_batches;
+    out.clear();
+    const std::size_t T = frames.frames.size();
+    for (const auto& job : b.jobs) {
+      double sum = 0.0;
+      for (std::size_t t = 0; t < T; ++t) {
+        if (static_cast<int>(t) == b.reference_frame) continue;
+        const seg::icp_step::Rigid m = motionAt(b.motions, job.motion * T + t);
+        double y[3], n[3];
+        seg::icp_step::apply(m, &b.points[6 * job.point], y);
+        seg::icp_step::rotate(m, &b.points[6 * job.point + 3], n);
+        sum += surfaceError(static_cast<int>(t), y, n);
+      }
+      out.push_back(sum);
+    }
+  }
+  int calls = 0, frame_calls = 0, batches = 0, cost_batches = 0;
   std::size_t jobs = 0;
   bool fail = false;
   seg::DeviceFrames frames;
@@ -200,7 +224,7 @@ TEST(MotionDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
   }
 }
 
-TEST(MotionDevice, ADeviceWithTheCpusPosesAndResidualsGivesTheCpusLabels) {
+TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   const auto seq = chain(8, 3000, 4);
   const seg::MeanShiftParams params = motionParams();
   const seg::SegmentationResult expected = segmentOnCpu(seq);
@@ -219,6 +243,7 @@ TEST(MotionDevice, ADeviceWithTheCpusPosesAndResidualsGivesTheCpusLabels) {
   EXPECT_EQ(backend->device.frame_calls, 1);
   EXPECT_GT(backend->device.batches, 1);  // the edges, then one batch per merge
   EXPECT_GT(backend->device.jobs, 1000u);
+  EXPECT_GT(backend->device.cost_batches, 0);  // the border rounds and the final borders
   EXPECT_EQ(dev.deviceUsed(), "recording backend");
   EXPECT_EQ(got.num_clusters, expected.num_clusters);
   EXPECT_EQ(flatLabels(got), flatLabels(expected));

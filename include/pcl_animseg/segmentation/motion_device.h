@@ -6,8 +6,9 @@
  * neighbourhood, the two best refined by damped point-to-plane ICP, the better fit kept. The
  * CPU runs these fits as a task graph; a device (the CUDA module's gpu::MotionTracking) gets them
  * here as waves: every fit of a wave depends only on fits of earlier waves. Step 3 scores merges
- * by residuals (RMS surface errors) of many sources under many motions, which a device computes
- * as one batch.
+ * by residuals (RMS surface errors) of many sources under many motions, and moves points between
+ * parts by their costs (surface errors summed over the frames) under many motions: a device
+ * computes either as one batch.
  *
  * The device computes with the CPU's arithmetic (icp_step.h) and adds in the CPU's order, so its
  * poses and residuals are the CPU's bit for bit, and so are the labels downstream. The
@@ -69,6 +70,20 @@ struct ResidualJobs {
   std::vector<Job> jobs;
 };
 
+/** \brief Point costs for a device to compute: job j is the sum over the frames but the
+ * reference of the squared surface error (spacings^2) of point jobs[j].point moved by motion
+ * jobs[j].motion's pose in each frame, added in frame order. */
+struct PointCostJobs {
+  struct Job {
+    int point;
+    int motion;
+  };
+  int reference_frame = 0;
+  std::vector<double> points;   ///< 6 per point: position, normal (reference coordinates)
+  std::vector<double> motions;  ///< per motion, per frame, 12: the rotation row by row, then t
+  std::vector<Job> jobs;
+};
+
 /** \brief A device for the motion method's fits and residuals (see the file comment). Every
  * method throws Error on a device failure (no device, out of memory, kernel fault): never a
  * silent wrong result. */
@@ -87,6 +102,8 @@ class MotionDevice {
                             std::vector<std::vector<double>>& residual) = 0;
   /** \brief One residual per job, in job order. */
   virtual void residuals(const ResidualJobs& jobs, std::vector<double>& out) = 0;
+  /** \brief One point cost per job, in job order. */
+  virtual void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) = 0;
 };
 
 }  // namespace segmentation

@@ -8,10 +8,10 @@
  * \endcode
  *
  * gpu::MeanShiftBackend owns one (MeanShiftDeviceBackend::motionDevice), so that
- * `animseg --device gpu|auto` runs the default method's tracking and merge scores on the GPU.
- * One warp fits one (frame, sample) pose, one kernel launch fits a wave of them; one warp
- * computes one residual of a batch. The arithmetic and the order of every sum are the CPU's
- * (segmentation/icp_step.h): the results are the CPU's bit for bit.
+ * `animseg --device gpu|auto` runs the default method's tracking, merge scores and point costs
+ * on the GPU. One warp fits one (frame, sample) pose, one kernel launch fits a wave of them; one
+ * warp computes one residual of a batch, one thread one point cost. The arithmetic and the order of
+ * every sum are the CPU's (segmentation/icp_step.h): the results are the CPU's bit for bit.
  */
 #include <pcl_animseg/segmentation/motion_device.h>
 
@@ -40,6 +40,7 @@ class MotionTracking : public segmentation::MotionDevice {
                     std::vector<std::vector<Eigen::Isometry3d>>& poses,
                     std::vector<std::vector<double>>& residual) override;
   void residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) override;
+  void pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) override;
   /** \brief Seconds of the last trackSamples on the device (uploads, kernels, downloads). */
   double lastDeviceSeconds() const { return device_seconds_; }
   /** \brief Kernel launches (waves) of the last trackSamples. */
