@@ -124,6 +124,22 @@ __device__ int nearestWithin(const Dev& d, int frame, const double* y, float max
   return nearest(d, d.root[frame], qx, qy, qz, nextafterf(max_d2, FLT_MAX), d2);
 }
 
+// motion_tracking.cpp's surfaceError: a moved point (y, n) against frame `frame`.
+__device__ double surfaceErrorAt(const Dev& d, int frame, const double* y, const double* n) {
+  const double spacing = d.spacing[frame];
+  const double bound = (d.clip + 1.5) * spacing;
+  float d2 = 0.0f;
+  const int k = nearestWithin(d, frame, y, static_cast<float>(bound * bound), d2);
+  double tp[3] = {0.0, 0.0, 0.0}, tn[3] = {0.0, 0.0, 0.0};
+  if (k >= 0) {
+    const float4 a = d.pts[k], b = d.nrm[k];
+    tp[0] = a.x, tp[1] = a.y, tp[2] = a.z;
+    tn[0] = b.x, tn[1] = b.y, tn[2] = b.z;
+  }
+  return icp_step::surfaceError(k >= 0, d2, y, n, tp, tn, spacing, d.unoriented[frame] != 0,
+                                d.normal_cos, d.clip);
+}
+
 // Adds column q of the scratch rows 0..rows-1 that count, in row order, to `sum` (lane q).
 __device__ void addRows(const Scratch& sc, int rows, int q, double& sum) {
   for (int j = 0; j < rows; ++j)
@@ -135,9 +151,6 @@ __device__ void addRows(const Scratch& sc, int rows, int q, double& sum) {
 __device__ double residual(const Dev& d, int frame, const double* src, int m, const Rigid& T,
                            int lane, Scratch& sc) {
   if (m == 0) return 0.0;
-  const double spacing = d.spacing[frame];
-  const double bound = (d.clip + 1.5) * spacing;
-  const float bound2 = static_cast<float>(bound * bound);
   double sum = 0.0;
   for (int base = 0; base < m; base += kWarp) {
     const int i = base + lane;
@@ -145,16 +158,7 @@ __device__ double residual(const Dev& d, int frame, const double* src, int m, co
       double y[3], n[3];
       icp_step::apply(T, src + 6 * i, y);
       icp_step::rotate(T, src + 6 * i + 3, n);
-      float d2 = 0.0f;
-      const int k = nearestWithin(d, frame, y, bound2, d2);
-      double tp[3] = {0.0, 0.0, 0.0}, tn[3] = {0.0, 0.0, 0.0};
-      if (k >= 0) {
-        const float4 p = d.pts[k], q = d.nrm[k];
-        tp[0] = p.x, tp[1] = p.y, tp[2] = p.z;
-        tn[0] = q.x, tn[1] = q.y, tn[2] = q.z;
-      }
-      sc.v[lane][0] = icp_step::surfaceError(k >= 0, d2, y, n, tp, tn, spacing,
-                                             d.unoriented[frame] != 0, d.normal_cos, d.clip);
+      sc.v[lane][0] = surfaceErrorAt(d, frame, y, n);
       sc.v[lane][kCols - 1] = 1.0;
     }
     __syncwarp();
@@ -338,18 +342,7 @@ __global__ void pointCostJobs(Dev d, int frames, int ref, const double* __restri
     double y[3], nr[3];
     icp_step::apply(m, p, y);
     icp_step::rotate(m, p + 3, nr);
-    const double spacing = d.spacing[t];
-    const double bound = (d.clip + 1.5) * spacing;
-    float d2 = 0.0f;
-    const int k = nearestWithin(d, t, y, static_cast<float>(bound * bound), d2);
-    double tp[3] = {0.0, 0.0, 0.0}, tn[3] = {0.0, 0.0, 0.0};
-    if (k >= 0) {
-      const float4 a = d.pts[k], b = d.nrm[k];
-      tp[0] = a.x, tp[1] = a.y, tp[2] = a.z;
-      tn[0] = b.x, tn[1] = b.y, tn[2] = b.z;
-    }
-    sum += icp_step::surfaceError(k >= 0, d2, y, nr, tp, tn, spacing, d.unoriented[t] != 0,
-                                  d.normal_cos, d.clip);
+    sum += surfaceErrorAt(d, t, y, nr);
   }
   out[j] = sum;
 }
@@ -365,6 +358,15 @@ Dev frameView(const FrameStore& f) {
   d.normal_cos = f.normal_cos;
   d.clip = f.clip;
   return d;
+}
+
+// A batch buffer: grown (by half again) when too small, kept otherwise.
+void grow(DeviceMemory& m, std::size_t bytes) {
+  if (m.sizeBytes() < bytes) m.create(bytes + bytes / 2);
+}
+void put(DeviceMemory& m, const void* host, std::size_t bytes) {
+  grow(m, bytes);
+  m.uploadBytes(host, bytes);
 }
 
 int blocksFor(long long warps) {
@@ -442,16 +444,11 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
                   const std::vector<ResidualJob>& jobs, std::vector<double>& out) {
   out.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  auto put = [](DeviceMemory& m, const void* host, std::size_t bytes) {
-    if (m.sizeBytes() < bytes) m.create(bytes + bytes / 2);
-    m.uploadBytes(host, bytes);
-  };
   put(frames.job_points, points.data(), points.size() * sizeof(double));
   put(frames.job_begin, source_begin.data(), source_begin.size() * sizeof(int));
   put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
   put(frames.job_list, jobs.data(), jobs.size() * sizeof(ResidualJob));
-  if (frames.job_out.sizeBytes() < jobs.size() * sizeof(double))
-    frames.job_out.create(jobs.size() * sizeof(double) * 3 / 2);
+  grow(frames.job_out, jobs.size() * sizeof(double));
   const Dev d = frameView(frames);
   const long long n = static_cast<long long>(jobs.size());
   residualJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
@@ -470,15 +467,10 @@ void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& point
                    std::vector<double>& out) {
   out.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  auto put = [](DeviceMemory& m, const void* host, std::size_t bytes) {
-    if (m.sizeBytes() < bytes) m.create(bytes + bytes / 2);
-    m.uploadBytes(host, bytes);
-  };
   put(frames.job_points, points.data(), points.size() * sizeof(double));
   put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
   put(frames.job_list, jobs.data(), jobs.size() * sizeof(PointCostJob));
-  if (frames.job_out.sizeBytes() < jobs.size() * sizeof(double))
-    frames.job_out.create(jobs.size() * sizeof(double) * 3 / 2);
+  grow(frames.job_out, jobs.size() * sizeof(double));
   const Dev d = frameView(frames);
   const int n = static_cast<int>(jobs.size());
   constexpr int kThreads = 128;

@@ -169,6 +169,14 @@ inline Pose toPose(const icp_step::Rigid& r) {
   return a;
 }
 
+/** Appends a motion as a device takes it (motion_device.h): 12 doubles, the rotation row by row,
+ * then the translation. */
+inline void appendRigid(const Pose& a, std::vector<double>& out) {
+  const icp_step::Rigid r = toRigid(a);
+  out.insert(out.end(), r.r, r.r + 9);
+  out.insert(out.end(), r.t, r.t + 3);
+}
+
 /** a * b in icp_step's arithmetic (the tracking's starts; the same bits as its device). */
 inline Pose compose(const Pose& a, const Pose& b) {
   return toPose(icp_step::compose(toRigid(a), toRigid(b)));
@@ -866,11 +874,7 @@ class PointCostBatch {
       }
       for (const std::vector<Pose>* m : motions_) {
         if (m->size() != frames_.size()) throw Error("motion tracking: a motion without a frame");
-        for (const Pose& p : *m) {
-          const icp_step::Rigid r = toRigid(p);
-          d.motions.insert(d.motions.end(), r.r, r.r + 9);
-          d.motions.insert(d.motions.end(), r.t, r.t + 3);
-        }
+        for (const Pose& p : *m) appendRigid(p, d.motions);
       }
       device_->pointCosts(d, out);
       return out;
@@ -1354,11 +1358,7 @@ class ResidualBatch {
         }
         d.source_begin.push_back(static_cast<int>(d.points.size() / 6));
       }
-      for (const Pose& m : motions_) {
-        const icp_step::Rigid r = toRigid(m);
-        d.motions.insert(d.motions.end(), r.r, r.r + 9);
-        d.motions.insert(d.motions.end(), r.t, r.t + 3);
-      }
+      for (const Pose& m : motions_) appendRigid(m, d.motions);
       d.jobs = jobs_;
       device_->residuals(d, out);
       return out;
