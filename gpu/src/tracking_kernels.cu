@@ -1,15 +1,17 @@
-// The motion method's sample tracking on the GPU (segmentation/motion_device.h): one warp per
-// (frame, sample) fit, one kernel launch per wave of fits that depend only on earlier waves.
+// The motion method's fits, residuals and point costs on the GPU (segmentation/motion_device.h):
+// the tracking as one warp per (frame, sample) fit and one kernel launch per wave of fits that
+// depend only on earlier waves; a residual batch as one warp per residual; a point-cost batch as
+// one thread per (point, motion).
 //
-// Each warp does what the CPU's task does (src/segmentation/motion_tracking.cpp, trackSamplesOn
-// step 3, with icp() and residual() there): score every start on the sample's probe, refine the
-// two best by damped point-to-plane ICP of its neighbourhood, keep the fit of lower residual.
-// The lanes share the points of a source; sums are reduced across the warp with xor shuffles,
-// which leave the same bits in every lane, so every lane takes the same decisions and solves the
-// same 6 x 6 system without a broadcast. Nearest points come from a copy of the frame's
-// FlatKdTree3 with the same walk and the same float distances (no fused multiply-add), so a
-// query finds the CPU's point; the sums run in another order than the CPU's, so poses agree to
-// rounding. Written by us: no kept library fits many small ICPs at once on a GPU.
+// Each warp of the tracking does what the CPU's task does (src/segmentation/motion_tracking.cpp,
+// trackSamplesOn step 3, with icp() and residual() there): score every start on the sample's
+// probe, refine the two best by damped point-to-plane ICP of its neighbourhood, keep the fit of
+// lower residual. The arithmetic is the CPU's (segmentation/icp_step.h, compiled without fused
+// multiply-adds); the lanes compute their points' terms and the sums add them in point order
+// (sum q by lane q, through shared memory), so every lane takes the CPU's decisions and solves
+// the CPU's system. Nearest points come from a copy of the frame's FlatKdTree3 with the same
+// walk and the same float distances, so a query finds the CPU's point: the results are the
+// CPU's bit for bit. Written by us: no kept library fits many small ICPs at once on a GPU.
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/segmentation/icp_step.h>
 

@@ -1,7 +1,7 @@
 #pragma once
-// Internal: the motion method's fits and residuals on the GPU (motion_tracking.cpp packs the
-// segmentation structures into these plain arrays; tracking_kernels.cu runs them). No Eigen or
-// PCL here: this header is read by nvcc.
+// Internal: the motion method's fits, residuals and point costs on the GPU (motion_tracking.cpp
+// packs the segmentation structures into these plain arrays; tracking_kernels.cu runs them). No
+// Eigen or PCL here: this header is read by nvcc.
 #include <pcl_animseg/gpu/device_array.h>
 
 #include <vector>

@@ -1189,7 +1189,8 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     timer.lap("densities + saddles");
   } else {
     detail::StageTimer timer;
-    // A device that tracks the samples does so; the rest of the method runs on the CPU.
+    // A device with a MotionDevice fits the tracking's poses and computes the method's residual
+    // and point-cost batches; the rest of the method runs on the CPU.
     auto motion = [&](MeanShiftDeviceBackend* d) {
       detail::runMotion(seq, params_, d ? d->motionDevice() : nullptr, flat, num_clusters,
                         result.merges, progress_);

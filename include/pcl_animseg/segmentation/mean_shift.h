@@ -168,8 +168,9 @@ class MeanShiftDeviceBackend {
                        const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
                        const MeanShiftParams& params, const Eigen::MatrixXf& queries,
                        const std::vector<char>& query_key, Eigen::VectorXf& out) = 0;
-  /** \brief The motion method's sample tracking on the same device (motion_device.h), owned by
-   * this backend; nullptr (the default): the motion method runs on the CPU. */
+  /** \brief The motion method's fits, residuals and point costs on the same device
+   * (motion_device.h), owned by this backend; nullptr (the default): the motion method runs on
+   * the CPU. */
   virtual MotionDevice* motionDevice() { return nullptr; }
 };
 
@@ -218,8 +219,9 @@ class MeanShiftSegmentation {
   void setMinClusterSize(int n) { params_.min_cluster_size = n; }
   void setProgress(Progress* progress) { progress_ = progress; }
   /** \brief Runs the kernel sums on a device (see MeanShiftDeviceBackend): the paper method
-   * entirely (iteration and densities), the motion method its sample tracking (when the
-   * backend offers it: motionDevice()) and densities. nullptr: the CPU.
+   * entirely (iteration and densities), the motion method its tracking, residuals and point
+   * costs (when the backend offers it: motionDevice(); the CPU's results bit for bit) and
+   * densities. nullptr: the CPU.
    * With `cpu_fallback`, a device failure (Error from the backend) is not fatal: the stage
    * reruns that part on the CPU and fallbackReason() says why; otherwise the Error propagates. */
   void setDeviceBackend(std::shared_ptr<MeanShiftDeviceBackend> backend,

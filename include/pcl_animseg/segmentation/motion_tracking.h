@@ -121,8 +121,10 @@ struct MotionTrackingParams {
    * part borders). */
   int point_neighbours = 10;
   unsigned seed = 1;
-  /** Fits the tracking's per-sample poses on a device (motion_device.h; not owned). nullptr:
-   * the CPU. A device's fits agree with the CPU's to rounding, not bit for bit. */
+  /** Fits the tracking's poses and computes the merges' residuals and the points' costs on a
+   * device (motion_device.h; not owned; trackSamples, clusterTrajectories and
+   * segmentByTracking hand it the frames). nullptr: the CPU. The results are the CPU's bit for
+   * bit. */
   MotionDevice* device = nullptr;
 };
 

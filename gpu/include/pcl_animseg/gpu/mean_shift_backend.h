@@ -13,9 +13,9 @@
  * \endcode
  *
  * The paper method runs its iteration (gpu::MeanShift) and its densities on the device; the
- * motion method its sample tracking (gpu::MotionTracking) and densities. Kernel sums use the
- * Gaussian kd-tree with MeanShiftParams::gkdtree, exactly the CPU filter's tree, so the labels
- * agree with the CPU's gkdtree backend. The exact refinement of the end points
+ * motion method its tracking, residuals and point costs (gpu::MotionTracking) and densities. Kernel
+ * sums use the Gaussian kd-tree with MeanShiftParams::gkdtree, exactly the CPU filter's tree, so
+ * the labels agree with the CPU's gkdtree backend. The exact refinement of the end points
  * (MeanShiftParams::refine_iterations) stays on the CPU. Every CUDA failure throws
  * pcl_animseg::Error.
  */
