@@ -13,20 +13,12 @@ namespace gpu {
 
 namespace {
 
-void appendPose(const Eigen::Isometry3d& a, std::vector<double>& out) {
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) out.push_back(a.linear()(i, j));
-  for (int i = 0; i < 3; ++i) out.push_back(a.translation()(i));
-}
-
-void appendPoints(const Eigen::Matrix3Xd& p, const Eigen::Matrix3Xd& n, std::vector<double>& out,
+// A sample's points (segmentation::appendPoints) and the end of its range in `begin`.
+void appendSource(const Eigen::Matrix3Xd& p, const Eigen::Matrix3Xd& n, std::vector<double>& out,
                   std::vector<int>& begin) {
   if (p.cols() != n.cols())
     throw Error("GPU tracking: a source has positions and normals of different counts");
-  for (Eigen::Index i = 0; i < p.cols(); ++i) {
-    for (int k = 0; k < 3; ++k) out.push_back(p(k, i));
-    for (int k = 0; k < 3; ++k) out.push_back(n(k, i));
-  }
+  segmentation::appendPoints(p, n, out);
   begin.push_back(static_cast<int>(out.size() / 6));
 }
 
@@ -95,7 +87,7 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
   a.samples = S;
   a.iterations = problem.icp_iterations;
   for (int t = 0; t < T; ++t) {
-    appendPose(problem.global[t], a.global);
+    segmentation::appendMotion(problem.global[t], a.global);
     a.before.push_back(problem.before[t]);
     a.two_before.push_back(problem.two_before[t]);
     if (problem.level[t].empty())
@@ -110,8 +102,8 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
   a.probe_begin.push_back(0);
   a.adjacency_begin.push_back(0);
   for (int s = 0; s < S; ++s) {
-    appendPoints(problem.source_p[s], problem.source_n[s], a.source, a.source_begin);
-    appendPoints(problem.probe_p[s], problem.probe_n[s], a.probe, a.probe_begin);
+    appendSource(problem.source_p[s], problem.source_n[s], a.source, a.source_begin);
+    appendSource(problem.probe_p[s], problem.probe_n[s], a.probe, a.probe_begin);
     for (int o : problem.graph[s]) {
       if (o < 0 || o >= S) throw Error("GPU tracking: a sample neighbour out of range");
       a.adjacency.push_back(o);
@@ -137,11 +129,7 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
   residual.assign(uT, std::vector<double>(uS, 0.0));
   for (std::size_t t = 0; t < uT; ++t)
     for (std::size_t s = 0; s < uS; ++s) {
-      const double* p = &flat_poses[(t * uS + s) * detail::kPoseDoubles];
-      Eigen::Isometry3d& pose = poses[t][s];
-      for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) pose.linear()(i, j) = p[3 * i + j];
-      for (int i = 0; i < 3; ++i) pose.translation()(i) = p[9 + i];
+      poses[t][s] = segmentation::motionAt(&flat_poses[(t * uS + s) * detail::kPoseDoubles]);
       residual[t][s] = flat_res[t * uS + s];
     }
 }

@@ -169,14 +169,6 @@ inline Pose toPose(const icp_step::Rigid& r) {
   return a;
 }
 
-/** Appends a motion as a device takes it (motion_device.h): 12 doubles, the rotation row by row,
- * then the translation. */
-inline void appendRigid(const Pose& a, std::vector<double>& out) {
-  const icp_step::Rigid r = toRigid(a);
-  out.insert(out.end(), r.r, r.r + 9);
-  out.insert(out.end(), r.t, r.t + 3);
-}
-
 /** a * b in icp_step's arithmetic (the tracking's starts; the same bits as its device). */
 inline Pose compose(const Pose& a, const Pose& b) {
   return toPose(icp_step::compose(toRigid(a), toRigid(b)));
@@ -874,7 +866,7 @@ class PointCostBatch {
       }
       for (const std::vector<Pose>* m : motions_) {
         if (m->size() != frames_.size()) throw Error("motion tracking: a motion without a frame");
-        for (const Pose& p : *m) appendRigid(p, d.motions);
+        for (const Pose& p : *m) appendMotion(p, d.motions);
       }
       device_->pointCosts(d, out);
       return out;
@@ -1352,13 +1344,10 @@ class ResidualBatch {
     if (device_) {
       ResidualJobs d;
       for (const Source& s : sources_) {
-        for (Eigen::Index i = 0; i < s.p.cols(); ++i) {
-          for (int k = 0; k < 3; ++k) d.points.push_back(s.p(k, i));
-          for (int k = 0; k < 3; ++k) d.points.push_back(s.n(k, i));
-        }
+        appendPoints(s.p, s.n, d.points);
         d.source_begin.push_back(static_cast<int>(d.points.size() / 6));
       }
-      for (const Pose& m : motions_) appendRigid(m, d.motions);
+      for (const Pose& m : motions_) appendMotion(m, d.motions);
       d.jobs = jobs_;
       device_->residuals(d, out);
       return out;

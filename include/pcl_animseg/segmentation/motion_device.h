@@ -84,6 +84,33 @@ struct PointCostJobs {
   std::vector<Job> jobs;
 };
 
+/** \brief Appends a motion in the devices' layout (ResidualJobs::motions,
+ * PointCostJobs::motions): 12 doubles, the rotation row by row, then the translation. */
+inline void appendMotion(const Eigen::Isometry3d& a, std::vector<double>& out) {
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) out.push_back(a.linear()(i, j));
+  for (int i = 0; i < 3; ++i) out.push_back(a.translation()(i));
+}
+
+/** \brief The motion stored at `p` in that layout. */
+inline Eigen::Isometry3d motionAt(const double* p) {
+  Eigen::Isometry3d a = Eigen::Isometry3d::Identity();
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) a.linear()(i, j) = p[3 * i + j];
+  for (int i = 0; i < 3; ++i) a.translation()(i) = p[9 + i];
+  return a;
+}
+
+/** \brief Appends points in the devices' layout (ResidualJobs::points, PointCostJobs::points):
+ * 6 doubles each, the position, then the normal. */
+inline void appendPoints(const Eigen::Matrix3Xd& p, const Eigen::Matrix3Xd& n,
+                         std::vector<double>& out) {
+  for (Eigen::Index i = 0; i < p.cols(); ++i) {
+    for (int k = 0; k < 3; ++k) out.push_back(p(k, i));
+    for (int k = 0; k < 3; ++k) out.push_back(n(k, i));
+  }
+}
+
 /** \brief A device for the motion method's fits and residuals (see the file comment). Every
  * method throws Error on a device failure (no device, out of memory, kernel fault): never a
  * silent wrong result. */
