@@ -34,6 +34,13 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   os << "{\n  \"input\": \"" << jsonEscape(input) << "\",\n";
   os << "  \"parameters\": " << ctx.optionsJson() << ",\n";
   os << "  \"device\": \"" << r.device_used << "\",\n";
+  // Peak GPU memory of the mean-shift stage (null on the CPU).
+  os << "  \"device_peak_mib\": ";
+  if (r.device_used == "cpu")
+    os << "null";
+  else
+    os << num(static_cast<double>(r.device_peak_bytes) / 1048576.0);
+  os << ",\n";
   os << "  \"threads\": " << ctx.threads << ",\n";
   os << "  \"frames\": " << seq.size() << ",\n  \"points_per_frame\": [";
   for (std::size_t t = 0; t < seq.size(); ++t) os << (t ? ", " : "") << seq.inputSize(t);
@@ -201,7 +208,12 @@ int main(int argc, char** argv) {
             << "  points            " << seq.totalPoints() << "\n"
             << "  keypoints         " << r.keypoints << "\n"
             << "  parts per level   " << parts.str() << "\n"
-            << "  device            " << r.device_used << "\n"
+            << "  device            " << r.device_used
+            << (r.device_used == "cpu"
+                    ? std::string()
+                    : " (peak " + num(static_cast<double>(r.device_peak_bytes) / 1048576.0) +
+                          " MiB)")
+            << "\n"
             << "  threads           " << ctx.threads << "\n";
         for (const auto& st : timings) {
           if (st.first.find('/') != std::string::npos) continue;  // sub-stages: see --verbose log

@@ -45,6 +45,8 @@ struct PipelineResult {
   /** Stage name -> seconds, for the stages this run went through (a skipped stage is absent). */
   std::vector<std::pair<std::string, double>> timings;
   std::string device_used = "cpu";
+  /** Peak GPU memory the mean-shift stage held (bytes; 0 when it ran on the CPU). */
+  std::size_t device_peak_bytes = 0;
   std::size_t keypoints = 0;
   std::vector<std::size_t> keypoints_per_frame;
   /** Points of the input whose normals the loader estimated (0 when every point came with one). */

@@ -102,6 +102,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       std::string why;
 #ifdef PCL_ANIMSEG_HAVE_CUDA
       if (gpu::gpuAvailable(&why)) {
+        gpu::resetPeakDeviceBytes();  // the peak of this stage, reported in summary.json
         ms.setDeviceBackend(gpu::makeMeanShiftBackend(), /*cpu_fallback=*/params.device == "auto");
         why.clear();
       }
@@ -124,6 +125,9 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     ms.segment(clusters);
     progress.end(std::to_string(clusters.num_clusters) + " clusters");
     r.device_used = ms.deviceUsed();
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+    if (r.device_used != "cpu") r.device_peak_bytes = gpu::peakDeviceBytes();
+#endif
     if (!ms.fallbackReason().empty()) {
       r.notes.push_back("the GPU failed, the CPU was used: " + ms.fallbackReason());
       progress.info("warning: the GPU failed, the CPU was used: " + ms.fallbackReason());

@@ -69,6 +69,10 @@ TEST(AnimsegCli, FeaturesOnlyForThePaperMethod) {
     EXPECT_EQ(skipped, method == "motion") << summary;
     EXPECT_EQ(noted, method == "motion") << summary;
     EXPECT_NE(summary.find("\"mean_shift\": "), std::string::npos);
+    // The GPU's peak memory: a number when the stage ran on it, null on the CPU.
+    const bool on_cpu = summary.find("\"device\": \"cpu\"") != std::string::npos;
+    EXPECT_EQ(summary.find("\"device_peak_mib\": null") != std::string::npos, on_cpu) << summary;
+    EXPECT_NE(summary.find("\"device_peak_mib\": "), std::string::npos) << summary;
   }
 }
 
