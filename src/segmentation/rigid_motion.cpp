@@ -1,12 +1,12 @@
 #include <omp.h>
 #include <pcl/common/centroid.h>
 #include <pcl/common/common.h>
-#include <pcl/registration/icp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/flat_kdtree.h>
 #include <pcl_animseg/io/atomic_file.h>
 #include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/segmentation/chained_fit.h>
+#include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
 #include <Eigen/Eigenvalues>
@@ -34,24 +34,22 @@ RigidTransform RigidTransform::inverse() const {
 
 namespace {
 
-Eigen::Matrix4f toMatrix(const RigidTransform& t) {
-  Eigen::Matrix4f m = Eigen::Matrix4f::Identity();
-  m.topLeftCorner<3, 3>() = t.rotation.cast<float>();
-  m.topRightCorner<3, 1>() = t.translation.cast<float>();
-  return m;
+icp_step::Rigid toRigid(const RigidTransform& a) {
+  icp_step::Rigid r;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) r.r[3 * i + j] = a.rotation(i, j);
+    r.t[i] = a.translation[i];
+  }
+  return r;
 }
 
-// Re-orthonormalises the float ICP result (SVD projection onto SO(3)) so that chained
-// transforms stay exact rotations after many frames.
-RigidTransform fromMatrix(const Eigen::Matrix4f& m) {
-  RigidTransform t;
-  const Eigen::Matrix3d r = m.topLeftCorner<3, 3>().cast<double>();
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(r, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d d = Eigen::Matrix3d::Identity();
-  d(2, 2) = (svd.matrixU() * svd.matrixV().transpose()).determinant() < 0 ? -1.0 : 1.0;
-  t.rotation = svd.matrixU() * d * svd.matrixV().transpose();
-  t.translation = m.topRightCorner<3, 1>().cast<double>();
-  return t;
+RigidTransform fromRigid(const icp_step::Rigid& a) {
+  RigidTransform r;
+  for (int i = 0; i < 3; ++i) {
+    for (int j = 0; j < 3; ++j) r.rotation(i, j) = a.r[3 * i + j];
+    r.translation[i] = a.t[i];
+  }
+  return r;
 }
 
 // The indices of a part's points, evenly subsampled to at most max_points (0: all;
@@ -127,11 +125,109 @@ RigidTransform chainedGuess(const RigidTransform& prev, const Eigen::Vector3d& c
 }
 
 // The transform of an ICP result with its residual; valid when the residual is finite.
-RigidTransform fitted(const Eigen::Matrix4f& m, double rms) {
-  RigidTransform r = fromMatrix(m);
+RigidTransform fitted(const icp_step::Rigid& m, double rms) {
+  RigidTransform r = fromRigid(m);
   r.rms = rms;
   r.valid = std::isfinite(rms);
   return r;
+}
+
+// A part's points in one frame, as an ICP target: the cloud (normals for the point-to-plane
+// pass) and a tree over its positions (rows = cloud indices).
+struct Surface {
+  Cloud::Ptr cloud;
+  FlatKdTree3 tree;
+  void build(Cloud::Ptr c) {
+    cloud = std::move(c);
+    std::vector<float> xyz;
+    xyz.reserve(3 * cloud->size());
+    for (const auto& q : *cloud) xyz.insert(xyz.end(), {q.x, q.y, q.z});
+    tree.build(xyz.data(), cloud->size());
+  }
+};
+
+// A source's positions as x, y, z triples (double).
+std::vector<double> sourceXyz(const Cloud& c) {
+  std::vector<double> xyz;
+  xyz.reserve(3 * c.size());
+  for (const auto& q : c) xyz.insert(xyz.end(), {q.x, q.y, q.z});
+  return xyz;
+}
+
+// RMS distance from the moved source to its nearest target points (no bound: every point
+// counts, as PCL's Registration::getFitnessScore() measured it).
+double fitness(const std::vector<double>& src, const Surface& target, const icp_step::Rigid& T) {
+  const std::size_t n = src.size() / 3;
+  if (n == 0) return std::numeric_limits<double>::quiet_NaN();
+  double sum = 0.0;
+  for (std::size_t i = 0; i < n; ++i) {
+    double y[3];
+    icp_step::apply(T, &src[3 * i], y);
+    const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                        static_cast<float>(y[2])};
+    float d2 = 0.0f;
+    if (target.tree.nearest(q, std::numeric_limits<float>::infinity(), d2) < 0)
+      return std::numeric_limits<double>::quiet_NaN();
+    sum += d2;
+  }
+  return std::sqrt(sum / static_cast<double>(n));
+}
+
+// One ICP pass of the rigid motions from T: every source point matched to its nearest target
+// point within max_dist; the step point-to-point (`plane` false: the wide passes, where
+// point-to-plane's system is nearly singular on a limb) or point-to-plane, linearised about the
+// moved source's centroid and solved damped (icp_step.h: the motion method's arithmetic, so that
+// a device can give the same bits). Converged, as PCL's DefaultConvergenceCriteria judge it, when
+// a step turns by less than acos(0.99999) and moves by less than transformation_epsilon
+// spacings, or the matches' mean squared distance changes by less than relative_mse_epsilon.
+// Written by us in place of pcl::IterativeClosestPoint(WithNormals), whose sums a GPU could not
+// reproduce; the passes are the same.
+icp_step::Rigid icpPass(const std::vector<double>& src, const Surface& target, icp_step::Rigid T,
+                        double max_dist, int iterations, bool plane, double spacing,
+                        const RigidMotionParams& p) {
+  const std::size_t n = src.size() / 3;
+  const float max_d2 = static_cast<float>(max_dist * max_dist);
+  const double max_turn = std::acos(0.99999), max_move = p.transformation_epsilon * spacing;
+  std::vector<double> moved(src.size());
+  double prev_mse = -1.0;
+  for (int it = 0; it < iterations; ++it) {
+    double c[3] = {0.0, 0.0, 0.0};
+    for (std::size_t i = 0; i < n; ++i) {
+      icp_step::apply(T, &src[3 * i], &moved[3 * i]);
+      for (int k = 0; k < 3; ++k) c[k] += moved[3 * i + k];
+    }
+    for (int k = 0; k < 3; ++k) c[k] /= static_cast<double>(n > 0 ? n : 1);
+    double sums[icp_step::kTerms] = {};
+    double sse = 0.0;
+    int used = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+      const double* y = &moved[3 * i];
+      const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                          static_cast<float>(y[2])};
+      float d2 = 0.0f;
+      const int k = target.tree.nearest(q, max_d2, d2);
+      if (k < 0) continue;
+      const auto& t = (*target.cloud)[k];
+      const double tp[3] = {t.x, t.y, t.z}, tn[3] = {t.normal_x, t.normal_y, t.normal_z};
+      double terms[icp_step::kTerms];
+      icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
+      for (int q2 = 0; q2 < icp_step::kTerms; ++q2) sums[q2] += terms[q2];
+      sse += d2;
+      ++used;
+    }
+    if (used < 6) break;
+    double x[6];
+    if (!icp_step::solveStep(sums, x)) break;
+    T = icp_step::compose(icp_step::stepMotion(x, c), T);
+    const double mse = sse / used;
+    const bool small = std::sqrt(icp_step::dot3(x, x)) < max_turn &&
+                       std::sqrt(icp_step::dot3(x + 3, x + 3)) < max_move;
+    const bool flat =
+        prev_mse > 0.0 && std::fabs(mse - prev_mse) < p.relative_mse_epsilon * prev_mse;
+    if (small || flat) break;
+    prev_mse = mse;
+  }
+  return T;
 }
 
 // ICP of a part's frame-0 points (source) onto the part in frame t (target) from `start`, with an
@@ -141,54 +237,27 @@ RigidTransform fitted(const Eigen::Matrix4f& m, double rms) {
 // nearly singular on a limb (a tube slides along and spins about its axis) and can throw the
 // estimate far off while correspondences are still poor. Returns the transform; `rms` its RMS
 // nearest-point distance.
-Eigen::Matrix4f alignPasses(const Cloud::Ptr& source, const Cloud::Ptr& target,
-                            const Eigen::Matrix4f& start, double spacing, double part_diag,
+icp_step::Rigid alignPasses(const std::vector<double>& source, const Surface& target,
+                            const icp_step::Rigid& start, double spacing, double part_diag,
                             const RigidMotionParams& p, double& rms, bool wide = true) {
   const double fine = p.max_correspondence_spacings * spacing;
   const double coarse = std::max(fine, p.coarse_distance * part_diag);
   const double passes[2] = {coarse, std::max(fine, coarse / 6.0)};
-  Eigen::Matrix4f m = start;
-  Cloud aligned;
-  // One tree of the target for every pass (PCL would build one per ICP object), queried
-  // without pcl::KdTreeFLANN's per-query overhead (see kdtree.h).
-  auto tree = std::make_shared<SearchKdTree<pcl::PointNormal>>();
-  tree->setInputCloud(target);
-  // Both ICPs: converged when an iteration moves the part by less than a hundredth of a spacing
-  // (PCL compares the squared translation) or the mean squared error stops improving.
-  auto setUp = [&](auto& icp) {
-    icp.setInputSource(source);
-    icp.setInputTarget(target);
-    icp.setSearchMethodTarget(tree, true);
-    icp.setTransformationEpsilon(std::pow(p.transformation_epsilon * spacing, 2));
-    icp.setEuclideanFitnessEpsilon(p.relative_mse_epsilon);
-  };
-  pcl::IterativeClosestPoint<pcl::PointNormal, pcl::PointNormal> p2p;
-  setUp(p2p);
+  icp_step::Rigid m = start;
   for (double distance : passes) {
     if (!wide) break;
-    p2p.setMaxCorrespondenceDistance(distance);
-    p2p.setMaximumIterations(std::max(1, p.max_iterations / 2));
-    p2p.align(aligned, m);
-    if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
+    m = icpPass(source, target, m, distance, std::max(1, p.max_iterations / 2), false, spacing, p);
   }
-  p2p.setMaxCorrespondenceDistance(fine);
-  p2p.setMaximumIterations(p.max_iterations);
-  p2p.align(aligned, m);
-  if (p2p.getFinalTransformation().allFinite()) m = p2p.getFinalTransformation();
-  rms = std::sqrt(p2p.getFitnessScore());
+  m = icpPass(source, target, m, fine, p.max_iterations, false, spacing, p);
+  rms = fitness(source, target, m);
   // Final point-to-plane pass (sub-spacing accuracy on sampled surfaces); kept only when it
   // lowers the residual, so a degenerate part cannot make the estimate worse.
-  pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
-  setUp(icp);
-  icp.setMaxCorrespondenceDistance(fine);
-  icp.setMaximumIterations(p.max_iterations);
-  icp.align(aligned, m);
-  if (icp.getFinalTransformation().allFinite()) {
-    const double rms_plane = std::sqrt(icp.getFitnessScore());
-    if (rms_plane <= rms) {
-      m = icp.getFinalTransformation();
-      rms = rms_plane;
-    }
+  const icp_step::Rigid plane =
+      icpPass(source, target, m, fine, p.max_iterations, true, spacing, p);
+  const double rms_plane = fitness(source, target, plane);
+  if (rms_plane <= rms) {
+    m = plane;
+    rms = rms_plane;
   }
   return m;
 }
@@ -225,6 +294,7 @@ class ChainedPart {
     c0_ = c0f.head<3>().cast<double>();
     part_diag_ = boundingBoxDiagonal(*source_);
     std::tie(axis0_, ratio0_) = principalAxis(*source_);
+    xyz0_ = sourceXyz(*source_);
     // Scoring is needed only to choose between two starts.
     constexpr std::size_t kScorePoints = 500;
     for (std::size_t k = 0, n = source_->size(), m = seeded_ ? std::min(n, kScorePoints) : 0; k < m;
@@ -236,18 +306,14 @@ class ChainedPart {
 #pragma omp parallel for schedule(dynamic)
     for (std::size_t t = 1; t < frames_; ++t) {
       Target& g = targets_[t];
-      g.cloud = partCloud(*seq.frame(t), labels[t], part, 0);
-      g.usable = static_cast<int>(g.cloud->size()) >= p.min_points;
+      g.surface.build(partCloud(*seq.frame(t), labels[t], part, 0));
+      const Cloud& cloud = *g.surface.cloud;
+      g.usable = static_cast<int>(cloud.size()) >= p.min_points;
       if (!g.usable) continue;
       Eigen::Vector4f ct;
-      pcl::compute3DCentroid(*g.cloud, ct);
+      pcl::compute3DCentroid(cloud, ct);
       g.centroid = ct.head<3>().cast<double>();
-      std::tie(g.axis, g.ratio) = principalAxis(*g.cloud);
-      if (!seeded_) continue;
-      std::vector<float> xyz;
-      xyz.reserve(3 * g.cloud->size());
-      for (const auto& q : *g.cloud) xyz.insert(xyz.end(), {q.x, q.y, q.z});
-      g.tree.build(xyz.data(), g.cloud->size());
+      std::tie(g.axis, g.ratio) = principalAxis(cloud);
     }
   }
 
@@ -275,7 +341,7 @@ class ChainedPart {
     for (const Eigen::Vector3d& q : probe_) {
       const Eigen::Vector3f y = x.fit.apply(q).cast<float>();
       float d2 = 0.0f;
-      g.tree.nearest(y.data(), std::numeric_limits<float>::infinity(), d2);
+      g.surface.tree.nearest(y.data(), std::numeric_limits<float>::infinity(), d2);
       sum += d2;
     }
     return std::sqrt(sum / static_cast<double>(probe_.size()));
@@ -290,7 +356,7 @@ class ChainedPart {
     const Target& g = targets_[t];
     if (!g.usable) return out;
     double rms = 0.0;
-    const Eigen::Matrix4f m = alignPasses(source_, g.cloud, toMatrix(start.fit), spacing_[t],
+    const icp_step::Rigid m = alignPasses(xyz0_, g.surface, toRigid(start.fit), spacing_[t],
                                           part_diag_, p_, rms, !start.from_init);
     out.fit = fitted(m, rms);  // after alignPasses has set rms: two statements
     if (out.fit.valid) out.carry = out.fit;
@@ -310,11 +376,10 @@ class ChainedPart {
 
  private:
   struct Target {
-    Cloud::Ptr cloud;
+    Surface surface;
     bool usable = false;
     Eigen::Vector3d centroid = Eigen::Vector3d::Zero(), axis = Eigen::Vector3d::UnitX();
     double ratio = 1.0;
-    FlatKdTree3 tree;
   };
   const RigidMotionParams& p_;
   const std::vector<double>& spacing_;
@@ -322,6 +387,7 @@ class ChainedPart {
   PartMotion& motion_;
   std::size_t frames_;
   Cloud::Ptr source_;
+  std::vector<double> xyz0_;  // source_'s positions
   bool active_ = false, seeded_ = false;
   Eigen::Vector3d c0_ = Eigen::Vector3d::Zero(), axis0_ = Eigen::Vector3d::UnitX();
   double ratio0_ = 1.0, part_diag_ = 0.0;
@@ -374,6 +440,7 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
   std::vector<Cloud::Ptr> sources(merged.size());
   std::vector<std::vector<int>> source_child(merged.size());
   std::vector<double> part_diag(merged.size(), 0.0);
+  std::vector<std::vector<double>> xyz(merged.size());
   for (std::size_t k = 0; k < merged.size(); ++k) {
     const int b = merged[k];
     sources[k].reset(new Cloud);
@@ -383,6 +450,7 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     }
     if (startMotion(out[b], frames, frame0_points[b], *sources[k], p.min_points))
       part_diag[k] = boundingBoxDiagonal(*sources[k]);
+    xyz[k] = sourceXyz(*sources[k]);
   }
   // Every (part, frame) on its own: no chain along the sequence, so the frames run in parallel
   // (the chained ICPs of a coarse level's few large parts were one long serial job each).
@@ -396,6 +464,8 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     const Cloud& source = *sources[k];
     Cloud::Ptr target = partCloud(*seq.frame(t), cur[t], merged[k], 0);
     if (static_cast<int>(target->size()) < p.min_points) continue;
+    Surface surface;
+    surface.build(target);
     Eigen::Matrix3Xd from(3, source.size()), to(3, source.size());
     Eigen::Index n = 0;
     for (std::size_t i = 0; i < source.size(); ++i) {
@@ -408,12 +478,14 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
       ++n;
     }
     if (n < 3) continue;
-    const Eigen::Matrix4f start =
-        Eigen::umeyama(from.leftCols(n), to.leftCols(n), false).cast<float>();
-    if (!start.allFinite()) continue;
+    const Eigen::Matrix4d map = Eigen::umeyama(from.leftCols(n), to.leftCols(n), false);
+    if (!map.allFinite()) continue;
+    RigidTransform start;
+    start.rotation = map.topLeftCorner<3, 3>();
+    start.translation = map.topRightCorner<3, 1>();
     double rms = 0.0;
-    const Eigen::Matrix4f m =
-        alignPasses(sources[k], target, start, spacing[t], part_diag[k], p, rms);
+    const icp_step::Rigid m =
+        alignPasses(xyz[k], surface, toRigid(start), spacing[t], part_diag[k], p, rms);
     motion.frames[t] = fitted(m, rms);
   }
   // As for chained fits, a frame without an estimate carries the last valid one.

@@ -16,6 +16,34 @@ struct ChainStart {
   bool chained = false;
 };
 
+/** \brief A fit that fitChainsBatched asks for: frame `frame` of chain `chain` from `start`, which
+ * scored `score`. */
+template <class Pose>
+struct ChainFit {
+  int chain = 0, frame = 0;
+  Pose start;
+  double score = 0.0;
+};
+
+/** \brief fitFrom(c, t, pose, score) over a batch of ChainFit jobs, on the CPU: the jobs side by
+ * side (one job, or inside a parallel region: in the caller's thread, so that a fit may use a
+ * parallel loop of its own). */
+template <class Pose, class FitFrom>
+std::vector<Pose> fitEach(const std::vector<ChainFit<Pose>>& jobs, FitFrom& fitFrom) {
+  std::vector<Pose> out(jobs.size());
+  const long n = static_cast<long>(jobs.size());
+#pragma omp parallel for schedule(dynamic, 1) if (n > 1 && !omp_in_parallel())
+  for (long j = 0; j < n; ++j)
+    out[j] = fitFrom(jobs[j].chain, jobs[j].frame, jobs[j].start, jobs[j].score);
+  return out;
+}
+
+// The steps of fitAlongChains with the fits in batches (defined below).
+template <class Pose, class Starts, class Score, class FitBatch, class Same>
+std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
+                                                Starts starts, Score score, FitBatch fitBatch,
+                                                Same same, bool speculate, int extra_rounds);
+
 // The parallel steps of fitAlongChain, for several chains at once (defined below).
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
@@ -87,55 +115,81 @@ template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
                                               Starts starts, Score score, FitFrom fitFrom,
                                               Same same, int extra_rounds) {
+  return fitChainsBatched(
+      chains, T, ref, identity, starts, score,
+      [&](const std::vector<ChainFit<Pose>>& jobs) { return fitEach(jobs, fitFrom); }, same, true,
+      extra_rounds);
+}
+
+/** \brief fitAlongChains (`speculate`: its steps 1, 2, 2b and 3) or the chains frame after frame
+ * (not `speculate`: step 3 alone, each frame from the best of all its starts, as the serial
+ * fitAlongChain), with every fit asked for in batches: `fitBatch(jobs)` returns, for each
+ * ChainFit, fitFrom(chain, frame, start, score), in the jobs' order. Step 3 walks the chains
+ * side by side, one frame position at a time, so that a position of all the chains is one
+ * batch. For a device that fits many frames at once (the CUDA module's rigid fits); on the CPU
+ * fitEach is the batch. The same fits as fitAlongChains and the serial chains. */
+template <class Pose, class Starts, class Score, class FitBatch, class Same>
+std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
+                                                Starts starts, Score score, FitBatch fitBatch,
+                                                Same same, bool speculate, int extra_rounds) {
   const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
   // Default: 6 more rounds on 4 threads or more (each costs fits that step 3 might not need;
   // on 2 threads step 3's chains side by side keep both busy).
   if (extra_rounds < 0) extra_rounds = omp_get_max_threads() >= 4 ? 6 : 0;
+  if (!speculate) extra_rounds = 0;
   const std::vector<Pose> frames_of(static_cast<std::size_t>(F), identity);
   std::vector<std::vector<Pose>> fit(C, frames_of);
   constexpr double kNone = std::numeric_limits<double>::max();
+  using Job = ChainFit<Pose>;
   // Frame t's winner among its starts (the first of the lowest score), with the unchained ones
   // scored already: the best of them is index `spec_k` among the unchained, scored `spec_r`.
   // An unchained start that lost to it cannot win: it scores above it, or the same and later.
+  // Without speculation nothing is scored ahead: every start is scored here.
   constexpr double kLost = std::numeric_limits<double>::infinity();
-  auto winner = [&](int c, int t, const std::vector<ChainStart<Pose>>& s, std::size_t spec_k,
-                    double spec_r, double& r0) {
+  std::vector<std::vector<double>> spec_r(C, std::vector<double>(F, kNone));
+  std::vector<std::vector<std::size_t>> spec_k(C, std::vector<std::size_t>(F, 0));
+  auto winner = [&](int c, int t, const std::vector<ChainStart<Pose>>& s, double& r0) {
     std::size_t best = 0, unchained = 0;
     r0 = kNone;
     for (std::size_t k = 0; k < s.size(); ++k) {
       double r;
-      if (s[k].chained)
+      if (s[k].chained || !speculate)
         r = score(c, t, s[k].pose);
       else
-        r = unchained++ == spec_k ? spec_r : kLost;
+        r = unchained++ == spec_k[c][t] ? spec_r[c][t] : kLost;
       if (r < r0) r0 = r, best = k;
     }
     return best;
   };
-  const long jobs = static_cast<long>(C) * F;
-  // Step 1.
+  // The jobs of `todo` (chain, frame) pairs given the fits `from` of the frames before them:
+  // each frame's winning start is fitted, except an unchained winner under speculation (its fit
+  // is spec's); the results go to out[c][t].
   std::vector<std::vector<Pose>> spec(C, frames_of);
-  std::vector<std::vector<double>> spec_r(C, std::vector<double>(F, kNone));
-  std::vector<std::vector<std::size_t>> spec_k(C, std::vector<std::size_t>(F, 0));
-#pragma omp parallel for schedule(dynamic, 1)
-  for (long job = 0; job < jobs; ++job) {
-    const int c = static_cast<int>(job / F), t = static_cast<int>(job % F);
-    if (t == ref) continue;
-    const auto s = starts(c, t, t > ref ? +1 : -1, nullptr);
-    if (s.empty()) continue;
-    for (std::size_t k = 0; k < s.size(); ++k) {
-      const double r = score(c, t, s[k].pose);
-      if (r < spec_r[c][t]) spec_r[c][t] = r, spec_k[c][t] = k;
+  auto fitGivenAll = [&](const std::vector<std::pair<int, int>>& todo,
+                         const std::vector<std::vector<Pose>>& from,
+                         std::vector<std::vector<Pose>>& out) {
+    const long n = static_cast<long>(todo.size());
+    std::vector<Job> job(todo.size());
+    std::vector<char> fitted(todo.size(), 0);
+#pragma omp parallel for schedule(dynamic, 1) if (n > 1 && !omp_in_parallel())
+    for (long j = 0; j < n; ++j) {
+      const auto [c, t] = todo[j];
+      const auto s = starts(c, t, t > ref ? +1 : -1, &from[c]);
+      double r0;
+      const std::size_t best = winner(c, t, s, r0);
+      if (s[best].chained || !speculate) {
+        job[j] = {c, t, s[best].pose, r0};
+        fitted[j] = 1;
+      } else {
+        out[c][t] = spec[c][t];
+      }
     }
-    spec[c][t] = fitFrom(c, t, s[spec_k[c][t]].pose, spec_r[c][t]);
-  }
-  // Frame t of chain c from the best of its starts, the chained ones built from `from` (the fits
-  // of the frames before it), the unchained ones as scored in step 1.
-  auto fitGiven = [&](int c, int t, const std::vector<Pose>& from) {
-    const auto s = starts(c, t, t > ref ? +1 : -1, &from);
-    double r0;
-    const std::size_t best = winner(c, t, s, spec_k[c][t], spec_r[c][t], r0);
-    return s[best].chained ? fitFrom(c, t, s[best].pose, r0) : spec[c][t];
+    std::vector<Job> jobs;
+    for (std::size_t j = 0; j < job.size(); ++j)
+      if (fitted[j]) jobs.push_back(job[j]);
+    if (jobs.empty()) return;
+    const std::vector<Pose> res = fitBatch(jobs);
+    for (std::size_t j = 0; j < jobs.size(); ++j) out[jobs[j].chain][jobs[j].frame] = res[j];
   };
   // Whether the fits that frame t's chained starts may use are the same in a and b: t - dir, and
   // t - 2 dir where it is on this side of the reference (the other side's fits are not final
@@ -146,41 +200,70 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
     const bool t2_used = t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0;
     return same(a[c][t1], b[c][t1]) && (!t2_used || same(a[c][t2], b[c][t2]));
   };
-  // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
-  std::vector<std::vector<Pose>> guess(C, frames_of);
-#pragma omp parallel for schedule(dynamic, 1)
-  for (long job = 0; job < jobs; ++job) {
-    const int c = static_cast<int>(job / F), t = static_cast<int>(job % F);
-    if (t != ref) guess[c][t] = fitGiven(c, t, spec[c]);
-  }
-  // More rounds on many threads (a Jacobi iteration of the chain): round r fits again, from
-  // round r-1's fits of the frames before, every frame whose inputs changed in round r-1; the
-  // others keep their fit (the same inputs give the same fit). A run of n frames where the
-  // chained start wins is final after n rounds, which step 3 would fit one after the other.
-  // `before` holds the fits each frame of `guess` was computed from.
-  std::vector<std::vector<Pose>> before = spec;
-  for (int round = 2; round <= extra_rounds + 1; ++round) {
-    std::vector<std::pair<int, int>> redo;
+  std::vector<std::vector<Pose>> guess(C, frames_of), before;
+  if (speculate) {
+    // Step 1: every frame from the best of its unchained starts.
+    const long jobs_n = static_cast<long>(C) * F;
+    std::vector<Job> job(static_cast<std::size_t>(jobs_n));
+    std::vector<char> fitted(job.size(), 0);
+#pragma omp parallel for schedule(dynamic, 1) if (!omp_in_parallel())
+    for (long j = 0; j < jobs_n; ++j) {
+      const int c = static_cast<int>(j / F), t = static_cast<int>(j % F);
+      if (t == ref) continue;
+      const auto s = starts(c, t, t > ref ? +1 : -1, nullptr);
+      if (s.empty()) continue;
+      for (std::size_t k = 0; k < s.size(); ++k) {
+        const double r = score(c, t, s[k].pose);
+        if (r < spec_r[c][t]) spec_r[c][t] = r, spec_k[c][t] = k;
+      }
+      job[j] = {c, t, s[spec_k[c][t]].pose, spec_r[c][t]};
+      fitted[j] = 1;
+    }
+    std::vector<Job> jobs;
+    for (std::size_t j = 0; j < job.size(); ++j)
+      if (fitted[j]) jobs.push_back(job[j]);
+    if (!jobs.empty()) {
+      const std::vector<Pose> res = fitBatch(jobs);
+      for (std::size_t j = 0; j < jobs.size(); ++j) spec[jobs[j].chain][jobs[j].frame] = res[j];
+    }
+    // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
+    std::vector<std::pair<int, int>> all;
     for (int c = 0; c < C; ++c)
       for (int t = 0; t < F; ++t)
-        if (t != ref && !sameInputs(c, t, guess, before)) redo.push_back({c, t});
-    if (redo.empty()) break;
-    std::vector<std::vector<Pose>> next = guess;
-#pragma omp parallel for schedule(dynamic, 1)
-    for (std::size_t j = 0; j < redo.size(); ++j)
-      next[redo[j].first][redo[j].second] =
-          fitGiven(redo[j].first, redo[j].second, guess[redo[j].first]);
-    before.swap(guess);
-    guess.swap(next);
+        if (t != ref) all.push_back({c, t});
+    fitGivenAll(all, spec, guess);
+    // More rounds on many threads (a Jacobi iteration of the chain): round r fits again, from
+    // round r-1's fits of the frames before, every frame whose inputs changed in round r-1; the
+    // others keep their fit (the same inputs give the same fit). A run of n frames where the
+    // chained start wins is final after n rounds, which step 3 would fit one after the other.
+    // `before` holds the fits each frame of `guess` was computed from.
+    before = spec;
+    for (int round = 2; round <= extra_rounds + 1; ++round) {
+      std::vector<std::pair<int, int>> redo;
+      for (int c = 0; c < C; ++c)
+        for (int t = 0; t < F; ++t)
+          if (t != ref && !sameInputs(c, t, guess, before)) redo.push_back({c, t});
+      if (redo.empty()) break;
+      std::vector<std::vector<Pose>> next = guess;
+      fitGivenAll(redo, guess, next);
+      before.swap(guess);
+      guess.swap(next);
+    }
   }
-  // Step 3, each chain on its own (one chain: outside any parallel region, as a caller's fits
-  // may use parallel loops of their own): the last round's fit stands where the frames before it
-  // are as it assumed. spec[c][ref] is the identity, as fit[c][ref] is.
-#pragma omp parallel for schedule(dynamic, 1) if (C > 1)
-  for (int c = 0; c < C; ++c)
-    for (int dir : {+1, -1})
-      for (int t = ref + dir; t >= 0 && t < F; t += dir)
-        fit[c][t] = sameInputs(c, t, fit, before) ? guess[c][t] : fitGiven(c, t, fit[c]);
+  // Step 3, one frame position of every chain at a time: the last round's fit stands where the
+  // frames before it are as it assumed (most frames); otherwise the frame's starts are scored,
+  // and it is fitted, again. spec[c][ref] is the identity, as fit[c][ref] is.
+  for (int dir : {+1, -1})
+    for (int t = ref + dir; t >= 0 && t < F; t += dir) {
+      std::vector<std::pair<int, int>> redo;
+      for (int c = 0; c < C; ++c) {
+        if (speculate && sameInputs(c, t, fit, before))
+          fit[c][t] = guess[c][t];
+        else
+          redo.push_back({c, t});
+      }
+      fitGivenAll(redo, fit, fit);
+    }
   return fit;
 }
 

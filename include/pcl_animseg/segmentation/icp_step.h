@@ -100,10 +100,14 @@ PCL_ANIMSEG_HD inline int upper(int i, int j) { return i * 6 - i * (i - 1) / 2 +
 
 /** \brief The terms of one matched point: the moved point yw (about the moved source's
  * centroid c), its nearest point tp with normal tn. Point-to-plane residual (yw - tp) . tn with
- * the Jacobian J = [(yw - c) x tn, tn] (rotation about c, then translation), plus a weak
- * (0.1) point-to-point term against sliding along symmetric surfaces. */
-PCL_ANIMSEG_HD inline void pointTerms(const double* yw, const double* c, const double* tp,
-                                      const double* tn, double* terms) {
+ * the Jacobian J = [(yw - c) x tn, tn] (rotation about c, then translation), weighted by
+ * `plane`, plus the point-to-point residual yw - tp weighted by `point`. The motion method uses
+ * plane 1 and a weak point 0.1 (against sliding along symmetric surfaces: pointTerms below); the
+ * rigid motions' passes use one or the other alone. A weight of 1 multiplies exactly, so
+ * pointTerms gives the same bits as before the weights. */
+PCL_ANIMSEG_HD inline void weightedTerms(const double* yw, const double* c, const double* tp,
+                                         const double* tn, double plane, double point,
+                                         double* terms) {
   const double y[3] = {yw[0] - c[0], yw[1] - c[1], yw[2] - c[2]};
   const double e[3] = {yw[0] - tp[0], yw[1] - tp[1], yw[2] - tp[2]};
   const double J[6] = {y[1] * tn[2] - y[2] * tn[1],
@@ -121,10 +125,16 @@ PCL_ANIMSEG_HD inline void pointTerms(const double* yw, const double* c, const d
     const double ja[3] = {Jp[0][a], Jp[1][a], Jp[2][a]};
     for (int b = a; b < 6; ++b) {
       const double jb[3] = {Jp[0][b], Jp[1][b], Jp[2][b]};
-      terms[upper(a, b)] = J[a] * J[b] + 0.1 * dot3(ja, jb);
+      terms[upper(a, b)] = plane * (J[a] * J[b]) + point * dot3(ja, jb);
     }
-    terms[21 + a] = J[a] * r + 0.1 * dot3(ja, e);
+    terms[21 + a] = plane * (J[a] * r) + point * dot3(ja, e);
   }
+}
+
+/** \brief The motion method's terms: point-to-plane plus a weak (0.1) point-to-point term. */
+PCL_ANIMSEG_HD inline void pointTerms(const double* yw, const double* c, const double* tp,
+                                      const double* tn, double* terms) {
+  weightedTerms(yw, c, tp, tn, 1.0, 0.1, terms);
 }
 
 /** \brief The step x (rotation vector, then translation) from the summed terms: the normal
