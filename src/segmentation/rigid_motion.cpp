@@ -132,17 +132,24 @@ RigidTransform fitted(const icp_step::Rigid& m, double rms) {
   return r;
 }
 
-// A part's points in one frame, as an ICP target: the cloud (normals for the point-to-plane
-// pass) and a tree over its positions (rows = cloud indices).
+// A part's points in one frame, as an ICP target: the cloud, a tree over its positions and the
+// normals in the tree's leaf order (what a RigidFitDevice is given).
 struct Surface {
   Cloud::Ptr cloud;
   FlatKdTree3 tree;
+  std::vector<float> leaf_normals;
   void build(Cloud::Ptr c) {
     cloud = std::move(c);
     std::vector<float> xyz;
     xyz.reserve(3 * cloud->size());
     for (const auto& q : *cloud) xyz.insert(xyz.end(), {q.x, q.y, q.z});
     tree.build(xyz.data(), cloud->size());
+    leaf_normals.clear();
+    leaf_normals.reserve(3 * cloud->size());
+    for (int row : tree.leafRows()) {
+      const auto& q = (*cloud)[row];
+      leaf_normals.insert(leaf_normals.end(), {q.normal_x, q.normal_y, q.normal_z});
+    }
   }
 };
 
@@ -156,7 +163,7 @@ std::vector<double> sourceXyz(const Cloud& c) {
 
 // RMS distance from the moved source to its nearest target points (no bound: every point
 // counts, as PCL's Registration::getFitnessScore() measured it).
-double fitness(const std::vector<double>& src, const Surface& target, const icp_step::Rigid& T) {
+double fitness(const std::vector<double>& src, const FlatKdTree3& tree, const icp_step::Rigid& T) {
   const std::size_t n = src.size() / 3;
   if (n == 0) return std::numeric_limits<double>::quiet_NaN();
   double sum = 0.0;
@@ -166,7 +173,7 @@ double fitness(const std::vector<double>& src, const Surface& target, const icp_
     const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
                         static_cast<float>(y[2])};
     float d2 = 0.0f;
-    if (target.tree.nearest(q, std::numeric_limits<float>::infinity(), d2) < 0)
+    if (tree.nearestLeaf(q, std::numeric_limits<float>::infinity(), d2) < 0)
       return std::numeric_limits<double>::quiet_NaN();
     sum += d2;
   }
@@ -182,9 +189,9 @@ double fitness(const std::vector<double>& src, const Surface& target, const icp_
 // spacings, or the matches' mean squared distance changes by less than relative_mse_epsilon.
 // Written by us in place of pcl::IterativeClosestPoint(WithNormals), whose sums a GPU could not
 // reproduce; the passes are the same.
-icp_step::Rigid icpPass(const std::vector<double>& src, const Surface& target, icp_step::Rigid T,
-                        double max_dist, int iterations, bool plane, double spacing,
-                        const RigidMotionParams& p) {
+icp_step::Rigid icpPass(const std::vector<double>& src, const FlatKdTree3& tree,
+                        const std::vector<float>& leaf_normals, icp_step::Rigid T, double max_dist,
+                        int iterations, bool plane, double spacing, const RigidMotionParams& p) {
   const std::size_t n = src.size() / 3;
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double max_turn = std::acos(0.99999), max_move = p.transformation_epsilon * spacing;
@@ -205,10 +212,11 @@ icp_step::Rigid icpPass(const std::vector<double>& src, const Surface& target, i
       const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
                           static_cast<float>(y[2])};
       float d2 = 0.0f;
-      const int k = target.tree.nearest(q, max_d2, d2);
+      const int k = tree.nearestLeaf(q, max_d2, d2);
       if (k < 0) continue;
-      const auto& t = (*target.cloud)[k];
-      const double tp[3] = {t.x, t.y, t.z}, tn[3] = {t.normal_x, t.normal_y, t.normal_z};
+      const float* a = &tree.leafPoints()[3 * static_cast<std::size_t>(k)];
+      const float* b = &leaf_normals[3 * static_cast<std::size_t>(k)];
+      const double tp[3] = {a[0], a[1], a[2]}, tn[3] = {b[0], b[1], b[2]};
       double terms[icp_step::kTerms];
       icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
       for (int q2 = 0; q2 < icp_step::kTerms; ++q2) sums[q2] += terms[q2];
@@ -237,29 +245,38 @@ icp_step::Rigid icpPass(const std::vector<double>& src, const Surface& target, i
 // nearly singular on a limb (a tube slides along and spins about its axis) and can throw the
 // estimate far off while correspondences are still poor. Returns the transform; `rms` its RMS
 // nearest-point distance.
-icp_step::Rigid alignPasses(const std::vector<double>& source, const Surface& target,
-                            const icp_step::Rigid& start, double spacing, double part_diag,
-                            const RigidMotionParams& p, double& rms, bool wide = true) {
+icp_step::Rigid alignPasses(const std::vector<double>& source, const FlatKdTree3& tree,
+                            const std::vector<float>& leaf_normals, const icp_step::Rigid& start,
+                            double spacing, double part_diag, const RigidMotionParams& p,
+                            double& rms, bool wide) {
   const double fine = p.max_correspondence_spacings * spacing;
   const double coarse = std::max(fine, p.coarse_distance * part_diag);
   const double passes[2] = {coarse, std::max(fine, coarse / 6.0)};
   icp_step::Rigid m = start;
   for (double distance : passes) {
     if (!wide) break;
-    m = icpPass(source, target, m, distance, std::max(1, p.max_iterations / 2), false, spacing, p);
+    m = icpPass(source, tree, leaf_normals, m, distance, std::max(1, p.max_iterations / 2), false,
+                spacing, p);
   }
-  m = icpPass(source, target, m, fine, p.max_iterations, false, spacing, p);
-  rms = fitness(source, target, m);
+  m = icpPass(source, tree, leaf_normals, m, fine, p.max_iterations, false, spacing, p);
+  rms = fitness(source, tree, m);
   // Final point-to-plane pass (sub-spacing accuracy on sampled surfaces); kept only when it
   // lowers the residual, so a degenerate part cannot make the estimate worse.
   const icp_step::Rigid plane =
-      icpPass(source, target, m, fine, p.max_iterations, true, spacing, p);
-  const double rms_plane = fitness(source, target, plane);
+      icpPass(source, tree, leaf_normals, m, fine, p.max_iterations, true, spacing, p);
+  const double rms_plane = fitness(source, tree, plane);
   if (rms_plane <= rms) {
     m = plane;
     rms = rms_plane;
   }
   return m;
+}
+
+icp_step::Rigid alignPasses(const std::vector<double>& source, const Surface& target,
+                            const icp_step::Rigid& start, double spacing, double part_diag,
+                            const RigidMotionParams& p, double& rms, bool wide = true) {
+  return alignPasses(source, target.tree, target.leaf_normals, start, spacing, part_diag, p, rms,
+                     wide);
 }
 
 // A part's motion along the sequence, frame t from frame t-1: the ICP passes (alignPasses) start
@@ -348,20 +365,42 @@ class ChainedPart {
   }
 
   Link fitFrom(int t, const Link& start) const {
+    if (!usable(t)) return unfitted(start);
+    double rms = 0.0;
+    const icp_step::Rigid m = alignPasses(xyz0_, targets_[t].surface, toRigid(start.fit),
+                                          spacing_[t], part_diag_, p_, rms, !start.from_init);
+    return withFit(start, m, rms);
+  }
+
+  // fitFrom in parts, for a device: whether frame t can be fitted, the job of a fit from
+  // `start` (source and surface left to the caller), and the link of its result (or of none).
+  bool usable(int t) const { return targets_[t].usable; }
+  RigidFitJob job(int t, const Link& start) const {
+    RigidFitJob j;
+    const icp_step::Rigid r = toRigid(start.fit);
+    std::copy(r.r, r.r + 9, j.start);
+    std::copy(r.t, r.t + 3, j.start + 9);
+    j.spacing = spacing_[t];
+    j.part_diag = part_diag_;
+    j.wide = !start.from_init;
+    return j;
+  }
+  Link unfitted(const Link& start) const {
     Link out;
     out.carry = start.carry;
     out.fit = start.carry;
     out.fit.valid = false;
     out.fit.rms = -1.0;
-    const Target& g = targets_[t];
-    if (!g.usable) return out;
-    double rms = 0.0;
-    const icp_step::Rigid m = alignPasses(xyz0_, g.surface, toRigid(start.fit), spacing_[t],
-                                          part_diag_, p_, rms, !start.from_init);
-    out.fit = fitted(m, rms);  // after alignPasses has set rms: two statements
+    return out;
+  }
+  Link withFit(const Link& start, const icp_step::Rigid& m, double rms) const {
+    Link out = unfitted(start);
+    out.fit = fitted(m, rms);
     if (out.fit.valid) out.carry = out.fit;
     return out;
   }
+  const Surface& surface(int t) const { return targets_[t].surface; }
+  const std::vector<double>& source() const { return xyz0_; }
 
   static bool same(const Link& a, const Link& b) {
     auto sameTransform = [](const RigidTransform& x, const RigidTransform& y) {
@@ -395,13 +434,106 @@ class ChainedPart {
   std::vector<Target> targets_;
 };
 
+icp_step::Rigid rigidOf(const double* pose) {
+  icp_step::Rigid r;
+  std::copy(pose, pose + 9, r.r);
+  std::copy(pose + 9, pose + 12, r.t);
+  return r;
+}
+
+// One computation's fits on a device: its sources and surfaces uploaded once (by id, in the
+// order added), then batches of jobs.
+class DeviceFits {
+ public:
+  explicit DeviceFits(RigidFitDevice& device) : device_(device) {}
+  int addSource(const std::vector<double>& xyz) {
+    sources_.push_back(&xyz);
+    return static_cast<int>(sources_.size()) - 1;
+  }
+  int addSurface(const Surface& s) {
+    surfaces_.frames.push_back({&s.tree, s.leaf_normals, 1.0, false});
+    return static_cast<int>(surfaces_.frames.size()) - 1;
+  }
+  void upload() {
+    device_.setSurfaces(surfaces_);
+    device_.setSources(sources_);
+    surfaces_ = DeviceFrames();  // the device has its copy
+  }
+  void fit(const std::vector<RigidFitJob>& jobs, const RigidMotionParams& p,
+           std::vector<icp_step::Rigid>& poses, std::vector<double>& rms) {
+    std::vector<double> flat;
+    device_.fit(jobs, p, flat, rms);
+    if (flat.size() != 12 * jobs.size() || rms.size() != jobs.size())
+      throw Error("rigid motion: the device returned " + std::to_string(rms.size()) + " fits for " +
+                  std::to_string(jobs.size()));
+    poses.resize(jobs.size());
+    for (std::size_t j = 0; j < jobs.size(); ++j) poses[j] = rigidOf(&flat[12 * j]);
+  }
+
+ private:
+  RigidFitDevice& device_;
+  std::vector<const std::vector<double>*> sources_;
+  DeviceFrames surfaces_;
+};
+
+// The chains of several parts with every fit on a device, in batches (fitChainsBatched: the
+// same links as fitChains and the serial chains). speculate: the frames of all chains side by
+// side (parts with a start of their own in every frame); otherwise one frame position of every
+// chain per batch.
+std::vector<std::vector<ChainedPart::Link>> fitOnDevice(const std::vector<ChainedPart*>& act,
+                                                        int frames, RigidFitDevice& device,
+                                                        const RigidMotionParams& p,
+                                                        bool speculate) {
+  using Link = ChainedPart::Link;
+  DeviceFits dev(device);
+  for (ChainedPart* c : act) {
+    dev.addSource(c->source());
+    for (int t = 0; t < frames; ++t) dev.addSurface(c->surface(t));  // id: chain * frames + t
+  }
+  dev.upload();
+  auto fitBatch = [&](const std::vector<ChainFit<Link>>& jobs) {
+    std::vector<Link> out(jobs.size());
+    std::vector<RigidFitJob> fits;
+    std::vector<std::size_t> at;
+    for (std::size_t j = 0; j < jobs.size(); ++j) {
+      const ChainedPart& c = *act[jobs[j].chain];
+      out[j] = c.unfitted(jobs[j].start);
+      if (!c.usable(jobs[j].frame)) continue;
+      RigidFitJob f = c.job(jobs[j].frame, jobs[j].start);
+      f.source = jobs[j].chain;
+      f.surface = jobs[j].chain * frames + jobs[j].frame;
+      fits.push_back(f);
+      at.push_back(j);
+    }
+    if (fits.empty()) return out;
+    std::vector<icp_step::Rigid> poses;
+    std::vector<double> rms;
+    dev.fit(fits, p, poses, rms);
+    for (std::size_t k = 0; k < at.size(); ++k)
+      out[at[k]] = act[jobs[at[k]].chain]->withFit(jobs[at[k]].start, poses[k], rms[k]);
+    return out;
+  };
+  // Speculative rounds cost a device little and save batches of step 3.
+  return fitChainsBatched(
+      static_cast<int>(act.size()), frames, 0, act.front()->first(),
+      [&](int c, int t, int, const std::vector<Link>* fits) { return act[c]->starts(t, fits); },
+      [&](int c, int t, const Link& x) { return act[c]->score(t, x); }, fitBatch, ChainedPart::same,
+      speculate, speculate ? 6 : 0);
+}
+
 // The motions of several parts (fitChained each), their frames side by side (fitChains).
-void fitChainedParts(std::vector<std::unique_ptr<ChainedPart>>& parts, std::size_t frames) {
+void fitChainedParts(std::vector<std::unique_ptr<ChainedPart>>& parts, std::size_t frames,
+                     RigidFitDevice* device, const RigidMotionParams& p, bool speculate) {
   std::vector<ChainedPart*> act;
   for (auto& c : parts)
     if (c->active()) act.push_back(c.get());
   if (act.empty()) return;
   using Link = ChainedPart::Link;
+  if (device) {
+    const auto chains = fitOnDevice(act, static_cast<int>(frames), *device, p, speculate);
+    for (std::size_t c = 0; c < act.size(); ++c) act[c]->finish(chains[c]);
+    return;
+  }
   const std::vector<std::vector<Link>> chains = fitChains(
       static_cast<int>(act.size()), static_cast<int>(frames), 0, act.front()->first(),
       [&](int c, int t, int, const std::vector<Link>* fits) { return act[c]->starts(t, fits); },
@@ -435,7 +567,8 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
                      const std::vector<double>& spacing, const std::vector<std::vector<int>>& prev,
                      const std::vector<std::vector<int>>& cur,
                      const std::vector<PartMotion>& children, const std::vector<int>& merged,
-                     const std::vector<std::size_t>& frame0_points, std::vector<PartMotion>& out) {
+                     const std::vector<std::size_t>& frame0_points, std::vector<PartMotion>& out,
+                     RigidFitDevice* device) {
   const std::size_t frames = seq.size();
   std::vector<Cloud::Ptr> sources(merged.size());
   std::vector<std::vector<int>> source_child(merged.size());
@@ -454,7 +587,11 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
   }
   // Every (part, frame) on its own: no chain along the sequence, so the frames run in parallel
   // (the chained ICPs of a coarse level's few large parts were one long serial job each).
+  // With a device, every job's surface and start first (kept), then one batch.
   const int jobs = static_cast<int>(merged.size() * (frames - 1));
+  std::vector<Surface> surfaces(device ? jobs : 0);
+  std::vector<RigidFitJob> fits(device ? jobs : 0);
+  std::vector<char> ready(device ? jobs : 0, 0);
 #pragma omp parallel for schedule(dynamic)
   for (int job = 0; job < jobs; ++job) {
     const std::size_t k = static_cast<std::size_t>(job) / (frames - 1);
@@ -464,7 +601,8 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     const Cloud& source = *sources[k];
     Cloud::Ptr target = partCloud(*seq.frame(t), cur[t], merged[k], 0);
     if (static_cast<int>(target->size()) < p.min_points) continue;
-    Surface surface;
+    Surface local;
+    Surface& surface = device ? surfaces[job] : local;
     surface.build(target);
     Eigen::Matrix3Xd from(3, source.size()), to(3, source.size());
     Eigen::Index n = 0;
@@ -483,10 +621,44 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     RigidTransform start;
     start.rotation = map.topLeftCorner<3, 3>();
     start.translation = map.topRightCorner<3, 1>();
+    if (device) {
+      RigidFitJob& f = fits[job];
+      const icp_step::Rigid r = toRigid(start);
+      std::copy(r.r, r.r + 9, f.start);
+      std::copy(r.t, r.t + 3, f.start + 9);
+      f.source = static_cast<int>(k);
+      f.spacing = spacing[t];
+      f.part_diag = part_diag[k];
+      ready[job] = 1;
+      continue;
+    }
     double rms = 0.0;
     const icp_step::Rigid m =
         alignPasses(xyz[k], surface, toRigid(start), spacing[t], part_diag[k], p, rms);
     motion.frames[t] = fitted(m, rms);
+  }
+  if (device) {
+    DeviceFits dev(*device);
+    for (std::size_t k = 0; k < merged.size(); ++k) dev.addSource(xyz[k]);
+    std::vector<RigidFitJob> batch;
+    std::vector<int> at;
+    for (int job = 0; job < jobs; ++job) {
+      if (!ready[job]) continue;
+      fits[job].surface = dev.addSurface(surfaces[job]);
+      batch.push_back(fits[job]);
+      at.push_back(job);
+    }
+    dev.upload();
+    if (!batch.empty()) {
+      std::vector<icp_step::Rigid> poses;
+      std::vector<double> rms;
+      dev.fit(batch, p, poses, rms);
+      for (std::size_t j = 0; j < at.size(); ++j) {
+        const std::size_t k = static_cast<std::size_t>(at[j]) / (frames - 1);
+        const std::size_t t = static_cast<std::size_t>(at[j]) % (frames - 1) + 1;
+        out[merged[k]].frames[t] = fitted(poses[j], rms[j]);
+      }
+    }
   }
   // As for chained fits, a frame without an estimate carries the last valid one.
   for (int b : merged)
@@ -499,6 +671,15 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
 }
 
 }  // namespace
+
+void fitRigidJob(const std::vector<double>& source, const FlatKdTree3& tree,
+                 const std::vector<float>& leaf_normals, const RigidFitJob& job,
+                 const RigidMotionParams& params, double* pose, double& rms) {
+  const icp_step::Rigid m = alignPasses(source, tree, leaf_normals, rigidOf(job.start), job.spacing,
+                                        job.part_diag, params, rms, job.wide);
+  std::copy(m.r, m.r + 9, pose);
+  std::copy(m.t, m.t + 3, pose + 9);
+}
 
 int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>& labels,
                                             int num_parts) const {
@@ -602,7 +783,7 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
       }
     if (merged[l].empty()) continue;
     fitFromChildren(*sequence_, params_, spacing, levels(l - 1), levels(l), out[l - 1].parts,
-                    merged[l], frame0_points[l], out[l].parts);
+                    merged[l], frame0_points[l], out[l].parts, device_);
   }
   return out;
 }
@@ -648,7 +829,15 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
       chained.push_back(std::make_unique<ChainedPart>(*sequence_, p, *sets[s], part, spacing,
                                                       frame0_points[s][part], &init_[part],
                                                       out[s][part]));
-    fitChainedParts(chained, sequence_->size());
+    fitChainedParts(chained, sequence_->size(), device_, p, true);
+  }
+  if (device_) {  // the chains side by side, one frame position of all of them per batch
+    std::vector<std::unique_ptr<ChainedPart>> chained;
+    for (const auto& [s, part] : jobs)
+      chained.push_back(std::make_unique<ChainedPart>(
+          *sequence_, p, *sets[s], part, spacing, frame0_points[s][part], nullptr, out[s][part]));
+    fitChainedParts(chained, sequence_->size(), device_, p, false);
+    return out;
   }
 #pragma omp parallel for schedule(dynamic)
   for (std::size_t job = 0; job < jobs.size(); ++job) {

@@ -308,3 +308,99 @@ TEST(RigidMotion, InitialMotionsStartEachFrame) {
   est.setInitialMotions({});
   expectSameMotion(est.compute(chain.truth)[1], chained[1], "part 1 after clearing");
 }
+
+namespace {
+// A RigidFitDevice on the CPU: it copies what it is given (trees, normals in leaf order,
+// sources), as a GPU uploads it, and fits each job from those copies with the CPU's arithmetic
+// (fitRigidJob). What it records shows that the fits came in batches.
+class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
+ public:
+  std::string name() const override { return "cpu-test"; }
+  void setSurfaces(const pcl_animseg::segmentation::DeviceFrames& s) override {
+    trees.clear();
+    normals.clear();
+    for (const auto& f : s.frames) {
+      trees.push_back(*f.tree);
+      normals.push_back(f.leaf_normals);
+    }
+  }
+  void setSources(const std::vector<const std::vector<double>*>& s) override {
+    sources.clear();
+    for (const auto* x : s) sources.push_back(*x);
+  }
+  void fit(const std::vector<pcl_animseg::segmentation::RigidFitJob>& jobs,
+           const pcl_animseg::segmentation::RigidMotionParams& p, std::vector<double>& poses,
+           std::vector<double>& rms) override {
+    if (fail) throw pcl_animseg::Error("test device: kernel failed");
+    ++batches;
+    fits += static_cast<int>(jobs.size());
+    poses.assign(12 * jobs.size(), 0.0);
+    rms.assign(jobs.size(), 0.0);
+    for (std::size_t j = 0; j < jobs.size(); ++j) {
+      const auto& job = jobs[j];
+      wide += job.wide;
+      pcl_animseg::segmentation::fitRigidJob(sources.at(job.source), trees.at(job.surface),
+                                             normals.at(job.surface), job, p, &poses[12 * j],
+                                             rms[j]);
+    }
+  }
+  std::vector<pcl_animseg::FlatKdTree3> trees;
+  std::vector<std::vector<float>> normals;
+  std::vector<std::vector<double>> sources;
+  int batches = 0, fits = 0, wide = 0;
+  bool fail = false;
+};
+}  // namespace
+
+// The fits through a device (in batches: the seeded parts' frames side by side, the chains one
+// frame position of all parts at a time, a nested level's merged parts all at once) give the
+// CPU's motions bit for bit, from what the device was given alone; a device's failure is thrown.
+TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 4000, false, 5);
+  // Level 0 the truth, level 1 boxes 0 and 1 merged (nested: fitted from the children), level 2
+  // everything one part.
+  std::vector<std::vector<std::vector<int>>> levels(3, chain.truth);
+  for (auto& f : levels[1])
+    for (int& l : f) l = l == 2 ? 1 : 0;
+  for (auto& f : levels[2])
+    for (int& l : f) l = 0;
+  RigidMotionEstimation cpu;
+  cpu.setInputSequence(&chain.sequence);
+  // Starts for level 0's parts 0 and 1 (the seeded chains); part 2 is an ordinary chain.
+  RigidMotionEstimation coarse;
+  coarse.setInputSequence(&chain.sequence);
+  pcl_animseg::segmentation::RigidMotionParams cp;
+  cp.max_points = 300;
+  coarse.setParams(cp);
+  std::vector<PartMotion> init = coarse.compute(chain.truth);
+  init.resize(2);
+  cpu.setInitialMotions(init);
+  const auto expected = cpu.computeLevels(levels);
+  const auto chained = cpu.compute(levels[1]);  // level 1 as one labelling: chains only
+
+  CpuRigidDevice dev;
+  RigidMotionEstimation gpu_like = cpu;
+  gpu_like.setDevice(&dev);
+  EXPECT_EQ(gpu_like.getDevice(), &dev);
+  const auto got = gpu_like.computeLevels(levels);
+  ASSERT_EQ(got.size(), expected.size());
+  for (std::size_t l = 0; l < got.size(); ++l) {
+    ASSERT_EQ(got[l].parts.size(), expected[l].parts.size());
+    for (std::size_t p = 0; p < got[l].parts.size(); ++p)
+      expectSameMotion(got[l].parts[p], expected[l].parts[p],
+                       "level " + std::to_string(l) + " part " + std::to_string(p));
+  }
+  const int frames = static_cast<int>(chain.sequence.size());
+  std::printf("%d fits in %d batches, %d with the wide passes\n", dev.fits, dev.batches, dev.wide);
+  EXPECT_GT(dev.fits, 3 * (frames - 1));  // the fits ran on the device
+  EXPECT_LT(dev.batches, dev.fits);       // in batches
+  EXPECT_GT(dev.wide, 0);                 // chained starts and merged parts: the wide passes
+  EXPECT_LT(dev.wide, dev.fits);          // starts from init: without
+
+  const auto got_chained = gpu_like.compute(levels[1]);
+  for (std::size_t p = 0; p < got_chained.size(); ++p)
+    expectSameMotion(got_chained[p], chained[p], "chained part " + std::to_string(p));
+
+  dev.fail = true;
+  EXPECT_THROW(gpu_like.computeLevels(levels), pcl_animseg::Error);
+}

@@ -9,6 +9,7 @@
  * The RMS residual (nearest-neighbour distance after alignment) is a quality measure that needs no
  * ground truth: a part that is not rigid, or not one part, shows a large residual.
  */
+#include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/sequence.h>
 
 #include <Eigen/Core>
@@ -52,6 +53,46 @@ struct RigidMotionParams {
   double relative_mse_epsilon = 1e-5;
 };
 
+/** \brief One ICP fit of the rigid motions for a device: source `source` onto surface `surface`
+ * from `start` (a pose as 12 doubles: the rotation row by row, then the translation), with the
+ * target frame's mean spacing and the source's bounding-box diagonal; `wide`: with the wide
+ * point-to-point passes first (RigidMotionParams). */
+struct RigidFitJob {
+  int source = 0;
+  int surface = 0;
+  double start[12] = {1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0};
+  double spacing = 1.0;
+  double part_diag = 0.0;
+  bool wide = true;
+};
+
+/** \brief Where RigidMotionEstimation's ICP fits run when not on the CPU (the CUDA module's
+ * gpu::RigidFits). A device must give the CPU's results bit for bit: the same passes in the same
+ * arithmetic (segmentation/icp_step.h) and order, and the same nearest points (a copy of each
+ * surface's FlatKdTree3). Errors are thrown as pcl_animseg::Error. */
+class RigidFitDevice {
+ public:
+  virtual ~RigidFitDevice() = default;
+  virtual std::string name() const = 0;
+  /** \brief The surfaces that the fits which follow match against: each a part's points in one
+   * frame, given as a DeviceFrames::Frame (its tree and the normals in leaf order; a frame
+   * without nodes is empty). Only the trees and normals are used. */
+  virtual void setSurfaces(const DeviceFrames& surfaces) = 0;
+  /** \brief The sources of the fits that follow: x, y, z (double) per point. */
+  virtual void setSources(const std::vector<const std::vector<double>*>& sources) = 0;
+  /** \brief Every job's fit (12 doubles each in `poses`) and its RMS nearest-point distance. */
+  virtual void fit(const std::vector<RigidFitJob>& jobs, const RigidMotionParams& params,
+                   std::vector<double>& poses, std::vector<double>& rms) = 0;
+};
+
+/** \brief The CPU's fit of one job, which a RigidFitDevice reproduces: the source (x, y, z per
+ * point) aligned onto a surface given as a device sees it (its tree and the normals in the tree's
+ * leaf order) by RigidMotionEstimation's ICP passes; `pose` receives 12 doubles, `rms` the RMS
+ * nearest-point distance. */
+void fitRigidJob(const std::vector<double>& source, const FlatKdTree3& tree,
+                 const std::vector<float>& leaf_normals, const RigidFitJob& job,
+                 const RigidMotionParams& params, double* pose, double& rms);
+
 /** \brief Transforms of one part in every frame (frames[t]; frames[0] is the identity). */
 struct PartMotion {
   int part = -1;
@@ -73,6 +114,11 @@ class RigidMotionEstimation {
 
   void setInputSequence(const PointCloudSequence* sequence) { sequence_ = sequence; }
   void setParams(const RigidMotionParams& params) { params_ = params; }
+  /** \brief Where the ICP fits run: a device (not owned; it must outlive the calls), or nullptr
+   * (the default) for the CPU. The results are the same bits either way; a device's failure is
+   * thrown. */
+  void setDevice(RigidFitDevice* device) { device_ = device; }
+  RigidFitDevice* getDevice() const { return device_; }
   const RigidMotionParams& getParams() const { return params_; }
 
   /** \brief Starts for the fits of the first labelling's parts (compute()'s labels, or level 0 of
@@ -125,6 +171,7 @@ class RigidMotionEstimation {
   const PointCloudSequence* sequence_ = nullptr;
   RigidMotionParams params_;
   std::vector<PartMotion> init_;
+  RigidFitDevice* device_ = nullptr;
 };
 
 /** \brief Writes transforms.json (atomically):
