@@ -6,6 +6,7 @@
 
 #include <string>
 
+#include "frame_packing.h"
 #include "tracking_kernels.h"
 
 namespace pcl_animseg {
@@ -35,22 +36,24 @@ std::string MotionTracking::name() const {
   }
 }
 
-void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
-  detail::FrameArrays a;
+namespace detail {
+
+std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& in,
+                                               const std::string& what) {
+  FrameArrays a;
   a.frames = static_cast<int>(in.frames.size());
   a.normal_cos = in.normal_cos;
   a.clip = in.clip;
   for (std::size_t t = 0; t < in.frames.size(); ++t) {
     const segmentation::DeviceFrames::Frame& f = in.frames[t];
-    if (!f.tree) throw Error("GPU tracking: frame " + std::to_string(t) + " has no tree");
+    if (!f.tree) throw Error(what + " " + std::to_string(t) + " has no tree");
     const int node0 = static_cast<int>(a.nodes.size());
     const int point0 = static_cast<int>(a.points.size() / 4);
     const std::vector<float>& xyz = f.tree->leafPoints();
     if (f.leaf_normals.size() != xyz.size())
-      throw Error("GPU tracking: frame " + std::to_string(t) +
-                  " has one normal per point expected");
+      throw Error(what + " " + std::to_string(t) + " has one normal per point expected");
     for (const FlatKdTree3::Node& n : f.tree->nodes()) {
-      detail::TrackNode d{n.split, n.dim, n.a, n.b};
+      TrackNode d{n.split, n.dim, n.a, n.b};
       if (n.dim >= 0)
         d.a += node0, d.b += node0;
       else
@@ -67,9 +70,15 @@ void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
     a.spacing.push_back(f.spacing);
     a.unoriented.push_back(f.unoriented ? 1 : 0);
   }
-  auto store = std::make_unique<detail::FrameStore>();
-  detail::uploadFrames(a, *store);
-  frames_ = std::move(store);
+  auto store = std::make_unique<FrameStore>();
+  uploadFrames(a, *store);
+  return store;
+}
+
+}  // namespace detail
+
+void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
+  frames_ = detail::uploadDeviceFrames(in, "GPU tracking: frame");
 }
 
 void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,

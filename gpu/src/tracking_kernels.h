@@ -94,6 +94,36 @@ void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& point
                    const std::vector<double>& motions, const std::vector<PointCostJob>& jobs,
                    std::vector<double>& out);
 
+/** A rigid motions' fit (segmentation::RigidFitJob) with its source's range: points
+ * [source_begin, source_begin + source_count) of the packed sources (x, y, z doubles). */
+struct RigidJob {
+  int source_begin;
+  int source_count;
+  int surface;
+  int wide;
+  double spacing;
+  double part_diag;
+  double start[kPoseDoubles];
+};
+
+/** segmentation::RigidMotionParams as the passes use them; max_turn = acos(0.99999), computed
+ * on the host as the CPU computes it. */
+struct RigidParams {
+  int max_iterations;
+  double max_correspondence_spacings;
+  double coarse_distance;
+  double transformation_epsilon;
+  double relative_mse_epsilon;
+  double max_turn;
+};
+
+/** segmentation::fitRigidJob for every job, one warp each: poses (12 doubles per job) and rms.
+ * `surfaces`: the parts' trees as frames (their spacing and orientation unused); `sources`:
+ * the packed sources on the device. */
+void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
+                  const std::vector<RigidJob>& jobs, const RigidParams& params,
+                  std::vector<double>& poses, std::vector<double>& rms);
+
 }  // namespace detail
 }  // namespace gpu
 }  // namespace pcl_animseg

@@ -5,6 +5,7 @@
 #ifdef PCL_ANIMSEG_HAVE_CUDA
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/mean_shift_backend.h>
+#include <pcl_animseg/gpu/rigid_fits.h>
 #endif
 
 #include <algorithm>
@@ -177,8 +178,29 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     // Level 0's parts are the refinement's input parts with refined borders: their motions,
     // which the refinement fitted, start each frame's fit, and the frames run in parallel.
     rme.setInitialMotions(std::move(refinement_motions));
-    r.motions = rme.computeLevels(r.levels, {},
-                                  static_cast<std::size_t>(std::max(0, params.motion_levels)));
+    const std::size_t max_levels = static_cast<std::size_t>(std::max(0, params.motion_levels));
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+    // On the GPU when the mean-shift stage ran there (the same motions bit for bit); a failure
+    // is an error with --device gpu, a logged fall-back to the CPU with auto.
+    if (r.device_used != "cpu") {
+      try {
+        gpu::RigidFits fits;
+        rme.setDevice(&fits);
+        r.motions = rme.computeLevels(r.levels, {}, max_levels);
+        rme.setDevice(nullptr);
+        r.device_peak_bytes = std::max(r.device_peak_bytes, gpu::peakDeviceBytes());
+      } catch (const Error& e) {
+        rme.setDevice(nullptr);
+        if (params.device == "gpu") throw;
+        r.motions.clear();
+        r.notes.push_back("the GPU failed in the rigid motions, the CPU was used: " +
+                          std::string(e.what()));
+        progress.info("warning: the GPU failed in the rigid motions, the CPU was used: " +
+                      std::string(e.what()));
+      }
+    }
+#endif
+    if (r.motions.empty()) r.motions = rme.computeLevels(r.levels, {}, max_levels);
     progress.end();
   }
   r.timings = progress.timings();

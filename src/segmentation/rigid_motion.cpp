@@ -194,7 +194,7 @@ icp_step::Rigid icpPass(const std::vector<double>& src, const FlatKdTree3& tree,
                         int iterations, bool plane, double spacing, const RigidMotionParams& p) {
   const std::size_t n = src.size() / 3;
   const float max_d2 = static_cast<float>(max_dist * max_dist);
-  const double max_turn = std::acos(0.99999), max_move = p.transformation_epsilon * spacing;
+  const double max_turn = rigidStepMaxTurn(), max_move = p.transformation_epsilon * spacing;
   std::vector<double> moved(src.size());
   double prev_mse = -1.0;
   for (int it = 0; it < iterations; ++it) {

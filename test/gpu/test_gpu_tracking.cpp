@@ -6,8 +6,10 @@
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/mean_shift_backend.h>
 #include <pcl_animseg/gpu/motion_tracking.h>
+#include <pcl_animseg/gpu/rigid_fits.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
+#include <pcl_animseg/segmentation/rigid_motion.h>
 #include <pcl_animseg/synth/articulated.h>
 
 #include <algorithm>
@@ -98,5 +100,66 @@ TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
                 synth::toString(plan).c_str(), expected.num_clusters, got.num_clusters, ari);
     EXPECT_EQ(got.num_clusters, expected.num_clusters);
     EXPECT_EQ(flatLabels(got), flatLabels(expected));
+  }
+}
+
+// The rigid motions' fits on the GPU (gpu::RigidFits) against the CPU: every level's motions the
+// same bits, level 0 from starts of its own (as the pipeline passes the refinement's), a coarser
+// level nested in it (its merged parts from their children), and plain chains (compute()).
+TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  for (auto plan : {synth::BodyPlan::Humanoid, synth::BodyPlan::Hand}) {
+    synth::SynthParams sp;
+    sp.plan = plan;
+    sp.frames = 16;
+    sp.points = 4000;
+    sp.seed = 7;
+    const auto frames = synth::generate(sp);
+    const pcl_animseg::PointCloudSequence seq = synth::toSequence(frames);
+    std::vector<std::vector<std::vector<int>>> levels(3);
+    for (const auto& f : frames) {
+      levels[0].push_back(f.labels);
+      levels[1].push_back(f.labels);
+      levels[2].push_back(f.labels);
+      for (int& l : levels[1].back()) l /= 2;  // pairs of parts merged: nested in level 0
+      for (int& l : levels[2].back()) l /= 6;
+    }
+    seg::RigidMotionEstimation coarse;
+    coarse.setInputSequence(&seq);
+    seg::RigidMotionParams cp;
+    cp.max_points = 300;
+    coarse.setParams(cp);
+    seg::RigidMotionEstimation est;
+    est.setInputSequence(&seq);
+    est.setInitialMotions(coarse.compute(levels[0]));
+    const auto cpu = est.computeLevels(levels);
+    const auto cpu_chained = est.compute(levels[1]);
+    gpu::RigidFits device;
+    est.setDevice(&device);
+    const auto dev = est.computeLevels(levels);
+    const auto dev_chained = est.compute(levels[1]);
+    int transforms = 0, differ = 0;
+    auto compare = [&](const seg::PartMotion& a, const seg::PartMotion& b) {
+      ASSERT_EQ(a.frames.size(), b.frames.size());
+      for (std::size_t t = 0; t < a.frames.size(); ++t) {
+        ++transforms;
+        const auto &x = a.frames[t], &y = b.frames[t];
+        differ += !(x.valid == y.valid && x.rotation == y.rotation &&
+                    x.translation == y.translation && (x.rms == y.rms || !x.valid));
+      }
+    };
+    ASSERT_EQ(dev.size(), cpu.size());
+    for (std::size_t l = 0; l < cpu.size(); ++l) {
+      ASSERT_EQ(dev[l].parts.size(), cpu[l].parts.size());
+      for (std::size_t p = 0; p < cpu[l].parts.size(); ++p)
+        compare(dev[l].parts[p], cpu[l].parts[p]);
+    }
+    ASSERT_EQ(dev_chained.size(), cpu_chained.size());
+    for (std::size_t p = 0; p < cpu_chained.size(); ++p) compare(dev_chained[p], cpu_chained[p]);
+    std::printf("%s: %d transforms, %lld GPU fits in %lld batches; %d differ from the CPU's\n",
+                synth::toString(plan).c_str(), transforms, device.fits(), device.batches(), differ);
+    EXPECT_EQ(differ, 0) << synth::toString(plan);
+    EXPECT_GT(device.fits(), 0);
   }
 }

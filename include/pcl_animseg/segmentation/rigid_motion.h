@@ -13,6 +13,7 @@
 #include <pcl_animseg/sequence.h>
 
 #include <Eigen/Core>
+#include <cmath>
 #include <memory>
 #include <string>
 #include <utility>
@@ -52,6 +53,10 @@ struct RigidMotionParams {
   double transformation_epsilon = 0.01;
   double relative_mse_epsilon = 1e-5;
 };
+
+/** \brief The rotation (radians) below which a step of the rigid motions' ICP counts as
+ * converged: PCL's DefaultConvergenceCriteria's, cos >= 0.99999. */
+inline double rigidStepMaxTurn() { return std::acos(0.99999); }
 
 /** \brief One ICP fit of the rigid motions for a device: source `source` onto surface `surface`
  * from `start` (a pose as 12 doubles: the rotation row by row, then the translation), with the

@@ -1,0 +1,53 @@
+#pragma once
+/** \file rigid_fits.h The rigid motions' ICP fits on the current CUDA device.
+ *
+ * \code
+ * pcl_animseg::gpu::RigidFits gpu_fits;
+ * pcl_animseg::segmentation::RigidMotionEstimation motion;
+ * motion.setDevice(&gpu_fits);   // computeLevels / compute fit on the GPU
+ * \endcode
+ *
+ * `animseg --device gpu|auto` uses one for the rigid motions when the mean-shift stage ran on
+ * the GPU. One warp runs one fit's ICP passes (segmentation::fitRigidJob); a batch is one kernel
+ * launch. The arithmetic and the order of every sum are the CPU's (segmentation/icp_step.h), and
+ * the nearest points come from copies of the CPU's trees: the motions are the CPU's bit for bit.
+ */
+#include <pcl_animseg/segmentation/rigid_motion.h>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace pcl_animseg {
+namespace gpu {
+
+namespace detail {
+struct FrameStore;
+struct RigidSources;
+}  // namespace detail
+
+/** \brief segmentation::RigidFitDevice on the current CUDA device. */
+class RigidFits : public segmentation::RigidFitDevice {
+ public:
+  RigidFits();
+  ~RigidFits() override;
+  std::string name() const override;
+  /** \brief Throws Error on a CUDA failure or a surface without a tree. */
+  void setSurfaces(const segmentation::DeviceFrames& surfaces) override;
+  void setSources(const std::vector<const std::vector<double>*>& sources) override;
+  /** \brief Throws Error on a CUDA failure, nothing set, or a job out of range. */
+  void fit(const std::vector<segmentation::RigidFitJob>& jobs,
+           const segmentation::RigidMotionParams& params, std::vector<double>& poses,
+           std::vector<double>& rms) override;
+  /** \brief Fits and kernel launches since construction. */
+  long long fits() const { return fits_; }
+  long long batches() const { return batches_; }
+
+ private:
+  std::unique_ptr<detail::FrameStore> surfaces_;
+  std::unique_ptr<detail::RigidSources> sources_;
+  long long fits_ = 0, batches_ = 0;
+};
+
+}  // namespace gpu
+}  // namespace pcl_animseg

@@ -1,0 +1,22 @@
+#pragma once
+// Internal, host only: DeviceFrames (trees with normals in leaf order) packed and uploaded for
+// tracking_kernels.cu; the motion method's frames and the rigid motions' part surfaces alike.
+#include <pcl_animseg/segmentation/motion_device.h>
+
+#include <memory>
+#include <string>
+
+#include "tracking_kernels.h"
+
+namespace pcl_animseg {
+namespace gpu {
+namespace detail {
+
+/** Packs and uploads `frames`; throws Error (naming items as `what` + index) on a frame without
+ * a tree or with a normal count that does not match, and on a CUDA failure. */
+std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& frames,
+                                               const std::string& what);
+
+}  // namespace detail
+}  // namespace gpu
+}  // namespace pcl_animseg

@@ -1,0 +1,82 @@
+// Packs the rigid motions' fits (segmentation::RigidFitDevice) for tracking_kernels.cu.
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/rigid_fits.h>
+
+#include <string>
+
+#include "frame_packing.h"
+#include "tracking_kernels.h"
+
+namespace pcl_animseg {
+namespace gpu {
+
+namespace detail {
+struct RigidSources {
+  DeviceArray<double> points;     // x, y, z per point, every source after the other
+  std::vector<int> begin, count;  // per source, in points
+};
+}  // namespace detail
+
+RigidFits::RigidFits() = default;
+RigidFits::~RigidFits() = default;
+
+std::string RigidFits::name() const {
+  try {
+    return "gpu (" + deviceInfo().name + ")";
+  } catch (const Error&) {
+    return "gpu";
+  }
+}
+
+void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
+  surfaces_ = detail::uploadDeviceFrames(surfaces, "GPU rigid fits: surface");
+}
+
+void RigidFits::setSources(const std::vector<const std::vector<double>*>& sources) {
+  auto s = std::make_unique<detail::RigidSources>();
+  std::vector<double> flat;
+  for (const std::vector<double>* x : sources) {
+    if (!x || x->size() % 3 != 0) throw Error("GPU rigid fits: a source is not x, y, z triples");
+    s->begin.push_back(static_cast<int>(flat.size() / 3));
+    s->count.push_back(static_cast<int>(x->size() / 3));
+    flat.insert(flat.end(), x->begin(), x->end());
+  }
+  if (!flat.empty()) s->points.upload(flat);
+  sources_ = std::move(s);
+}
+
+void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
+                    const segmentation::RigidMotionParams& params, std::vector<double>& poses,
+                    std::vector<double>& rms) {
+  if (!surfaces_ || !sources_) throw Error("GPU rigid fits: no surfaces or sources were set");
+  std::vector<detail::RigidJob> list;
+  list.reserve(jobs.size());
+  const int n_sources = static_cast<int>(sources_->begin.size());
+  for (const segmentation::RigidFitJob& j : jobs) {
+    if (j.source < 0 || j.source >= n_sources || j.surface < 0 || j.surface >= surfaces_->frames)
+      throw Error("GPU rigid fits: a job out of range");
+    detail::RigidJob r{};
+    r.source_begin = sources_->begin[j.source];
+    r.source_count = sources_->count[j.source];
+    r.surface = j.surface;
+    r.wide = j.wide ? 1 : 0;
+    r.spacing = j.spacing;
+    r.part_diag = j.part_diag;
+    for (int k = 0; k < detail::kPoseDoubles; ++k) r.start[k] = j.start[k];
+    list.push_back(r);
+  }
+  detail::RigidParams p{};
+  p.max_iterations = params.max_iterations;
+  p.max_correspondence_spacings = params.max_correspondence_spacings;
+  p.coarse_distance = params.coarse_distance;
+  p.transformation_epsilon = params.transformation_epsilon;
+  p.relative_mse_epsilon = params.relative_mse_epsilon;
+  p.max_turn = segmentation::rigidStepMaxTurn();
+  detail::runRigidFits(*surfaces_, sources_->points, list, p, poses, rms);
+  fits_ += static_cast<long long>(jobs.size());
+  ++batches_;
+}
+
+}  // namespace gpu
+}  // namespace pcl_animseg
