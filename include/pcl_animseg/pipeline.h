@@ -45,8 +45,8 @@ struct PipelineResult {
   /** Stage name -> seconds, for the stages this run went through (a skipped stage is absent). */
   std::vector<std::pair<std::string, double>> timings;
   std::string device_used = "cpu";
-  /** Peak GPU memory the mean-shift stage and the rigid motions held (bytes; 0 when they ran on
-   * the CPU). */
+  /** Peak GPU memory of the run: the mean-shift stage, the refinement's and the rigid motions'
+   * fits (bytes; 0 on the CPU). */
   std::size_t device_peak_bytes = 0;
   std::size_t keypoints = 0;
   std::vector<std::size_t> keypoints_per_frame;

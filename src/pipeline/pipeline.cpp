@@ -9,6 +9,7 @@
 #endif
 
 #include <algorithm>
+#include <memory>
 #include <set>
 #include <utility>
 
@@ -126,14 +127,39 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     ms.segment(clusters);
     progress.end(std::to_string(clusters.num_clusters) + " clusters");
     r.device_used = ms.deviceUsed();
-#ifdef PCL_ANIMSEG_HAVE_CUDA
-    if (r.device_used != "cpu") r.device_peak_bytes = gpu::peakDeviceBytes();
-#endif
     if (!ms.fallbackReason().empty()) {
       r.notes.push_back("the GPU failed, the CPU was used: " + ms.fallbackReason());
       progress.info("warning: the GPU failed, the CPU was used: " + ms.fallbackReason());
     }
   }
+
+  // The ICP fits of the refinement's motions and of the rigid motions run on the GPU when the
+  // mean-shift stage ran there (the same results bit for bit). `onDevice(what, stage)` runs
+  // stage(device); a GPU failure is an error with --device gpu, and with auto a logged fall-back:
+  // the stage runs again on the CPU, as do the later ones.
+  segmentation::RigidFitDevice* fit_device = nullptr;
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+  std::unique_ptr<gpu::RigidFits> gpu_fits;
+  if (r.device_used != "cpu") {
+    gpu_fits = std::make_unique<gpu::RigidFits>();
+    fit_device = gpu_fits.get();
+  }
+#endif
+  auto onDevice = [&](const std::string& what, const auto& stage) {
+    if (fit_device) {
+      try {
+        stage(fit_device);
+        return;
+      } catch (const Error& e) {
+        if (params.device == "gpu") throw;
+        fit_device = nullptr;
+        const std::string why = "the GPU failed in the " + what + ", the CPU was used: " + e.what();
+        r.notes.push_back(why);
+        progress.info("warning: " + why);
+      }
+    }
+    stage(nullptr);
+  };
 
   // 3. Boundary refinement (Sect. 4), built over all frames jointly.
   segmentation::SegmentationResult refined;
@@ -145,7 +171,10 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     segmentation::RefinementParams rp = params.refinement;
     rp.seed = msp.seed;
     gmm.setParams(rp);
-    gmm.refine(clusters, refined);
+    onDevice("refinement", [&](segmentation::RigidFitDevice* device) {
+      gmm.setRigidFitDevice(device);
+      gmm.refine(clusters, refined);
+    });
     refinement_motions = gmm.getMotions();
     std::size_t changed = 0;
     for (std::size_t c : gmm.getStats().changed) changed += c;
@@ -179,30 +208,15 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     // which the refinement fitted, start each frame's fit, and the frames run in parallel.
     rme.setInitialMotions(std::move(refinement_motions));
     const std::size_t max_levels = static_cast<std::size_t>(std::max(0, params.motion_levels));
-#ifdef PCL_ANIMSEG_HAVE_CUDA
-    // On the GPU when the mean-shift stage ran there (the same motions bit for bit); a failure
-    // is an error with --device gpu, a logged fall-back to the CPU with auto.
-    if (r.device_used != "cpu") {
-      try {
-        gpu::RigidFits fits;
-        rme.setDevice(&fits);
-        r.motions = rme.computeLevels(r.levels, {}, max_levels);
-        rme.setDevice(nullptr);
-        r.device_peak_bytes = std::max(r.device_peak_bytes, gpu::peakDeviceBytes());
-      } catch (const Error& e) {
-        rme.setDevice(nullptr);
-        if (params.device == "gpu") throw;
-        r.motions.clear();
-        r.notes.push_back("the GPU failed in the rigid motions, the CPU was used: " +
-                          std::string(e.what()));
-        progress.info("warning: the GPU failed in the rigid motions, the CPU was used: " +
-                      std::string(e.what()));
-      }
-    }
-#endif
-    if (r.motions.empty()) r.motions = rme.computeLevels(r.levels, {}, max_levels);
+    onDevice("rigid motions", [&](segmentation::RigidFitDevice* device) {
+      rme.setDevice(device);
+      r.motions = rme.computeLevels(r.levels, {}, max_levels);
+    });
     progress.end();
   }
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+  if (r.device_used != "cpu") r.device_peak_bytes = gpu::peakDeviceBytes();
+#endif
   r.timings = progress.timings();
   return r;
 }

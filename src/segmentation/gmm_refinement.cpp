@@ -251,6 +251,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     mp.max_points = 500;
     motion.setParams(mp);
     motion.setInputSequence(sequence_);
+    motion.setDevice(device_);
     parts = motion.compute(labels, num_labels);
     if (pool)
       for (int l = 0; l < num_labels; ++l)

@@ -6,6 +6,7 @@
 
 #include <iostream>
 
+#include "cpu_rigid_device.h"
 #include "synthetic_parts.h"
 
 using pcl_animseg::segmentation::GMMBoundaryRefinement;
@@ -213,4 +214,33 @@ TEST(GMMRefinement, RejectsInconsistentInput) {
   refine.setParams(RefinementParams());
   refine.refine(in, out);
   EXPECT_EQ(out.labels, in.labels);
+}
+
+// The input parts' motions through a device (in batches, one frame position of all parts at a
+// time): the same labels and motions as on the CPU, bit for bit.
+TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0, 0.8}, {1.0, 0.7}, 5, 6000, 2.0, 4);
+  SegmentationResult in;
+  in.labels = chain.shifted;
+  in.num_clusters = 3;
+  GMMBoundaryRefinement cpu;
+  cpu.setInputSequence(&chain.sequence);
+  SegmentationResult expected;
+  cpu.refine(in, expected);
+  animseg_test::CpuRigidDevice dev;
+  GMMBoundaryRefinement on_device;
+  on_device.setInputSequence(&chain.sequence);
+  on_device.setRigidFitDevice(&dev);
+  SegmentationResult got;
+  on_device.refine(in, got);
+  EXPECT_EQ(got.labels, expected.labels);
+  ASSERT_EQ(on_device.getMotions().size(), cpu.getMotions().size());
+  for (std::size_t p = 0; p < cpu.getMotions().size(); ++p)
+    for (std::size_t t = 0; t < cpu.getMotions()[p].frames.size(); ++t) {
+      const auto& a = on_device.getMotions()[p].frames[t];
+      const auto& b = cpu.getMotions()[p].frames[t];
+      EXPECT_TRUE(a.rotation == b.rotation && a.translation == b.translation) << p << " " << t;
+    }
+  EXPECT_GE(dev.fits, 3 * 4);  // every part in every frame but the first
+  EXPECT_LE(dev.batches, 4);   // one batch per frame position
 }

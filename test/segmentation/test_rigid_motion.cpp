@@ -1,9 +1,8 @@
 #include <gtest/gtest.h>
+#include <omp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
-
-#include <omp.h>
 
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -13,6 +12,7 @@
 #include <sstream>
 #include <string>
 
+#include "cpu_rigid_device.h"
 #include "synthetic_parts.h"
 
 using animseg_test::Cloud;
@@ -309,49 +309,6 @@ TEST(RigidMotion, InitialMotionsStartEachFrame) {
   expectSameMotion(est.compute(chain.truth)[1], chained[1], "part 1 after clearing");
 }
 
-namespace {
-// A RigidFitDevice on the CPU: it copies what it is given (trees, normals in leaf order,
-// sources), as a GPU uploads it, and fits each job from those copies with the CPU's arithmetic
-// (fitRigidJob). What it records shows that the fits came in batches.
-class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
- public:
-  std::string name() const override { return "cpu-test"; }
-  void setSurfaces(const pcl_animseg::segmentation::DeviceFrames& s) override {
-    trees.clear();
-    normals.clear();
-    for (const auto& f : s.frames) {
-      trees.push_back(*f.tree);
-      normals.push_back(f.leaf_normals);
-    }
-  }
-  void setSources(const std::vector<const std::vector<double>*>& s) override {
-    sources.clear();
-    for (const auto* x : s) sources.push_back(*x);
-  }
-  void fit(const std::vector<pcl_animseg::segmentation::RigidFitJob>& jobs,
-           const pcl_animseg::segmentation::RigidMotionParams& p, std::vector<double>& poses,
-           std::vector<double>& rms) override {
-    if (fail) throw pcl_animseg::Error("test device: kernel failed");
-    ++batches;
-    fits += static_cast<int>(jobs.size());
-    poses.assign(12 * jobs.size(), 0.0);
-    rms.assign(jobs.size(), 0.0);
-    for (std::size_t j = 0; j < jobs.size(); ++j) {
-      const auto& job = jobs[j];
-      wide += job.wide;
-      pcl_animseg::segmentation::fitRigidJob(sources.at(job.source), trees.at(job.surface),
-                                             normals.at(job.surface), job, p, &poses[12 * j],
-                                             rms[j]);
-    }
-  }
-  std::vector<pcl_animseg::FlatKdTree3> trees;
-  std::vector<std::vector<float>> normals;
-  std::vector<std::vector<double>> sources;
-  int batches = 0, fits = 0, wide = 0;
-  bool fail = false;
-};
-}  // namespace
-
 // The fits through a device (in batches: the seeded parts' frames side by side, the chains one
 // frame position of all parts at a time, a nested level's merged parts all at once) give the
 // CPU's motions bit for bit, from what the device was given alone; a device's failure is thrown.
@@ -378,7 +335,7 @@ TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
   const auto expected = cpu.computeLevels(levels);
   const auto chained = cpu.compute(levels[1]);  // level 1 as one labelling: chains only
 
-  CpuRigidDevice dev;
+  animseg_test::CpuRigidDevice dev;
   RigidMotionEstimation gpu_like = cpu;
   gpu_like.setDevice(&dev);
   EXPECT_EQ(gpu_like.getDevice(), &dev);

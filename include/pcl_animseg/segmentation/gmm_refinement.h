@@ -144,6 +144,9 @@ class GMMBoundaryRefinement {
   void setInputSequence(const PointCloudSequence* sequence) { sequence_ = sequence; }
   void setParams(const RefinementParams& params) { params_ = params; }
   const RefinementParams& getParams() const { return params_; }
+  /** \brief Where the ICP fits of the input parts' motions run (RigidMotionEstimation::setDevice;
+   * not owned): the same results; nullptr (the default) for the CPU. */
+  void setRigidFitDevice(RigidFitDevice* device) { device_ = device; }
 
   /** \brief Output is the input with refined labels (num_clusters, modes, densities and saddles
    * copied unchanged). Throws pcl_animseg::Error for labels that do not match the sequence or
@@ -163,6 +166,7 @@ class GMMBoundaryRefinement {
   RefinementParams params_;
   RefinementStats stats_;
   std::vector<PartMotion> motions_;
+  RigidFitDevice* device_ = nullptr;
 };
 
 }  // namespace segmentation

@@ -1,0 +1,52 @@
+#pragma once
+// A RigidFitDevice on the CPU for tests: it copies what it is given (trees, normals in leaf
+// order, sources), as a GPU uploads it, and fits each job from those copies with the CPU's
+// arithmetic (fitRigidJob). What it records shows that the fits came in batches.
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/flat_kdtree.h>
+#include <pcl_animseg/segmentation/rigid_motion.h>
+
+#include <string>
+#include <vector>
+
+namespace animseg_test {
+
+class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
+ public:
+  std::string name() const override { return "cpu-test"; }
+  void setSurfaces(const pcl_animseg::segmentation::DeviceFrames& s) override {
+    trees.clear();
+    normals.clear();
+    for (const auto& f : s.frames) {
+      trees.push_back(*f.tree);
+      normals.push_back(f.leaf_normals);
+    }
+  }
+  void setSources(const std::vector<const std::vector<double>*>& s) override {
+    sources.clear();
+    for (const auto* x : s) sources.push_back(*x);
+  }
+  void fit(const std::vector<pcl_animseg::segmentation::RigidFitJob>& jobs,
+           const pcl_animseg::segmentation::RigidMotionParams& p, std::vector<double>& poses,
+           std::vector<double>& rms) override {
+    if (fail) throw pcl_animseg::Error("test device: kernel failed");
+    ++batches;
+    fits += static_cast<int>(jobs.size());
+    poses.assign(12 * jobs.size(), 0.0);
+    rms.assign(jobs.size(), 0.0);
+    for (std::size_t j = 0; j < jobs.size(); ++j) {
+      const auto& job = jobs[j];
+      wide += job.wide;
+      pcl_animseg::segmentation::fitRigidJob(sources.at(job.source), trees.at(job.surface),
+                                             normals.at(job.surface), job, p, &poses[12 * j],
+                                             rms[j]);
+    }
+  }
+  std::vector<pcl_animseg::FlatKdTree3> trees;
+  std::vector<std::vector<float>> normals;
+  std::vector<std::vector<double>> sources;
+  int batches = 0, fits = 0, wide = 0;
+  bool fail = false;
+};
+
+}  // namespace animseg_test
