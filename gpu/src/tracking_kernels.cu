@@ -351,76 +351,72 @@ __global__ void pointCostJobs(Dev d, int frames, int ref, const double* __restri
   out[j] = sum;
 }
 
-// The rigid motions' ICP (rigid_motion.cpp: icpPass, fitness, alignPasses), one warp per fit.
-// A chunk of 32 points is worked on by the lanes, then added in point order: the terms by lanes
-// 0-26, the matches' squared distances by lane 27, their count by lane 28.
-constexpr int kRigidCols = icp_step::kTerms + 2;
-struct RigidScratch {
-  double v[kWarp][kRigidCols];
+// The rigid motions' ICP (rigid_motion.cpp: icpPass, fitness, alignPasses), one block per fit:
+// thread j adds the values of its range of the source (icp_step::rangeBegin) in point order, then
+// thread q adds column q of the ranges' sums in range order, the CPU's order.
+constexpr int kRigidThreads = icp_step::kSumRanges;
+constexpr int kRigidCols = icp_step::kTerms + 2;  // the terms, the squared distances, the count
+struct RigidShared {
+  double part[kRigidThreads][kRigidCols];
+  double total[kRigidCols];
 };
 
-__device__ void addRigidRows(const RigidScratch& sc, int rows, int q, double& sum) {
-  for (int j = 0; j < rows; ++j)
-    if (sc.v[j][kRigidCols - 1] != 0.0) sum += sc.v[j][q];
-}
-
-// The centroid of the moved source, summed in point order by lanes 0-2 (the same in every lane).
-__device__ void movedCentroid(const double* src, int n, const Rigid& T, int lane, RigidScratch& sc,
-                              double* c) {
-  double mine = 0.0;
-  for (int base = 0; base < n; base += kWarp) {
-    const int i = base + lane;
-    if (i < n) {
-      icp_step::apply(T, src + 3 * i, sc.v[lane]);
-      sc.v[lane][kRigidCols - 1] = 1.0;
-    }
-    __syncwarp();
-    if (lane < 3) addRigidRows(sc, min(kWarp, n - base), lane, mine);
-    __syncwarp();
+// Column q < cols of the threads' partial sums added in range order, into sh.total (every
+// thread's part[] written before; every thread reads the totals after).
+__device__ void rangeTotals(RigidShared& sh, int cols) {
+  __syncthreads();
+  const int q = threadIdx.x;
+  if (q < cols) {
+    double t = 0.0;
+    for (int j = 0; j < kRigidThreads; ++j) t += sh.part[j][q];
+    sh.total[q] = t;
   }
-  const double count = static_cast<double>(n > 0 ? n : 1);
-  for (int k = 0; k < 3; ++k) c[k] = __shfl_sync(0xffffffffu, mine, k) / count;
+  __syncthreads();
 }
 
 __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rigid T,
                            double max_dist, int iterations, bool plane, double spacing,
-                           const RigidParams& p, int lane, RigidScratch& sc) {
+                           const RigidParams& p, RigidShared& sh) {
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double max_move = p.transformation_epsilon * spacing;
+  const int j = threadIdx.x, b = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n);
   double prev_mse = -1.0;
   for (int it = 0; it < iterations; ++it) {
-    double c[3];
-    movedCentroid(src, n, T, lane, sc, c);
-    double sum = 0.0, used_sum = 0.0;
-    for (int base = 0; base < n; base += kWarp) {
-      const int i = base + lane;
-      if (i < n) {
-        sc.v[lane][kRigidCols - 1] = 0.0;
-        double y[3];
-        icp_step::apply(T, src + 3 * i, y);
-        float d2 = 0.0f;
-        const int k = nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
-                              static_cast<float>(y[2]), max_d2, d2);
-        if (k >= 0) {
-          const float4 a = d.pts[k], b = d.nrm[k];
-          const double tp[3] = {a.x, a.y, a.z}, tn[3] = {b.x, b.y, b.z};
-          icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, sc.v[lane]);
-          sc.v[lane][icp_step::kTerms] = d2;
-          sc.v[lane][kRigidCols - 1] = 1.0;
-        }
-      }
-      __syncwarp();
-      const int rows = min(kWarp, n - base);
-      if (lane <= icp_step::kTerms) addRigidRows(sc, rows, lane, sum);
-      if (lane == icp_step::kTerms + 1)
-        for (int j = 0; j < rows; ++j) used_sum += sc.v[j][kRigidCols - 1] != 0.0 ? 1.0 : 0.0;
-      __syncwarp();
+    double part[kRigidCols];
+    for (int k = 0; k < 3; ++k) part[k] = 0.0;
+    for (int i = b; i < e; ++i) {
+      double y[3];
+      icp_step::apply(T, src + 3 * i, y);
+      for (int k = 0; k < 3; ++k) part[k] += y[k];
     }
-    const int used = static_cast<int>(__shfl_sync(0xffffffffu, used_sum, icp_step::kTerms + 1));
-    if (used < 6) break;
-    double sums[icp_step::kTerms];
-    for (int q = 0; q < icp_step::kTerms; ++q) sums[q] = __shfl_sync(0xffffffffu, sum, q);
-    const double sse = __shfl_sync(0xffffffffu, sum, icp_step::kTerms);
+    for (int k = 0; k < 3; ++k) sh.part[j][k] = part[k];
+    rangeTotals(sh, 3);
+    double c[3];
+    for (int k = 0; k < 3; ++k) c[k] = sh.total[k] / static_cast<double>(n > 0 ? n : 1);
+    __syncthreads();  // the totals are read before they are written again
+    for (int q = 0; q < kRigidCols; ++q) part[q] = 0.0;
+    for (int i = b; i < e; ++i) {
+      double y[3];
+      icp_step::apply(T, src + 3 * i, y);
+      float d2 = 0.0f;
+      const int k = nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
+                            static_cast<float>(y[2]), max_d2, d2);
+      if (k < 0) continue;
+      const float4 a = d.pts[k], nb = d.nrm[k];
+      const double tp[3] = {a.x, a.y, a.z}, tn[3] = {nb.x, nb.y, nb.z};
+      double terms[icp_step::kTerms];
+      icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
+      for (int q = 0; q < icp_step::kTerms; ++q) part[q] += terms[q];
+      part[icp_step::kTerms] += d2;
+      part[icp_step::kTerms + 1] += 1.0;
+    }
+    for (int q = 0; q < kRigidCols; ++q) sh.part[j][q] = part[q];
+    rangeTotals(sh, kRigidCols);
+    double sums[kRigidCols];
+    for (int q = 0; q < kRigidCols; ++q) sums[q] = sh.total[q];
+    __syncthreads();
+    const double sse = sums[icp_step::kTerms], used = sums[icp_step::kTerms + 1];
+    if (used < 6.0) break;
     double x[6];
     if (!icp_step::solveStep(sums, x)) break;
     T = icp_step::compose(icp_step::stepMotion(x, c), T);
@@ -435,49 +431,36 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rig
 }
 
 // RMS distance from the moved source to its nearest surface points (no bound), NaN when a point
-// finds none; summed in point order by lane 0.
+// finds none; added by ranges as on the CPU.
 __device__ double rigidFitness(const Dev& d, int root, const double* src, int n, const Rigid& T,
-                               int lane, RigidScratch& sc) {
+                               RigidShared& sh) {
   if (n == 0) return CUDART_NAN;
-  double sum = 0.0;
-  int missing = 0;
-  for (int base = 0; base < n; base += kWarp) {
-    const int i = base + lane;
-    if (i < n) {
-      double y[3];
-      icp_step::apply(T, src + 3 * i, y);
-      float d2 = 0.0f;
-      const int k = nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
-                            static_cast<float>(y[2]), CUDART_INF_F, d2);
-      sc.v[lane][0] = d2;
-      sc.v[lane][1] = k < 0 ? 1.0 : 0.0;
-      sc.v[lane][kRigidCols - 1] = 1.0;
-    }
-    __syncwarp();
-    if (lane == 0) {
-      const int rows = min(kWarp, n - base);
-      for (int j = 0; j < rows; ++j) {
-        missing += sc.v[j][1] != 0.0;
-        sum += sc.v[j][0];
-      }
-    }
-    __syncwarp();
+  const int j = threadIdx.x, b = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n);
+  double sum = 0.0, missing = 0.0;
+  for (int i = b; i < e; ++i) {
+    double y[3];
+    icp_step::apply(T, src + 3 * i, y);
+    float d2 = 0.0f;
+    if (nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
+                static_cast<float>(y[2]), CUDART_INF_F, d2) < 0)
+      missing += 1.0;
+    else
+      sum += d2;
   }
-  sum = __shfl_sync(0xffffffffu, sum, 0);
-  missing = __shfl_sync(0xffffffffu, missing, 0);
-  if (missing) return CUDART_NAN;
-  return sqrt(sum / static_cast<double>(n));
+  sh.part[j][0] = sum;
+  sh.part[j][1] = missing;
+  rangeTotals(sh, 2);
+  const double total = sh.total[0], lost = sh.total[1];
+  __syncthreads();
+  if (lost > 0.0) return CUDART_NAN;
+  return sqrt(total / static_cast<double>(n));
 }
 
-__global__ void rigidFitJobs(Dev d, const double* __restrict__ sources,
-                             const RigidJob* __restrict__ jobs, int count, RigidParams p,
-                             double* poses, double* rms_out) {
-  __shared__ RigidScratch scratch[kWarpsPerBlock];
-  const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
-  const int lane = threadIdx.x % kWarp;
-  if (w >= count) return;  // the whole warp
-  RigidScratch& sc = scratch[threadIdx.x / kWarp];
-  const RigidJob job = jobs[w];
+__global__ void __launch_bounds__(kRigidThreads)
+    rigidFitJobs(Dev d, const double* __restrict__ sources, const RigidJob* __restrict__ jobs,
+                 RigidParams p, double* poses, double* rms_out) {
+  __shared__ RigidShared sh;
+  const RigidJob job = jobs[blockIdx.x];
   const int root = d.root[job.surface];
   const double* src = sources + 3LL * job.source_begin;
   const int n = job.source_count;
@@ -488,19 +471,19 @@ __global__ void rigidFitJobs(Dev d, const double* __restrict__ sources,
   if (job.wide)
     for (int k = 0; k < 2; ++k)
       m = rigidPass(d, root, src, n, m, passes[k], max(1, p.max_iterations / 2), false, job.spacing,
-                    p, lane, sc);
-  m = rigidPass(d, root, src, n, m, fine, p.max_iterations, false, job.spacing, p, lane, sc);
-  double rms = rigidFitness(d, root, src, n, m, lane, sc);
+                    p, sh);
+  m = rigidPass(d, root, src, n, m, fine, p.max_iterations, false, job.spacing, p, sh);
+  double rms = rigidFitness(d, root, src, n, m, sh);
   const Rigid plane =
-      rigidPass(d, root, src, n, m, fine, p.max_iterations, true, job.spacing, p, lane, sc);
-  const double rms_plane = rigidFitness(d, root, src, n, plane, lane, sc);
+      rigidPass(d, root, src, n, m, fine, p.max_iterations, true, job.spacing, p, sh);
+  const double rms_plane = rigidFitness(d, root, src, n, plane, sh);
   if (rms_plane <= rms) {
     m = plane;
     rms = rms_plane;
   }
-  if (lane == 0) {
-    storePose(poses + static_cast<long long>(w) * kPoseDoubles, m);
-    rms_out[w] = rms;
+  if (threadIdx.x == 0) {
+    storePose(poses + static_cast<long long>(blockIdx.x) * kPoseDoubles, m);
+    rms_out[blockIdx.x] = rms;
   }
 }
 
@@ -543,9 +526,9 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   const Dev d = frameView(surfaces);
   const int n = static_cast<int>(jobs.size());
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
-  rigidFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
-      d, sources.ptr(), static_cast<const RigidJob*>(surfaces.job_list.rawPtr()), n, params, out,
-      out + static_cast<std::size_t>(n) * kPoseDoubles);
+  rigidFitJobs<<<n, kRigidThreads>>>(d, sources.ptr(),
+                                     static_cast<const RigidJob*>(surfaces.job_list.rawPtr()),
+                                     params, out, out + static_cast<std::size_t>(n) * kPoseDoubles);
   cudaCheckLaunch();
   std::vector<double> all(jobs.size() * (kPoseDoubles + 1));
   surfaces.job_out.downloadBytes(all.data(), all.size() * sizeof(double));

@@ -117,7 +117,7 @@ struct RigidParams {
   double max_turn;
 };
 
-/** segmentation::fitRigidJob for every job, one warp each: poses (12 doubles per job) and rms.
+/** segmentation::fitRigidJob for every job, one block each: poses (12 doubles per job) and rms.
  * `surfaces`: the parts' trees as frames (their spacing and orientation unused); `sources`:
  * the packed sources on the device. */
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,

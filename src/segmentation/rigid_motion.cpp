@@ -162,20 +162,25 @@ std::vector<double> sourceXyz(const Cloud& c) {
 }
 
 // RMS distance from the moved source to its nearest target points (no bound: every point
-// counts, as PCL's Registration::getFitnessScore() measured it).
+// counts, as PCL's Registration::getFitnessScore() measured it), NaN when a point finds none.
+// Added by ranges (icp_step::rangeBegin), as the GPU adds them.
 double fitness(const std::vector<double>& src, const FlatKdTree3& tree, const icp_step::Rigid& T) {
-  const std::size_t n = src.size() / 3;
+  const int n = static_cast<int>(src.size() / 3);
   if (n == 0) return std::numeric_limits<double>::quiet_NaN();
   double sum = 0.0;
-  for (std::size_t i = 0; i < n; ++i) {
-    double y[3];
-    icp_step::apply(T, &src[3 * i], y);
-    const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                        static_cast<float>(y[2])};
-    float d2 = 0.0f;
-    if (tree.nearestLeaf(q, std::numeric_limits<float>::infinity(), d2) < 0)
-      return std::numeric_limits<double>::quiet_NaN();
-    sum += d2;
+  for (int j = 0; j < icp_step::kSumRanges; ++j) {
+    double part = 0.0;
+    for (int i = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n); i < e; ++i) {
+      double y[3];
+      icp_step::apply(T, &src[3 * static_cast<std::size_t>(i)], y);
+      const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                          static_cast<float>(y[2])};
+      float d2 = 0.0f;
+      if (tree.nearestLeaf(q, std::numeric_limits<float>::infinity(), d2) < 0)
+        return std::numeric_limits<double>::quiet_NaN();
+      part += d2;
+    }
+    sum += part;
   }
   return std::sqrt(sum / static_cast<double>(n));
 }
@@ -184,46 +189,56 @@ double fitness(const std::vector<double>& src, const FlatKdTree3& tree, const ic
 // point within max_dist; the step point-to-point (`plane` false: the wide passes, where
 // point-to-plane's system is nearly singular on a limb) or point-to-plane, linearised about the
 // moved source's centroid and solved damped (icp_step.h: the motion method's arithmetic, so that
-// a device can give the same bits). Converged, as PCL's DefaultConvergenceCriteria judge it, when
-// a step turns by less than acos(0.99999) and moves by less than transformation_epsilon
-// spacings, or the matches' mean squared distance changes by less than relative_mse_epsilon.
-// Written by us in place of pcl::IterativeClosestPoint(WithNormals), whose sums a GPU could not
-// reproduce; the passes are the same.
+// a device can give the same bits; the sums by ranges, icp_step::rangeBegin). Converged, as
+// PCL's DefaultConvergenceCriteria judge it, when a step turns by less than rigidStepMaxTurn()
+// and moves by less than transformation_epsilon spacings, or the matches' mean squared distance
+// changes by less than relative_mse_epsilon. Written by us in place of
+// pcl::IterativeClosestPoint(WithNormals), whose sums a GPU could not reproduce; the passes are
+// the same.
 icp_step::Rigid icpPass(const std::vector<double>& src, const FlatKdTree3& tree,
                         const std::vector<float>& leaf_normals, icp_step::Rigid T, double max_dist,
                         int iterations, bool plane, double spacing, const RigidMotionParams& p) {
-  const std::size_t n = src.size() / 3;
+  const int n = static_cast<int>(src.size() / 3);
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double max_turn = rigidStepMaxTurn(), max_move = p.transformation_epsilon * spacing;
   std::vector<double> moved(src.size());
   double prev_mse = -1.0;
+  constexpr int kCols = icp_step::kTerms + 2;  // the terms, the squared distances, the count
   for (int it = 0; it < iterations; ++it) {
     double c[3] = {0.0, 0.0, 0.0};
-    for (std::size_t i = 0; i < n; ++i) {
-      icp_step::apply(T, &src[3 * i], &moved[3 * i]);
-      for (int k = 0; k < 3; ++k) c[k] += moved[3 * i + k];
+    for (int j = 0; j < icp_step::kSumRanges; ++j) {
+      double part[3] = {0.0, 0.0, 0.0};
+      for (int i = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n); i < e; ++i) {
+        double* y = &moved[3 * static_cast<std::size_t>(i)];
+        icp_step::apply(T, &src[3 * static_cast<std::size_t>(i)], y);
+        for (int k = 0; k < 3; ++k) part[k] += y[k];
+      }
+      for (int k = 0; k < 3; ++k) c[k] += part[k];
     }
     for (int k = 0; k < 3; ++k) c[k] /= static_cast<double>(n > 0 ? n : 1);
-    double sums[icp_step::kTerms] = {};
-    double sse = 0.0;
-    int used = 0;
-    for (std::size_t i = 0; i < n; ++i) {
-      const double* y = &moved[3 * i];
-      const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                          static_cast<float>(y[2])};
-      float d2 = 0.0f;
-      const int k = tree.nearestLeaf(q, max_d2, d2);
-      if (k < 0) continue;
-      const float* a = &tree.leafPoints()[3 * static_cast<std::size_t>(k)];
-      const float* b = &leaf_normals[3 * static_cast<std::size_t>(k)];
-      const double tp[3] = {a[0], a[1], a[2]}, tn[3] = {b[0], b[1], b[2]};
-      double terms[icp_step::kTerms];
-      icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
-      for (int q2 = 0; q2 < icp_step::kTerms; ++q2) sums[q2] += terms[q2];
-      sse += d2;
-      ++used;
+    double sums[kCols] = {};
+    for (int j = 0; j < icp_step::kSumRanges; ++j) {
+      double part[kCols] = {};
+      for (int i = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n); i < e; ++i) {
+        const double* y = &moved[3 * static_cast<std::size_t>(i)];
+        const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                            static_cast<float>(y[2])};
+        float d2 = 0.0f;
+        const int k = tree.nearestLeaf(q, max_d2, d2);
+        if (k < 0) continue;
+        const float* a = &tree.leafPoints()[3 * static_cast<std::size_t>(k)];
+        const float* b = &leaf_normals[3 * static_cast<std::size_t>(k)];
+        const double tp[3] = {a[0], a[1], a[2]}, tn[3] = {b[0], b[1], b[2]};
+        double terms[icp_step::kTerms];
+        icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
+        for (int q2 = 0; q2 < icp_step::kTerms; ++q2) part[q2] += terms[q2];
+        part[icp_step::kTerms] += d2;
+        part[icp_step::kTerms + 1] += 1.0;
+      }
+      for (int q2 = 0; q2 < kCols; ++q2) sums[q2] += part[q2];
     }
-    if (used < 6) break;
+    const double sse = sums[icp_step::kTerms], used = sums[icp_step::kTerms + 1];
+    if (used < 6.0) break;
     double x[6];
     if (!icp_step::solveStep(sums, x)) break;
     T = icp_step::compose(icp_step::stepMotion(x, c), T);

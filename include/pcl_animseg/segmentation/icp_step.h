@@ -223,6 +223,19 @@ PCL_ANIMSEG_HD inline Rigid stepMotion(const double* x, const double* c) {
   return D;
 }
 
+/** \brief The rigid motions' ICP adds its per-point values in kSumRanges contiguous ranges of
+ * the source (rangeBegin), each in point order, then the ranges' sums in range order: the GPU
+ * gives each range to a thread of the fit's block and gets the CPU's sums. */
+constexpr int kSumRanges = 128;
+
+/** \brief First point of range j (0 <= j <= kSumRanges) of n points: ranges of ceil(n /
+ * kSumRanges) points, the last ones shorter or empty. */
+PCL_ANIMSEG_HD inline int rangeBegin(int j, int n) {
+  const int m = (n + kSumRanges - 1) / kSumRanges;
+  const long long b = static_cast<long long>(j) * m;
+  return b < n ? static_cast<int>(b) : n;
+}
+
 /** \brief Whether a step is small enough to stop: rotation below 1e-4 rad and translation below
  * 1e-3 spacings. */
 PCL_ANIMSEG_HD inline bool converged(const double* x, double spacing) {
