@@ -183,3 +183,29 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
 
 }  // namespace gpu
 }  // namespace pcl_animseg
+
+namespace pcl_animseg {
+namespace gpu {
+
+void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) {
+  if (!frames_) throw Error("GPU part fits: no frames were set");
+  const int sources = static_cast<int>(jobs.source_begin.size()) - 1;
+  const int motions = static_cast<int>(jobs.motions.size() / detail::kPoseDoubles);
+  if (sources < 0 || jobs.source_begin.front() != 0 ||
+      static_cast<std::size_t>(jobs.source_begin.back()) * 6 != jobs.points.size() ||
+      jobs.motions.size() % detail::kPoseDoubles != 0 || jobs.iterations < 0)
+    throw Error("GPU part fits: the sources or motions are malformed");
+  std::vector<detail::PartFitJob> list;
+  list.reserve(jobs.jobs.size());
+  for (const segmentation::PartFitJobs::Job& j : jobs.jobs) {
+    if (j.source < 0 || j.source >= sources || j.motion < 0 || j.motion >= motions || j.frame < 0 ||
+        j.frame >= frames_->frames)
+      throw Error("GPU part fits: a job out of range");
+    list.push_back({j.source, j.motion, j.frame, j.r0, j.max_dist});
+  }
+  detail::runPartFits(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, jobs.iterations,
+                      poses);
+}
+
+}  // namespace gpu
+}  // namespace pcl_animseg

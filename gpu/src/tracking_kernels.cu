@@ -329,6 +329,27 @@ __global__ void residualJobs(Dev d, const double* __restrict__ points,
   if (lane == 0) out[w] = r;
 }
 
+// One part fit per warp (motion_tracking.cpp's fitParts, fitFrom): icp() from the start, kept
+// when its residual is at most r0.
+__global__ void partFitJobs(Dev d, const double* __restrict__ points,
+                            const int* __restrict__ source_begin,
+                            const double* __restrict__ motions, const PartFitJob* __restrict__ jobs,
+                            int n, double* out) {
+  __shared__ Scratch scratch[kWarpsPerBlock];
+  const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
+  const int lane = threadIdx.x % kWarp;
+  if (w >= n) return;  // the whole warp
+  Scratch& sc = scratch[threadIdx.x / kWarp];
+  const PartFitJob job = jobs[w];
+  const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
+  const double* src = points + 6LL * b;
+  const Rigid init = loadPose(motions + static_cast<long long>(job.motion) * kPoseDoubles);
+  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, lane, sc);
+  const double r = residual(d, job.frame, src, m, cand, lane, sc);
+  if (lane == 0)
+    storePose(out + static_cast<long long>(w) * kPoseDoubles, r <= job.r0 ? cand : init);
+}
+
 // One point cost per thread (motion_tracking.cpp's pointCost): the point's surface errors under
 // its motion's pose in every frame but the reference, added in frame order.
 __global__ void pointCostJobs(Dev d, int frames, int ref, const double* __restrict__ points,
@@ -621,6 +642,29 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
   cudaCheckLaunch();
   // Synchronises, and reports a kernel fault.
   frames.job_out.downloadBytes(out.data(), out.size() * sizeof(double));
+}
+
+void runPartFits(FrameStore& frames, const std::vector<double>& points,
+                 const std::vector<int>& source_begin, const std::vector<double>& motions,
+                 const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses) {
+  poses.assign(jobs.size() * kPoseDoubles, 0.0);
+  if (jobs.empty()) return;
+  put(frames.job_points, points.data(), points.size() * sizeof(double));
+  put(frames.job_begin, source_begin.data(), source_begin.size() * sizeof(int));
+  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
+  put(frames.job_list, jobs.data(), jobs.size() * sizeof(PartFitJob));
+  grow(frames.job_out, poses.size() * sizeof(double));
+  Dev d = frameView(frames);
+  d.iterations = iterations;
+  const long long n = static_cast<long long>(jobs.size());
+  partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
+      d, static_cast<const double*>(frames.job_points.rawPtr()),
+      static_cast<const int*>(frames.job_begin.rawPtr()),
+      static_cast<const double*>(frames.job_motions.rawPtr()),
+      static_cast<const PartFitJob*>(frames.job_list.rawPtr()), static_cast<int>(n),
+      static_cast<double*>(frames.job_out.rawPtr()));
+  cudaCheckLaunch();
+  frames.job_out.downloadBytes(poses.data(), poses.size() * sizeof(double));
 }
 
 void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& points,

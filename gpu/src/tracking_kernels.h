@@ -94,6 +94,21 @@ void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& point
                    const std::vector<double>& motions, const std::vector<PointCostJob>& jobs,
                    std::vector<double>& out);
 
+/** A part fit: source, start motion, frame, the residual to beat, the match distance. */
+struct PartFitJob {
+  int source;
+  int motion;
+  int frame;
+  double r0;
+  double max_dist;
+};
+
+/** segmentation::PartFitJobs: icp() of each job (`iterations` steps) kept when its residual is at
+ * most r0, else the start; one warp each; 12 doubles per job in `poses`. */
+void runPartFits(FrameStore& frames, const std::vector<double>& points,
+                 const std::vector<int>& source_begin, const std::vector<double>& motions,
+                 const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses);
+
 /** A rigid motions' fit (segmentation::RigidFitJob) with its source's range: points
  * [source_begin, source_begin + source_count) of the packed sources (x, y, z doubles). */
 struct RigidJob {

@@ -1611,7 +1611,35 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       return residual(src[c], cand, frames[t]) <= r0 ? cand : init;
     };
     auto same = [](const Pose& p, const Pose& q) { return p.matrix() == q.matrix(); };
-    return fitChains(C, T, ref, Pose(Pose::Identity()), starts, score, fitFrom, same);
+    if (!params.device || omp_in_parallel())  // a device serves one caller at a time
+      return fitChains(C, T, ref, Pose(Pose::Identity()), starts, score, fitFrom, same);
+    // On the device: the same steps with the fits in batches (fitChainsBatched), the sources
+    // packed once; the same poses.
+    PartFitJobs batch;
+    batch.iterations = kPartIcp;
+    for (int c = 0; c < C; ++c) {
+      appendPoints(src[c].p, src[c].n, batch.points);
+      batch.source_begin.push_back(static_cast<int>(batch.points.size() / 6));
+    }
+    auto fitBatch = [&](const std::vector<ChainFit<Pose>>& jobs) {
+      batch.motions.clear();
+      batch.jobs.clear();
+      for (std::size_t j = 0; j < jobs.size(); ++j) {
+        appendMotion(jobs[j].start, batch.motions);
+        batch.jobs.push_back({jobs[j].chain, static_cast<int>(j), jobs[j].frame, jobs[j].score,
+                              4.0 * frames[jobs[j].frame].spacing});
+      }
+      std::vector<double> poses;
+      params.device->partFits(batch, poses);
+      if (poses.size() != 12 * jobs.size())
+        throw Error("motion method: the device returned " + std::to_string(poses.size() / 12) +
+                    " part fits for " + std::to_string(jobs.size()));
+      std::vector<Pose> out(jobs.size());
+      for (std::size_t j = 0; j < jobs.size(); ++j) out[j] = motionAt(&poses[12 * j]);
+      return out;
+    };
+    return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts, score, fitBatch, same, true,
+                            6);
   };
   auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
                      const std::vector<Pose>* ib) {

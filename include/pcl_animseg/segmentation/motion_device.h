@@ -84,6 +84,25 @@ struct PointCostJobs {
   std::vector<Job> jobs;
 };
 
+/** \brief Part fits for a device to compute: job j is the motion method's ICP
+ * (motion_tracking.cpp's icp(), `iterations` steps, matches within jobs[j].max_dist) of source
+ * jobs[j].source from motion jobs[j].motion against frame jobs[j].frame, kept when its residual is
+ * at most jobs[j].r0 and otherwise the start returned. */
+struct PartFitJobs {
+  struct Job {
+    int source;
+    int motion;
+    int frame;
+    double r0;
+    double max_dist;
+  };
+  int iterations = 8;
+  std::vector<double> points;        ///< 6 per point: position, normal (reference coordinates)
+  std::vector<int> source_begin{0};  ///< source k: points source_begin[k] .. source_begin[k+1]-1
+  std::vector<double> motions;       ///< 12 per motion: the rotation row by row, the translation
+  std::vector<Job> jobs;
+};
+
 /** \brief Appends a motion in the devices' layout (ResidualJobs::motions,
  * PointCostJobs::motions): 12 doubles, the rotation row by row, then the translation. */
 inline void appendMotion(const Eigen::Isometry3d& a, std::vector<double>& out) {
@@ -131,6 +150,8 @@ class MotionDevice {
   virtual void residuals(const ResidualJobs& jobs, std::vector<double>& out) = 0;
   /** \brief One point cost per job, in job order. */
   virtual void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) = 0;
+  /** \brief One pose per job (12 doubles each, in job order). */
+  virtual void partFits(const PartFitJobs& jobs, std::vector<double>& poses) = 0;
 };
 
 }  // namespace segmentation

@@ -41,6 +41,7 @@ class MotionTracking : public segmentation::MotionDevice {
                     std::vector<std::vector<double>>& residual) override;
   void residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) override;
   void pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) override;
+  void partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) override;
   /** \brief Seconds of the last trackSamples on the device (uploads, kernels, downloads). */
   double lastDeviceSeconds() const { return device_seconds_; }
   /** \brief Kernel launches (waves) of the last trackSamples. */
