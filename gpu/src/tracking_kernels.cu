@@ -436,17 +436,8 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rig
     double sums[kRigidCols];
     for (int q = 0; q < kRigidCols; ++q) sums[q] = sh.total[q];
     __syncthreads();
-    const double sse = sums[icp_step::kTerms], used = sums[icp_step::kTerms + 1];
-    if (used < 6.0) break;
-    double x[6];
-    if (!icp_step::solveStep(sums, x)) break;
-    T = icp_step::compose(icp_step::stepMotion(x, c), T);
-    const double mse = sse / used;
-    const bool small =
-        sqrt(icp_step::dot3(x, x)) < p.max_turn && sqrt(icp_step::dot3(x + 3, x + 3)) < max_move;
-    const bool flat = prev_mse > 0.0 && fabs(mse - prev_mse) < p.relative_mse_epsilon * prev_mse;
-    if (small || flat) break;
-    prev_mse = mse;
+    if (!icp_step::rigidStep(sums, c, p.max_turn, max_move, p.relative_mse_epsilon, T, prev_mse))
+      break;
   }
   return T;
 }

@@ -190,9 +190,10 @@ double fitness(const std::vector<double>& src, const FlatKdTree3& tree, const ic
 // point-to-plane's system is nearly singular on a limb) or point-to-plane, linearised about the
 // moved source's centroid and solved damped (icp_step.h: the motion method's arithmetic, so that
 // a device can give the same bits; the sums by ranges, icp_step::rangeBegin). Converged, as
-// PCL's DefaultConvergenceCriteria judge it, when a step turns by less than rigidStepMaxTurn()
-// and moves by less than transformation_epsilon spacings, or the matches' mean squared distance
-// changes by less than relative_mse_epsilon. Written by us in place of
+// PCL's DefaultConvergenceCriteria judge it (icp_step::rigidStep), when a step turns by less
+// than rigidStepMaxTurn() and moves by less than transformation_epsilon spacings, or the
+// matches' mean squared distance changes by less than relative_mse_epsilon. Written by us in
+// place of
 // pcl::IterativeClosestPoint(WithNormals), whose sums a GPU could not reproduce; the passes are
 // the same.
 icp_step::Rigid icpPass(const std::vector<double>& src, const FlatKdTree3& tree,
@@ -237,18 +238,8 @@ icp_step::Rigid icpPass(const std::vector<double>& src, const FlatKdTree3& tree,
       }
       for (int q2 = 0; q2 < kCols; ++q2) sums[q2] += part[q2];
     }
-    const double sse = sums[icp_step::kTerms], used = sums[icp_step::kTerms + 1];
-    if (used < 6.0) break;
-    double x[6];
-    if (!icp_step::solveStep(sums, x)) break;
-    T = icp_step::compose(icp_step::stepMotion(x, c), T);
-    const double mse = sse / used;
-    const bool small = std::sqrt(icp_step::dot3(x, x)) < max_turn &&
-                       std::sqrt(icp_step::dot3(x + 3, x + 3)) < max_move;
-    const bool flat =
-        prev_mse > 0.0 && std::fabs(mse - prev_mse) < p.relative_mse_epsilon * prev_mse;
-    if (small || flat) break;
-    prev_mse = mse;
+    if (!icp_step::rigidStep(sums, c, max_turn, max_move, p.relative_mse_epsilon, T, prev_mse))
+      break;
   }
   return T;
 }

@@ -197,18 +197,27 @@ double meanRms(const PartMotion& m) {
 }
 }  // namespace
 
-TEST(RigidMotion, EveryLevelFittedWithUnchangedPartsReused) {
-  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(5, 6000, false, 13);
-  // Level 1: parts 0 and 1 merged (as 0), part 2 unchanged but renamed 1: its motion is the
-  // level-0 part 2's. Level 2: everything one part. Level 3: like level 1, except that in frame 3
-  // a few points of part 1 join the renamed part: it is not the same point set any more and must
-  // be fitted, not copied; and level 3 splits level 2's part, so it is not nested in level 2.
-  std::vector<std::vector<std::vector<int>>> levels(4, chain.truth);
+namespace {
+// Three nested levels of a box chain: level 0 the truth, level 1 boxes 0 and 1 merged (as 0)
+// with box 2 renamed 1, level 2 everything one part.
+std::vector<std::vector<std::vector<int>>> nestedLevels(const animseg_test::BoxChain& chain) {
+  std::vector<std::vector<std::vector<int>>> levels(3, chain.truth);
   for (auto& f : levels[1])
     for (int& l : f) l = l == 2 ? 1 : 0;
   for (auto& f : levels[2])
     for (int& l : f) l = 0;
-  levels[3] = levels[1];
+  return levels;
+}
+}  // namespace
+
+TEST(RigidMotion, EveryLevelFittedWithUnchangedPartsReused) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(5, 6000, false, 13);
+  // Level 1: parts 0 and 1 merged, part 2 unchanged but renamed: its motion is the level-0 part
+  // 2's. Level 2: everything one part. Level 3: like level 1, except that in frame 3 a few points
+  // of part 1 join the renamed part: it is not the same point set any more and must be fitted,
+  // not copied; and level 3 splits level 2's part, so it is not nested in level 2.
+  std::vector<std::vector<std::vector<int>>> levels = nestedLevels(chain);
+  levels.push_back(levels[1]);
   int moved = 0;
   for (std::size_t j = 0; j < chain.truth[3].size() && moved < 40; ++j)
     if (chain.truth[3][j] == 1) levels[3][3][j] = 1, ++moved;
@@ -314,13 +323,8 @@ TEST(RigidMotion, InitialMotionsStartEachFrame) {
 // CPU's motions bit for bit, from what the device was given alone; a device's failure is thrown.
 TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
   const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 4000, false, 5);
-  // Level 0 the truth, level 1 boxes 0 and 1 merged (nested: fitted from the children), level 2
-  // everything one part.
-  std::vector<std::vector<std::vector<int>>> levels(3, chain.truth);
-  for (auto& f : levels[1])
-    for (int& l : f) l = l == 2 ? 1 : 0;
-  for (auto& f : levels[2])
-    for (int& l : f) l = 0;
+  // The merged parts of levels 1 and 2 are fitted from their children.
+  const auto levels = nestedLevels(chain);
   RigidMotionEstimation cpu;
   cpu.setInputSequence(&chain.sequence);
   // Starts for level 0's parts 0 and 1 (the seeded chains); part 2 is an ordinary chain.

@@ -236,6 +236,27 @@ PCL_ANIMSEG_HD inline int rangeBegin(int j, int n) {
   return b < n ? static_cast<int>(b) : n;
 }
 
+/** \brief One step of the rigid motions' ICP from its summed columns (the kTerms terms, the
+ * matches' squared distances, their count) about the moved source's centroid c: T moved by the
+ * solved step. Returns whether to go on: false with too few matches (T unchanged), no solution
+ * (T unchanged), or once converged as PCL's DefaultConvergenceCriteria judge it (a step that
+ * turns by less than max_turn and moves by less than max_move, or a mean squared distance that
+ * changes by less than rel_mse of the last one; prev_mse carries it between steps, start at -1). */
+PCL_ANIMSEG_HD inline bool rigidStep(const double* sums, const double* c, double max_turn,
+                                     double max_move, double rel_mse, Rigid& T, double& prev_mse) {
+  const double sse = sums[kTerms], used = sums[kTerms + 1];
+  if (used < 6.0) return false;
+  double x[6];
+  if (!solveStep(sums, x)) return false;
+  T = compose(stepMotion(x, c), T);
+  const double mse = sse / used;
+  const bool small = std::sqrt(dot3(x, x)) < max_turn && std::sqrt(dot3(x + 3, x + 3)) < max_move;
+  const bool flat = prev_mse > 0.0 && std::fabs(mse - prev_mse) < rel_mse * prev_mse;
+  if (small || flat) return false;
+  prev_mse = mse;
+  return true;
+}
+
 /** \brief Whether a step is small enough to stop: rotation below 1e-4 rad and translation below
  * 1e-3 spacings. */
 PCL_ANIMSEG_HD inline bool converged(const double* x, double spacing) {
