@@ -13,6 +13,7 @@
 #include <tuple>
 #include <unordered_map>
 
+#include "mean_shift_internal.h"
 #include "surface_fold.h"
 
 namespace pcl_animseg {
@@ -228,6 +229,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   std::vector<std::vector<int>>& labels = output.labels;
   std::size_t total_points = sequence_->totalPoints();
 
+  detail::StageTimer timer("refine");
   const std::vector<double> spacing = meanSpacings(*sequence_);
   std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees(frames);
 #pragma omp parallel for schedule(dynamic)
@@ -257,6 +259,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (int l = 0; l < num_labels; ++l)
         for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
   }
+  timer.lap("trees and motions");
   motions_ = parts;
   // Motion residual of point j of frame t under part l's rigid motion: the point is carried to
   // every other frame and scored by its distance to that frame's surface (point-to-plane, blind to
@@ -388,6 +391,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       }
     }
 
+    timer.lap("bands");
     // 2. Models per (group, pair, side). A group is the whole sequence when pooling, else a frame.
     const int groups = pool ? 1 : static_cast<int>(frames);
     std::vector<SideModel> models(static_cast<std::size_t>(groups) * num_pairs * 2);
@@ -480,6 +484,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     }
     if (iter == 0) stats_.models = fitted;
 
+    timer.lap("models");
     // 3. Reassign W points by the larger p_c (Eq. 11), with hysteresis; all decisions use the
     // labels of this iteration (Jacobi), so the result does not depend on the visiting order.
     std::vector<std::vector<std::pair<int, int>>> changes(frames);
@@ -567,10 +572,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   }
   if (p.fold_snap_band > 0.0) {
     std::size_t snapped = 0;
+    timer.lap("reassignment");
 #pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
     for (int t = 0; t < static_cast<int>(frames); ++t)
       snapped += foldSnap(*sequence_->frame(t), trees[t], spacing[t], p, labels[t]);
     stats_.snapped = snapped;
+    timer.lap("fold snap");
   }
 }
 

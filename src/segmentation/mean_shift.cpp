@@ -122,12 +122,15 @@ std::vector<std::vector<int>> splitByFrame(const std::vector<int>& flat,
 }
 }  // namespace
 
-StageTimer::StageTimer() : on_(std::getenv("ANIMSEG_MS_TIMING") != nullptr) { restart(); }
+StageTimer::StageTimer(const char* prefix)
+    : on_(std::getenv("ANIMSEG_MS_TIMING") != nullptr), prefix_(prefix) {
+  restart();
+}
 void StageTimer::restart() { last_ = std::chrono::steady_clock::now(); }
 void StageTimer::lap(const char* stage) {
   const auto now = std::chrono::steady_clock::now();
   if (on_)
-    std::fprintf(stderr, "[mean shift] %-28s %8.3f s\n", stage,
+    std::fprintf(stderr, "[%s] %-28s %8.3f s\n", prefix_, stage,
                  std::chrono::duration<double>(now - last_).count());
   last_ = now;
 }

@@ -12,11 +12,11 @@ namespace pcl_animseg {
 namespace segmentation {
 namespace detail {
 
-/** Stage timings of the paper method on stderr when the environment variable ANIMSEG_MS_TIMING
- * is set (profiling aid; silent otherwise). */
+/** Stage timings of the mean-shift stage (and the refinement's, `prefix` "refine") on stderr
+ * when the environment variable ANIMSEG_MS_TIMING is set (profiling aid; silent otherwise). */
 class StageTimer {
  public:
-  StageTimer();
+  explicit StageTimer(const char* prefix = "mean shift");
   void restart();
   /** Prints the time since the last lap (or restart) under `stage`, then restarts. */
   void lap(const char* stage);
@@ -25,6 +25,7 @@ class StageTimer {
 
  private:
   bool on_;
+  const char* prefix_;
   std::chrono::steady_clock::time_point last_;
 };
 
