@@ -104,7 +104,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       std::string why;
 #ifdef PCL_ANIMSEG_HAVE_CUDA
       if (gpu::gpuAvailable(&why)) {
-        gpu::resetPeakDeviceBytes();  // the peak of this stage, reported in summary.json
+        gpu::resetPeakDeviceBytes();  // the run's peak, reported in summary.json
         ms.setDeviceBackend(gpu::makeMeanShiftBackend(), /*cpu_fallback=*/params.device == "auto");
         why.clear();
       }
