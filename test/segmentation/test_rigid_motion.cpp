@@ -208,6 +208,17 @@ std::vector<std::vector<std::vector<int>>> nestedLevels(const animseg_test::BoxC
     for (int& l : f) l = 0;
   return levels;
 }
+
+// Starts from nearly the same labels, as the pipeline passes the refinement's motions: the
+// motions of a coarser subsample (300 points per part).
+std::vector<PartMotion> coarseMotions(const animseg_test::BoxChain& chain) {
+  RigidMotionEstimation coarse;
+  coarse.setInputSequence(&chain.sequence);
+  pcl_animseg::segmentation::RigidMotionParams cp;
+  cp.max_points = 300;
+  coarse.setParams(cp);
+  return coarse.compute(chain.truth);
+}
 }  // namespace
 
 TEST(RigidMotion, EveryLevelFittedWithUnchangedPartsReused) {
@@ -276,13 +287,7 @@ TEST(RigidMotion, InitialMotionsStartEachFrame) {
   const std::vector<PartMotion> chained = est.compute(chain.truth);
   ASSERT_EQ(chained.size(), 3u);
 
-  // Starts from nearly the same labels: the motions of a coarser subsample.
-  RigidMotionEstimation coarse;
-  coarse.setInputSequence(&chain.sequence);
-  pcl_animseg::segmentation::RigidMotionParams cp;
-  cp.max_points = 300;
-  coarse.setParams(cp);
-  std::vector<PartMotion> init = coarse.compute(chain.truth);
+  std::vector<PartMotion> init = coarseMotions(chain);
   // Wrong starts in every other frame of part 1 (turned by 90 degrees and shifted), and none
   // for part 2.
   for (std::size_t t = 1; t < init[1].frames.size(); t += 2) {
@@ -328,12 +333,7 @@ TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
   RigidMotionEstimation cpu;
   cpu.setInputSequence(&chain.sequence);
   // Starts for level 0's parts 0 and 1 (the seeded chains); part 2 is an ordinary chain.
-  RigidMotionEstimation coarse;
-  coarse.setInputSequence(&chain.sequence);
-  pcl_animseg::segmentation::RigidMotionParams cp;
-  cp.max_points = 300;
-  coarse.setParams(cp);
-  std::vector<PartMotion> init = coarse.compute(chain.truth);
+  std::vector<PartMotion> init = coarseMotions(chain);
   init.resize(2);
   cpu.setInitialMotions(init);
   const auto expected = cpu.computeLevels(levels);
