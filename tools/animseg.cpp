@@ -103,29 +103,34 @@ int main(int argc, char** argv) {
      "motion method: patches of the over-segmentation (0: automatic)");
   tools::addMotionOptions(od, msd);
   tools::addScaleSpaceOptions(od, defaults.multiscale);
-  od.add_options()
-    ("signature-h", po::value<double>()->default_value(defaults.multiscale.signature_h),
-     "scale h of the signature (Eq. 2), in point spacings")
-    ("narrow-band", po::value<double>()->default_value(defaults.refinement.narrow_band),
-     "refinement: L_r, width of the band W (point spacings)")
-    ("outer-band", po::value<double>()->default_value(defaults.refinement.outer_band),
-     "refinement: L_R, outer width of the bands F and B (point spacings)")
-    ("refine-iterations", po::value<int>()->default_value(defaults.refinement.max_iterations),
-     "refinement: passes at most (bands rebuilt from the new labels each time)")
-    ("fold-snap", po::value<double>()->default_value(defaults.refinement.fold_snap_band),
-     "refinement: points within this many spacings of a border move onto the inward fold "
-     "where one part leaves the other (0: off)")
-    ("rp-step", po::value<double>()->default_value(defaults.hierarchy.step),
-     "hierarchy: raise of the region-persistence threshold per level (0.05-0.1)")
-    ("png", po::value<std::string>()->implicit_value(""),
-     "also render a contact sheet of the result (headless) to FILE, default OUT/contact_sheet.png")
-    ("png-level", po::value<int>()->default_value(0), "hierarchy level shown by --png")
-    ("no-features", "skip scale space, keypoints and signatures (mean shift on p, n only)")
-    ("no-refine", "skip the GMM boundary refinement")
-    ("no-transforms", "skip the rigid motion per part (transforms.json lists no parts)")
-    ("transform-levels", po::value<int>()->default_value(defaults.motion_levels),
-     "rigid motions for this many levels, finest first (0: every level)")
-    ("seed", po::value<unsigned>()->default_value(msd.seed), "random seed (results are deterministic)");
+  od.add_options()("signature-h",
+                   po::value<double>()->default_value(defaults.multiscale.signature_h),
+                   "scale h of the signature (Eq. 2), in point spacings")(
+      "narrow-band", po::value<double>()->default_value(defaults.refinement.narrow_band),
+      "refinement: L_r, width of the band W (point spacings)")(
+      "outer-band", po::value<double>()->default_value(defaults.refinement.outer_band),
+      "refinement: L_R, outer width of the bands F and B (point spacings)")(
+      "refine-iterations", po::value<int>()->default_value(defaults.refinement.max_iterations),
+      "refinement: passes at most (bands rebuilt from the new labels each time)")(
+      "fold-snap", po::value<double>()->default_value(defaults.refinement.fold_snap_band),
+      "refinement: points within this many spacings of a border move onto the inward fold "
+      "where one part leaves the other (0: off)")(
+      "motion-frames", po::value<int>()->default_value(defaults.refinement.motion_frames),
+      "refinement: its motion check averages over at most this many frames, spread evenly "
+      "(0: every frame; the cost grows with the square of the frame count)")(
+      "rp-step", po::value<double>()->default_value(defaults.hierarchy.step),
+      "hierarchy: raise of the region-persistence threshold per level (0.05-0.1)")(
+      "png", po::value<std::string>()->implicit_value(""),
+      "also render a contact sheet of the result (headless) to FILE, default "
+      "OUT/contact_sheet.png")("png-level", po::value<int>()->default_value(0),
+                               "hierarchy level shown by --png")(
+      "no-features", "skip scale space, keypoints and signatures (mean shift on p, n only)")(
+      "no-refine", "skip the GMM boundary refinement")(
+      "no-transforms", "skip the rigid motion per part (transforms.json lists no parts)")(
+      "transform-levels", po::value<int>()->default_value(defaults.motion_levels),
+      "rigid motions for this many levels, finest first (0: every level)")(
+      "seed", po::value<unsigned>()->default_value(msd.seed),
+      "random seed (results are deterministic)");
   return tools::runTool(
       argc, argv, "animseg",
       "animseg --input IN --output OUT [--device auto|cpu|gpu] [--levels L] [--bandwidth w]\n"
@@ -157,6 +162,7 @@ int main(int argc, char** argv) {
         params.refinement.outer_band = vm["outer-band"].as<double>();
         params.refinement.max_iterations = vm["refine-iterations"].as<int>();
         params.refinement.fold_snap_band = vm["fold-snap"].as<double>();
+        params.refinement.motion_frames = vm["motion-frames"].as<int>();
         params.hierarchy.step = vm["rp-step"].as<double>();
         params.features = !vm.count("no-features");
         params.refine = !vm.count("no-refine");

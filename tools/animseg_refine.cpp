@@ -35,6 +35,9 @@ int main(int argc, char** argv) {
       "motion-tolerance", po::value<double>()->default_value(d.motion_tolerance),
       "a point takes the other part only if that part's rigid motion explains its trajectory no "
       "worse than (1 + this) x its own part's")(
+      "motion-frames", po::value<int>()->default_value(d.motion_frames),
+      "the motion check averages over at most this many frames, spread evenly (0: every frame; "
+      "its cost grows with the square of the frame count)")(
       "no-motion-check", po::bool_switch(),
       "the paper's rule: decide by normals alone, without the rigid-motion check")(
       "iterations", po::value<int>()->default_value(d.max_iterations),
@@ -59,6 +62,7 @@ int main(int argc, char** argv) {
         params.spatial_weight = ctx.vm["spatial-weight"].as<double>();
         params.motion_tolerance = ctx.vm["motion-tolerance"].as<double>();
         params.motion_check = !ctx.vm["no-motion-check"].as<bool>();
+        params.motion_frames = ctx.vm["motion-frames"].as<int>();
         params.max_iterations = ctx.vm["iterations"].as<int>();
         params.fold_snap_band = ctx.vm["fold-snap"].as<double>();
         params.fold_snap_angle_deg = ctx.vm["fold-snap-angle"].as<double>();
@@ -68,6 +72,8 @@ int main(int argc, char** argv) {
           throw pcl_animseg::Error("need 0 < --narrow-band < --outer-band");
         if (!(params.motion_tolerance >= 0.0))
           throw pcl_animseg::Error("--motion-tolerance must be >= 0");
+        if (params.motion_frames < 0 || params.motion_frames == 1)
+          throw pcl_animseg::Error("--motion-frames must be 0 (every frame) or >= 2");
         if (!(params.fold_snap_band >= 0.0) || !(params.fold_snap_angle_deg > 0.0))
           throw pcl_animseg::Error("need --fold-snap >= 0 and --fold-snap-angle > 0");
 

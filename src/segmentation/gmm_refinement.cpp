@@ -202,6 +202,9 @@ void validate(const RefinementParams& p) {
         std::to_string(p.fold_snap_band) + ", " + std::to_string(p.fold_snap_penalty) + ", " +
         std::to_string(p.fold_snap_angle_deg) + ", " + std::to_string(p.fold_snap_dead_zone_deg) +
         ")");
+  if (p.motion_frames < 0 || p.motion_frames == 1)
+    throw Error("GMM refinement: need motion_frames 0 (every frame) or >= 2 (got " +
+                std::to_string(p.motion_frames) + ")");
   if (!(p.motion_tolerance >= 0.0) || !(p.motion_cap > 0.0))
     throw Error("GMM refinement: need motion_tolerance >= 0 and motion_cap > 0 (got " +
                 std::to_string(p.motion_tolerance) + ", " + std::to_string(p.motion_cap) + ")");
@@ -264,8 +267,18 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // Motion residual of point j of frame t under part l's rigid motion: the point is carried to
   // every other frame and scored by its distance to that frame's surface (point-to-plane, blind to
   // the different sampling of the frames, or what the point-to-point distance exceeds a spacing,
-  // so that sliding off the end of a part counts), in spacings, capped, averaged over frames.
+  // so that sliding off the end of a part counts), in spacings, capped, averaged over frames
+  // (at most motion_frames of them, spread evenly: `scored`).
   // The motions are fixed for the whole refinement, so each (point, part) is scored once.
+  std::vector<std::size_t> scored;
+  {
+    const std::size_t cap = static_cast<std::size_t>(p.motion_frames);
+    if (cap == 0 || frames <= cap) {
+      for (std::size_t u = 0; u < frames; ++u) scored.push_back(u);
+    } else {
+      for (std::size_t k = 0; k < cap; ++k) scored.push_back(k * (frames - 1) / (cap - 1));
+    }
+  }
   std::vector<std::unordered_map<long long, float>> residual_cache(frames);
   auto motionResidual = [&](int l, int t, int j) -> double {
     const long long key = static_cast<long long>(j) * num_labels + l;
@@ -277,7 +290,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     std::vector<float> d2(1);
     double sum = 0.0;
     int n = 0;
-    for (std::size_t u = 0; u < frames; ++u) {
+    for (std::size_t u : scored) {
       if (static_cast<int>(u) == t || !parts[l].frames[u].valid) continue;
       const Eigen::Vector3d y = parts[l].frames[u].apply(x0);
       pcl::PointNormal q;

@@ -192,6 +192,12 @@ TEST(GMMRefinement, RejectsInconsistentInput) {
   bad.motion_tolerance = -0.1;
   refine.setParams(bad);
   EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
+  for (int frames : {-1, 1}) {
+    bad = RefinementParams();
+    bad.motion_frames = frames;
+    refine.setParams(bad);
+    EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error) << frames;
+  }
   bad = RefinementParams();
   bad.fold_angle_deg = 180.0;
   refine.setParams(bad);
@@ -243,4 +249,40 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
     }
   EXPECT_GE(dev.fits, 3 * 4);  // every part in every frame but the first
   EXPECT_LE(dev.batches, 4);   // one batch per frame position
+}
+
+// The motion check over a few frames spread evenly (motion_frames) instead of all of them: on a
+// sequence of 12 frames, 4 give nearly the same labels and still cut the boundary error; a cap at
+// or above the frame count changes nothing.
+TEST(GMMRefinement, MotionCheckOverFewerFrames) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0}, {1.0}, 12, 3000, 2.5, 6);
+  RefinementParams all;
+  all.motion_frames = 0;
+  RefinementParams capped = all;
+  capped.motion_frames = 4;
+  RefinementParams above = all;
+  above.motion_frames = 12;
+  SegmentationResult in;
+  in.labels = chain.shifted;
+  in.num_clusters = 2;
+  auto refined = [&](const RefinementParams& p) {
+    GMMBoundaryRefinement r;
+    r.setInputSequence(&chain.sequence);
+    r.setParams(p);
+    SegmentationResult out;
+    r.refine(in, out);
+    return out.labels;
+  };
+  const auto a = refined(all), c = refined(capped), b = refined(above);
+  EXPECT_EQ(b, a);
+  const double before = animseg_test::boundaryError(chain.sequence, chain.truth, chain.shifted);
+  const double err_all = animseg_test::boundaryError(chain.sequence, chain.truth, a);
+  const double err_capped = animseg_test::boundaryError(chain.sequence, chain.truth, c);
+  std::cout << "boundary error " << before << " -> " << err_all << " (every frame), " << err_capped
+            << " (4 frames)" << std::endl;
+  EXPECT_LE(err_capped, 0.7 * before);
+  EXPECT_LE(err_capped, err_all + 0.02);
+  EXPECT_GE(
+      pcl_animseg::evaluation::adjustedRandIndex(animseg_test::pooled(a), animseg_test::pooled(c)),
+      0.97);
 }

@@ -75,6 +75,11 @@ struct RefinementParams {
   bool motion_check = true;
   double motion_tolerance = 0.35;
   double motion_cap = 5.0;
+  /** The motion check's mean runs over at most this many frames, spread evenly over the
+   * sequence (0: every frame). Each point is carried to every frame it counts, so without a cap
+   * the check's cost grows with the square of the frame count: at 160 frames (1.6 M points) it
+   * was the refinement's largest stage. Sequences of up to this many frames are unaffected. */
+  int motion_frames = 48;
   /** Fold guard (beyond the paper): a W point does not take a label whose points near it (its
    * `boundary_k` nearest within `boundary_max_distance`) all lie across an inward fold of more
    * than `fold_angle_deg` (normals converging): a border on such a fold is where parts meet (the
