@@ -149,6 +149,14 @@ DeviceInfo deviceInfo() {
   return info;
 }
 
+std::string deviceLabel() {
+  try {
+    return "gpu (" + deviceInfo().name + ")";
+  } catch (const Error&) {
+    return "gpu";
+  }
+}
+
 void setDevice(int id) { cudaSafeCall(cudaSetDevice(id)); }
 
 void synchronize() { cudaSafeCall(cudaDeviceSynchronize()); }

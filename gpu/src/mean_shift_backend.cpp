@@ -9,13 +9,7 @@
 namespace pcl_animseg {
 namespace gpu {
 
-std::string MeanShiftBackend::name() const {
-  try {
-    return "gpu (" + deviceInfo().name + ")";
-  } catch (const Error&) {
-    return "gpu";
-  }
-}
+std::string MeanShiftBackend::name() const { return deviceLabel(); }
 
 void MeanShiftBackend::seekModes(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
                                  const Eigen::RowVectorXf& metric_key,

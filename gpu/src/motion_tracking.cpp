@@ -23,18 +23,33 @@ void appendSource(const Eigen::Matrix3Xd& p, const Eigen::Matrix3Xd& n, std::vec
   begin.push_back(static_cast<int>(out.size() / 6));
 }
 
+// A batch's sources (ranges of 6-double points, source_begin) and motions (12 doubles each):
+// their counts, or Error("<what>: ...") when malformed.
+void countSourcesAndMotions(const std::vector<double>& points, const std::vector<int>& source_begin,
+                            const std::vector<double>& motions, const std::string& what,
+                            int& n_sources, int& n_motions) {
+  n_sources = static_cast<int>(source_begin.size()) - 1;
+  n_motions = static_cast<int>(motions.size() / detail::kPoseDoubles);
+  if (n_sources < 0 || source_begin.front() != 0 ||
+      static_cast<std::size_t>(source_begin.back()) * 6 != points.size() ||
+      motions.size() % detail::kPoseDoubles != 0)
+    throw Error(what + ": the sources or motions are malformed");
+}
+
+// Error("<what>: a job out of range") unless a job's source, motion and frame are in range.
+void checkJob(int source, int n_sources, int motion, int n_motions, int frame, int frames,
+              const std::string& what) {
+  if (source < 0 || source >= n_sources || motion < 0 || motion >= n_motions || frame < 0 ||
+      frame >= frames)
+    throw Error(what + ": a job out of range");
+}
+
 }  // namespace
 
 MotionTracking::MotionTracking() = default;
 MotionTracking::~MotionTracking() = default;
 
-std::string MotionTracking::name() const {
-  try {
-    return "gpu (" + deviceInfo().name + ")";
-  } catch (const Error&) {
-    return "gpu";
-  }
-}
+std::string MotionTracking::name() const { return deviceLabel(); }
 
 namespace detail {
 
@@ -144,19 +159,14 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
 }
 
 void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) {
-  if (!frames_) throw Error("GPU residuals: no frames were set");
-  const int sources = static_cast<int>(jobs.source_begin.size()) - 1;
-  const int motions = static_cast<int>(jobs.motions.size() / detail::kPoseDoubles);
-  if (sources < 0 || jobs.source_begin.front() != 0 ||
-      static_cast<std::size_t>(jobs.source_begin.back()) * 6 != jobs.points.size() ||
-      jobs.motions.size() % detail::kPoseDoubles != 0)
-    throw Error("GPU residuals: the sources or motions are malformed");
+  const std::string what = "GPU residuals";
+  if (!frames_) throw Error(what + ": no frames were set");
+  int sources = 0, motions = 0;
+  countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
   std::vector<detail::ResidualJob> list;
   list.reserve(jobs.jobs.size());
   for (const segmentation::ResidualJobs::Job& j : jobs.jobs) {
-    if (j.source < 0 || j.source >= sources || j.motion < 0 || j.motion >= motions || j.frame < 0 ||
-        j.frame >= frames_->frames)
-      throw Error("GPU residuals: a job out of range");
+    checkJob(j.source, sources, j.motion, motions, j.frame, frames_->frames, what);
     list.push_back({j.source, j.motion, j.frame});
   }
   detail::runResiduals(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, out);
@@ -181,26 +191,16 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
   detail::runPointCosts(*frames_, jobs.reference_frame, jobs.points, jobs.motions, list, out);
 }
 
-}  // namespace gpu
-}  // namespace pcl_animseg
-
-namespace pcl_animseg {
-namespace gpu {
-
 void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) {
-  if (!frames_) throw Error("GPU part fits: no frames were set");
-  const int sources = static_cast<int>(jobs.source_begin.size()) - 1;
-  const int motions = static_cast<int>(jobs.motions.size() / detail::kPoseDoubles);
-  if (sources < 0 || jobs.source_begin.front() != 0 ||
-      static_cast<std::size_t>(jobs.source_begin.back()) * 6 != jobs.points.size() ||
-      jobs.motions.size() % detail::kPoseDoubles != 0 || jobs.iterations < 0)
-    throw Error("GPU part fits: the sources or motions are malformed");
+  const std::string what = "GPU part fits";
+  if (!frames_) throw Error(what + ": no frames were set");
+  int sources = 0, motions = 0;
+  countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
+  if (jobs.iterations < 0) throw Error(what + ": negative iterations");
   std::vector<detail::PartFitJob> list;
   list.reserve(jobs.jobs.size());
   for (const segmentation::PartFitJobs::Job& j : jobs.jobs) {
-    if (j.source < 0 || j.source >= sources || j.motion < 0 || j.motion >= motions || j.frame < 0 ||
-        j.frame >= frames_->frames)
-      throw Error("GPU part fits: a job out of range");
+    checkJob(j.source, sources, j.motion, motions, j.frame, frames_->frames, what);
     list.push_back({j.source, j.motion, j.frame, j.r0, j.max_dist});
   }
   detail::runPartFits(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, jobs.iterations,

@@ -21,13 +21,7 @@ struct RigidSources {
 RigidFits::RigidFits() = default;
 RigidFits::~RigidFits() = default;
 
-std::string RigidFits::name() const {
-  try {
-    return "gpu (" + deviceInfo().name + ")";
-  } catch (const Error&) {
-    return "gpu";
-  }
-}
+std::string RigidFits::name() const { return deviceLabel(); }
 
 void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
   surfaces_ = detail::uploadDeviceFrames(surfaces, "GPU rigid fits: surface");

@@ -62,18 +62,6 @@ struct Dev {
 namespace icp_step = segmentation::icp_step;
 using icp_step::Rigid;
 
-__device__ Rigid loadPose(const double* p) {
-  Rigid a;
-  for (int k = 0; k < 9; ++k) a.r[k] = p[k];
-  for (int k = 0; k < 3; ++k) a.t[k] = p[9 + k];
-  return a;
-}
-
-__device__ void storePose(double* p, const Rigid& a) {
-  for (int k = 0; k < 9; ++k) p[k] = a.r[k];
-  for (int k = 0; k < 3; ++k) p[9 + k] = a.t[k];
-}
-
 // Per warp: the values of up to 32 points (one per lane), added in point order by the lanes that
 // own the sums (sum q by lane q), so that every sum runs in the CPU's order.
 constexpr int kCols = icp_step::kTerms + 1;  // the terms, then whether the point counts
@@ -243,19 +231,19 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
 // of the sample's graph neighbours of lower level in this frame (trackSamplesOn's order).
 __device__ Rigid start(const Dev& d, int t, int s, int c) {
   const int S = d.S, tp = d.before[t], tpp = d.two_before[t];
-  const Rigid prev = loadPose(d.poses + (static_cast<long long>(tp) * S + s) * kPoseDoubles);
+  const Rigid prev = icp_step::load(d.poses + (static_cast<long long>(tp) * S + s) * kPoseDoubles);
   if (c == 0) return prev;
   if (c == 1)
     return icp_step::compose(
-        icp_step::compose(loadPose(d.global + t * kPoseDoubles),
-                          icp_step::inverse(loadPose(d.global + tp * kPoseDoubles))),
+        icp_step::compose(icp_step::load(d.global + t * kPoseDoubles),
+                          icp_step::inverse(icp_step::load(d.global + tp * kPoseDoubles))),
         prev);
   if (tpp >= 0) {
     if (c == 2)
       return icp_step::compose(
-          icp_step::compose(
-              prev, icp_step::inverse(
-                        loadPose(d.poses + (static_cast<long long>(tpp) * S + s) * kPoseDoubles))),
+          icp_step::compose(prev,
+                            icp_step::inverse(icp_step::load(
+                                d.poses + (static_cast<long long>(tpp) * S + s) * kPoseDoubles))),
           prev);
     --c;
   }
@@ -264,7 +252,7 @@ __device__ Rigid start(const Dev& d, int t, int s, int c) {
   for (int j = d.adj_begin[s]; j < d.adj_begin[s + 1]; ++j) {
     const int o = d.adj[j];
     if (lev[o] < lev[s] && c-- == 0)
-      return loadPose(d.poses + (static_cast<long long>(t) * S + o) * kPoseDoubles);
+      return icp_step::load(d.poses + (static_cast<long long>(t) * S + o) * kPoseDoubles);
   }
   return prev;  // not reached: c < number of starts
 }
@@ -307,7 +295,7 @@ __global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
     if (r < best) best = r, best_pose = fit;
   }
   if (lane == 0) {
-    storePose(d.poses + static_cast<long long>(task) * kPoseDoubles, best_pose);
+    icp_step::store(best_pose, d.poses + static_cast<long long>(task) * kPoseDoubles);
     d.residual[task] = best;
   }
 }
@@ -323,9 +311,10 @@ __global__ void residualJobs(Dev d, const double* __restrict__ points,
   if (w >= n) return;  // the whole warp
   const ResidualJob job = jobs[w];
   const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
-  const double r = residual(d, job.frame, points + 6LL * b, m,
-                            loadPose(motions + static_cast<long long>(job.motion) * kPoseDoubles),
-                            lane, scratch[threadIdx.x / kWarp]);
+  const double r =
+      residual(d, job.frame, points + 6LL * b, m,
+               icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles), lane,
+               scratch[threadIdx.x / kWarp]);
   if (lane == 0) out[w] = r;
 }
 
@@ -343,11 +332,11 @@ __global__ void partFitJobs(Dev d, const double* __restrict__ points,
   const PartFitJob job = jobs[w];
   const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
   const double* src = points + 6LL * b;
-  const Rigid init = loadPose(motions + static_cast<long long>(job.motion) * kPoseDoubles);
+  const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
   const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, lane, sc);
   const double r = residual(d, job.frame, src, m, cand, lane, sc);
   if (lane == 0)
-    storePose(out + static_cast<long long>(w) * kPoseDoubles, r <= job.r0 ? cand : init);
+    icp_step::store(r <= job.r0 ? cand : init, out + static_cast<long long>(w) * kPoseDoubles);
 }
 
 // One point cost per thread (motion_tracking.cpp's pointCost): the point's surface errors under
@@ -363,7 +352,7 @@ __global__ void pointCostJobs(Dev d, int frames, int ref, const double* __restri
   for (int t = 0; t < frames; ++t) {
     if (t == ref) continue;
     const Rigid m =
-        loadPose(motions + (static_cast<long long>(job.motion) * frames + t) * kPoseDoubles);
+        icp_step::load(motions + (static_cast<long long>(job.motion) * frames + t) * kPoseDoubles);
     double y[3], nr[3];
     icp_step::apply(m, p, y);
     icp_step::rotate(m, p + 3, nr);
@@ -479,7 +468,7 @@ __global__ void __launch_bounds__(kRigidThreads)
   const double fine = p.max_correspondence_spacings * job.spacing;
   const double coarse = fmax(fine, p.coarse_distance * job.part_diag);
   const double passes[2] = {coarse, fmax(fine, coarse / 6.0)};
-  Rigid m = loadPose(job.start);
+  Rigid m = icp_step::load(job.start);
   if (job.wide)
     for (int k = 0; k < 2; ++k)
       m = rigidPass(d, root, src, n, m, passes[k], max(1, p.max_iterations / 2), false, job.spacing,
@@ -494,7 +483,7 @@ __global__ void __launch_bounds__(kRigidThreads)
     rms = rms_plane;
   }
   if (threadIdx.x == 0) {
-    storePose(poses + static_cast<long long>(blockIdx.x) * kPoseDoubles, m);
+    icp_step::store(m, poses + static_cast<long long>(blockIdx.x) * kPoseDoubles);
     rms_out[blockIdx.x] = rms;
   }
 }
@@ -519,6 +508,19 @@ void grow(DeviceMemory& m, std::size_t bytes) {
 void put(DeviceMemory& m, const void* host, std::size_t bytes) {
   grow(m, bytes);
   m.uploadBytes(host, bytes);
+}
+
+// A batch's points, their sources' ranges (when the jobs name sources), motions and jobs
+// uploaded into the store's batch buffers, and its output buffer grown to `out_bytes`.
+template <class Job>
+void putBatch(FrameStore& frames, const std::vector<double>& points,
+              const std::vector<int>* source_begin, const std::vector<double>& motions,
+              const std::vector<Job>& jobs, std::size_t out_bytes) {
+  put(frames.job_points, points.data(), points.size() * sizeof(double));
+  if (source_begin) put(frames.job_begin, source_begin->data(), source_begin->size() * sizeof(int));
+  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
+  put(frames.job_list, jobs.data(), jobs.size() * sizeof(Job));
+  grow(frames.job_out, out_bytes);
 }
 
 int blocksFor(long long warps) {
@@ -617,11 +619,7 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
                   const std::vector<ResidualJob>& jobs, std::vector<double>& out) {
   out.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  put(frames.job_points, points.data(), points.size() * sizeof(double));
-  put(frames.job_begin, source_begin.data(), source_begin.size() * sizeof(int));
-  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
-  put(frames.job_list, jobs.data(), jobs.size() * sizeof(ResidualJob));
-  grow(frames.job_out, jobs.size() * sizeof(double));
+  putBatch(frames, points, &source_begin, motions, jobs, jobs.size() * sizeof(double));
   const Dev d = frameView(frames);
   const long long n = static_cast<long long>(jobs.size());
   residualJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
@@ -640,11 +638,7 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses) {
   poses.assign(jobs.size() * kPoseDoubles, 0.0);
   if (jobs.empty()) return;
-  put(frames.job_points, points.data(), points.size() * sizeof(double));
-  put(frames.job_begin, source_begin.data(), source_begin.size() * sizeof(int));
-  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
-  put(frames.job_list, jobs.data(), jobs.size() * sizeof(PartFitJob));
-  grow(frames.job_out, poses.size() * sizeof(double));
+  putBatch(frames, points, &source_begin, motions, jobs, poses.size() * sizeof(double));
   Dev d = frameView(frames);
   d.iterations = iterations;
   const long long n = static_cast<long long>(jobs.size());
@@ -663,10 +657,7 @@ void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& point
                    std::vector<double>& out) {
   out.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  put(frames.job_points, points.data(), points.size() * sizeof(double));
-  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
-  put(frames.job_list, jobs.data(), jobs.size() * sizeof(PointCostJob));
-  grow(frames.job_out, jobs.size() * sizeof(double));
+  putBatch(frames, points, nullptr, motions, jobs, jobs.size() * sizeof(double));
   const Dev d = frameView(frames);
   const int n = static_cast<int>(jobs.size());
   constexpr int kThreads = 128;

@@ -383,9 +383,7 @@ class ChainedPart {
   bool usable(int t) const { return targets_[t].usable; }
   RigidFitJob job(int t, const Link& start) const {
     RigidFitJob j;
-    const icp_step::Rigid r = toRigid(start.fit);
-    std::copy(r.r, r.r + 9, j.start);
-    std::copy(r.t, r.t + 3, j.start + 9);
+    icp_step::store(toRigid(start.fit), j.start);
     j.spacing = spacing_[t];
     j.part_diag = part_diag_;
     j.wide = !start.from_init;
@@ -440,13 +438,6 @@ class ChainedPart {
   std::vector<Target> targets_;
 };
 
-icp_step::Rigid rigidOf(const double* pose) {
-  icp_step::Rigid r;
-  std::copy(pose, pose + 9, r.r);
-  std::copy(pose + 9, pose + 12, r.t);
-  return r;
-}
-
 // One computation's fits on a device: its sources and surfaces uploaded once (by id, in the
 // order added), then batches of jobs.
 class DeviceFits {
@@ -473,7 +464,7 @@ class DeviceFits {
       throw Error("rigid motion: the device returned " + std::to_string(rms.size()) + " fits for " +
                   std::to_string(jobs.size()));
     poses.resize(jobs.size());
-    for (std::size_t j = 0; j < jobs.size(); ++j) poses[j] = rigidOf(&flat[12 * j]);
+    for (std::size_t j = 0; j < jobs.size(); ++j) poses[j] = icp_step::load(&flat[12 * j]);
   }
 
  private:
@@ -629,9 +620,7 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
     start.translation = map.topRightCorner<3, 1>();
     if (device) {
       RigidFitJob& f = fits[job];
-      const icp_step::Rigid r = toRigid(start);
-      std::copy(r.r, r.r + 9, f.start);
-      std::copy(r.t, r.t + 3, f.start + 9);
+      icp_step::store(toRigid(start), f.start);
       f.source = static_cast<int>(k);
       f.spacing = spacing[t];
       f.part_diag = part_diag[k];
@@ -681,10 +670,9 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
 void fitRigidJob(const std::vector<double>& source, const FlatKdTree3& tree,
                  const std::vector<float>& leaf_normals, const RigidFitJob& job,
                  const RigidMotionParams& params, double* pose, double& rms) {
-  const icp_step::Rigid m = alignPasses(source, tree, leaf_normals, rigidOf(job.start), job.spacing,
-                                        job.part_diag, params, rms, job.wide);
-  std::copy(m.r, m.r + 9, pose);
-  std::copy(m.t, m.t + 3, pose + 9);
+  icp_step::store(alignPasses(source, tree, leaf_normals, icp_step::load(job.start), job.spacing,
+                              job.part_diag, params, rms, job.wide),
+                  pose);
 }
 
 int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>& labels,

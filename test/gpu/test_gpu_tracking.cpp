@@ -17,6 +17,8 @@
 #include <memory>
 #include <vector>
 
+#include "segmentation/synthetic_parts.h"
+
 namespace gpu = pcl_animseg::gpu;
 namespace seg = pcl_animseg::segmentation;
 namespace synth = pcl_animseg::synth;
@@ -31,12 +33,6 @@ pcl_animseg::PointCloudSequence::Ptr generated(synth::BodyPlan plan, int frames,
   sp.points = points;
   sp.seed = seed;
   return std::make_shared<pcl_animseg::PointCloudSequence>(synth::toSequence(synth::generate(sp)));
-}
-
-std::vector<int> flatLabels(const seg::SegmentationResult& r) {
-  std::vector<int> flat;
-  for (const auto& f : r.labels) flat.insert(flat.end(), f.begin(), f.end());
-  return flat;
 }
 
 }  // namespace
@@ -94,12 +90,12 @@ TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
     seg::SegmentationResult got;
     dev.segment(got);
     EXPECT_NE(dev.deviceUsed().find("gpu"), std::string::npos) << dev.deviceUsed();
-    const double ari =
-        pcl_animseg::evaluation::adjustedRandIndex(flatLabels(expected), flatLabels(got));
+    const double ari = pcl_animseg::evaluation::adjustedRandIndex(
+        animseg_test::pooled(expected.labels), animseg_test::pooled(got.labels));
     std::printf("%s: CPU %d parts, GPU tracking %d parts, ARI %.4f\n",
                 synth::toString(plan).c_str(), expected.num_clusters, got.num_clusters, ari);
     EXPECT_EQ(got.num_clusters, expected.num_clusters);
-    EXPECT_EQ(flatLabels(got), flatLabels(expected));
+    EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
   }
 }
 

@@ -112,10 +112,7 @@ class RecordingDevice : public seg::MotionDevice {
                                        frames.normal_cos, frames.clip);
   }
   static seg::icp_step::Rigid motionAt(const std::vector<double>& motions, std::size_t k) {
-    seg::icp_step::Rigid m;
-    for (int i = 0; i < 9; ++i) m.r[i] = motions[12 * k + i];
-    for (int i = 0; i < 3; ++i) m.t[i] = motions[12 * k + 9 + i];
-    return m;
+    return seg::icp_step::load(&motions[12 * k]);
   }
   void residuals(const seg::ResidualJobs& b, std::vector<double>& out) override {
     ++batches;
@@ -215,8 +212,8 @@ class RecordingDevice : public seg::MotionDevice {
       }
       const double r = m > 0 ? std::sqrt(sum / m) : 0.0;
       const is::Rigid& kept = r <= job.r0 ? T : init;
-      poses.insert(poses.end(), kept.r, kept.r + 9);
-      poses.insert(poses.end(), kept.t, kept.t + 3);
+      poses.resize(poses.size() + 12);
+      is::store(kept, &poses[poses.size() - 12]);
     }
   }
   int fit_batches = 0;
@@ -266,12 +263,6 @@ seg::SegmentationResult segmentOnCpu(const pcl_animseg::PointCloudSequence::Ptr&
   return result;
 }
 
-std::vector<int> flatLabels(const seg::SegmentationResult& r) {
-  std::vector<int> flat;
-  for (const auto& f : r.labels) flat.insert(flat.end(), f.begin(), f.end());
-  return flat;
-}
-
 }  // namespace
 
 TEST(MotionDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
@@ -318,7 +309,7 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_GT(backend->device.fits, 100u);
   EXPECT_EQ(dev.deviceUsed(), "recording backend");
   EXPECT_EQ(got.num_clusters, expected.num_clusters);
-  EXPECT_EQ(flatLabels(got), flatLabels(expected));
+  EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
 }
 
 TEST(MotionDevice, AFailingDeviceStopsTheStageOrFallsBackToTheCpu) {
@@ -348,7 +339,7 @@ TEST(MotionDevice, AFailingDeviceStopsTheStageOrFallsBackToTheCpu) {
   lenient.segment(got);
   EXPECT_EQ(lenient.deviceUsed(), "cpu");
   EXPECT_NE(lenient.fallbackReason().find("out of device memory"), std::string::npos);
-  EXPECT_EQ(flatLabels(got), flatLabels(expected));
+  EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
 }
 
 TEST(TaskWaves, EachTaskInTheWaveAfterItsLongestChain) {

@@ -161,6 +161,16 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     }
     return best;
   };
+  // The jobs of the slots marked in `marked`, fitted in one batch, each result to out[c][t].
+  auto fitMarked = [&](const std::vector<Job>& job, const std::vector<char>& marked,
+                       std::vector<std::vector<Pose>>& out) {
+    std::vector<Job> jobs;
+    for (std::size_t j = 0; j < job.size(); ++j)
+      if (marked[j]) jobs.push_back(job[j]);
+    if (jobs.empty()) return;
+    const std::vector<Pose> res = fitBatch(jobs);
+    for (std::size_t j = 0; j < jobs.size(); ++j) out[jobs[j].chain][jobs[j].frame] = res[j];
+  };
   // The jobs of `todo` (chain, frame) pairs given the fits `from` of the frames before them:
   // each frame's winning start is fitted, except an unchained winner under speculation (its fit
   // is spec's); the results go to out[c][t].
@@ -184,12 +194,7 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
         out[c][t] = spec[c][t];
       }
     }
-    std::vector<Job> jobs;
-    for (std::size_t j = 0; j < job.size(); ++j)
-      if (fitted[j]) jobs.push_back(job[j]);
-    if (jobs.empty()) return;
-    const std::vector<Pose> res = fitBatch(jobs);
-    for (std::size_t j = 0; j < jobs.size(); ++j) out[jobs[j].chain][jobs[j].frame] = res[j];
+    fitMarked(job, fitted, out);
   };
   // Whether the fits that frame t's chained starts may use are the same in a and b: t - dir, and
   // t - 2 dir where it is on this side of the reference (the other side's fits are not final
@@ -219,13 +224,7 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
       job[j] = {c, t, s[spec_k[c][t]].pose, spec_r[c][t]};
       fitted[j] = 1;
     }
-    std::vector<Job> jobs;
-    for (std::size_t j = 0; j < job.size(); ++j)
-      if (fitted[j]) jobs.push_back(job[j]);
-    if (!jobs.empty()) {
-      const std::vector<Pose> res = fitBatch(jobs);
-      for (std::size_t j = 0; j < jobs.size(); ++j) spec[jobs[j].chain][jobs[j].frame] = res[j];
-    }
+    fitMarked(job, fitted, spec);
     // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
     std::vector<std::pair<int, int>> all;
     for (int c = 0; c < C; ++c)

@@ -28,6 +28,21 @@ struct Rigid {
   double t[3];
 };
 
+/** \brief The motion stored at `p` as 12 doubles, the rotation row by row, then the translation
+ * (the layout the devices take and return). */
+PCL_ANIMSEG_HD inline Rigid load(const double* p) {
+  Rigid a;
+  for (int k = 0; k < 9; ++k) a.r[k] = p[k];
+  for (int k = 0; k < 3; ++k) a.t[k] = p[9 + k];
+  return a;
+}
+
+/** \brief Stores a motion at `p` in that layout. */
+PCL_ANIMSEG_HD inline void store(const Rigid& a, double* p) {
+  for (int k = 0; k < 9; ++k) p[k] = a.r[k];
+  for (int k = 0; k < 3; ++k) p[9 + k] = a.t[k];
+}
+
 PCL_ANIMSEG_HD inline Rigid identity() {
   Rigid a{};
   a.r[0] = a.r[4] = a.r[8] = 1.0;

@@ -26,6 +26,10 @@ struct DeviceInfo {
 /** \brief Describes the current device; throws Error when there is none. */
 DeviceInfo deviceInfo();
 
+/** \brief "gpu (NAME)" for the current device, "gpu" when it cannot be named: what the device
+ * backends call themselves in logs and summary.json. Never throws. */
+std::string deviceLabel();
+
 /** \brief Makes `id` the current device; throws Error when it does not exist. */
 void setDevice(int id);
 
