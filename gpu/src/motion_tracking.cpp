@@ -188,7 +188,8 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
       throw Error("GPU point costs: a job out of range");
     list.push_back({j.point, j.motion});
   }
-  detail::runPointCosts(*frames_, jobs.reference_frame, jobs.points, jobs.motions, list, out);
+  detail::runPointCosts(*frames_, jobs.reference_frame, jobs.per_frame, jobs.points, jobs.motions,
+                        list, out);
 }
 
 void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) {

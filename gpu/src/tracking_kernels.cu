@@ -340,25 +340,32 @@ __global__ void partFitJobs(Dev d, const double* __restrict__ points,
 }
 
 // One point cost per thread (motion_tracking.cpp's pointCost): the point's surface errors under
-// its motion's pose in every frame but the reference, added in frame order.
-__global__ void pointCostJobs(Dev d, int frames, int ref, const double* __restrict__ points,
-                              const double* __restrict__ motions,
+// its motion's pose in every frame but the reference, added in frame order; with per_frame the
+// errors themselves, `frames` per job (0 for the reference frame).
+__global__ void pointCostJobs(Dev d, int frames, int ref, bool per_frame,
+                              const double* __restrict__ points, const double* __restrict__ motions,
                               const PointCostJob* __restrict__ jobs, int n, double* out) {
   const int j = blockIdx.x * blockDim.x + threadIdx.x;
   if (j >= n) return;
   const PointCostJob job = jobs[j];
   const double* p = points + 6LL * job.point;
+  double* each = per_frame ? out + static_cast<long long>(j) * frames : nullptr;
   double sum = 0.0;
   for (int t = 0; t < frames; ++t) {
-    if (t == ref) continue;
+    if (t == ref) {
+      if (each) each[t] = 0.0;
+      continue;
+    }
     const Rigid m =
         icp_step::load(motions + (static_cast<long long>(job.motion) * frames + t) * kPoseDoubles);
     double y[3], nr[3];
     icp_step::apply(m, p, y);
     icp_step::rotate(m, p + 3, nr);
-    sum += surfaceErrorAt(d, t, y, nr);
+    const double e = surfaceErrorAt(d, t, y, nr);
+    if (each) each[t] = e;
+    sum += e;
   }
-  out[j] = sum;
+  if (!each) out[j] = sum;
 }
 
 // The rigid motions' ICP (rigid_motion.cpp: icpPass, fitness, alignPasses), one block per fit:
@@ -652,17 +659,17 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
   frames.job_out.downloadBytes(poses.data(), poses.size() * sizeof(double));
 }
 
-void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& points,
+void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vector<double>& points,
                    const std::vector<double>& motions, const std::vector<PointCostJob>& jobs,
                    std::vector<double>& out) {
-  out.assign(jobs.size(), 0.0);
+  out.assign(jobs.size() * (per_frame ? static_cast<std::size_t>(frames.frames) : 1), 0.0);
   if (jobs.empty()) return;
-  putBatch(frames, points, nullptr, motions, jobs, jobs.size() * sizeof(double));
+  putBatch(frames, points, nullptr, motions, jobs, out.size() * sizeof(double));
   const Dev d = frameView(frames);
   const int n = static_cast<int>(jobs.size());
   constexpr int kThreads = 128;
   pointCostJobs<<<(n + kThreads - 1) / kThreads, kThreads>>>(
-      d, frames.frames, ref, static_cast<const double*>(frames.job_points.rawPtr()),
+      d, frames.frames, ref, per_frame, static_cast<const double*>(frames.job_points.rawPtr()),
       static_cast<const double*>(frames.job_motions.rawPtr()),
       static_cast<const PointCostJob*>(frames.job_list.rawPtr()), n,
       static_cast<double*>(frames.job_out.rawPtr()));

@@ -90,7 +90,7 @@ struct PointCostJob {
 };
 
 /** One point cost per job: the surface errors summed over the frames but `ref`. */
-void runPointCosts(FrameStore& frames, int ref, const std::vector<double>& points,
+void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vector<double>& points,
                    const std::vector<double>& motions, const std::vector<PointCostJob>& jobs,
                    std::vector<double>& out);
 

@@ -1827,12 +1827,16 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     return c;
   };
   // Point k of the source sx under neighbour y's motion, into column c.
+  // (icp_step's arithmetic, as the device's per-frame point costs in fillColumns.)
   auto fillPoint = [&](ErrColumn& c, const Source& sx, int y, Eigen::Index k) {
     double sum = 0.0;
     for (int t = 0; t < T; ++t) {
       if (t == ref) continue;
-      const Pose& P = gpose[y][t];
-      const double e = surfaceError(P * sx.p.col(k), P.linear() * sx.n.col(k), frames[t]);
+      const icp_step::Rigid P = toRigid(gpose[y][t]);
+      double py[3], ny[3];
+      icp_step::apply(P, sx.p.col(k).data(), py);
+      icp_step::rotate(P, sx.n.col(k).data(), ny);
+      const double e = surfaceError(py, ny, frames[t]);
       c.e[k * T + t] = e;
       sum += e;
     }
@@ -1913,15 +1917,14 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   };
   std::vector<double> dcost(G, kNoDissolve);
-#pragma omp parallel for schedule(dynamic, 1)
-  for (int g = 0; g < G; ++g)
-    if (galive[g]) dcost[g] = dissolveCost(g);
   // On many threads a refresh first fills the columns its parts' scores read, whole, with every
   // (part, neighbour, block of points) and own-residual frame in one parallel loop; the scores
   // then only sum. Scored side by side with the early rejection instead, the slowest part's
   // serial loop held 16 threads (dissolve costs about 1 s of the 800k humanoid's 2 s of part
   // merges). Same values, so the same costs; on few threads the early rejection saves more.
-  const bool prefill = omp_get_max_threads() >= 4;
+  // With a device the errors are one batch of per-frame point costs and the own residuals one
+  // batch of residuals (the same values again), also for the first scores.
+  const bool prefill = params.device || omp_get_max_threads() >= 4;
   auto fillColumns = [&](const std::vector<int>& list) {
     struct Job {
       ErrColumn* c;
@@ -1951,14 +1954,57 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       }
     }
     const std::size_t nj = jobs.size(), no = own_jobs.size();
+    if (params.device) {
+      PointCostJobs d;
+      d.reference_frame = ref;
+      d.per_frame = true;
+      std::vector<int> first(list.size(), -1), motion_of(G, -1);
+      for (const Job& b : jobs) {
+        const std::size_t i = static_cast<std::size_t>(b.sx - src.data());
+        if (first[i] < 0) {
+          first[i] = static_cast<int>(d.points.size() / 6);
+          appendPoints(src[i].p, src[i].n, d.points);
+        }
+        if (motion_of[b.y] < 0) {
+          motion_of[b.y] = static_cast<int>(d.motions.size() / (12 * static_cast<std::size_t>(T)));
+          for (const Pose& m : gpose[b.y]) appendMotion(m, d.motions);
+        }
+        for (Eigen::Index k = b.k0; k < b.k1; ++k)
+          d.jobs.push_back({first[i] + static_cast<int>(k), motion_of[b.y]});
+      }
+      std::vector<double> e;
+      if (!d.jobs.empty()) params.device->pointCosts(d, e);
+      if (e.size() != d.jobs.size() * static_cast<std::size_t>(T))
+        throw Error("motion tracking: the device's point errors are incomplete");
+      std::size_t q = 0;
+      for (const Job& b : jobs)
+        for (Eigen::Index k = b.k0; k < b.k1; ++k, ++q) {
+          double sum = 0.0;
+          for (int t = 0; t < T; ++t) {
+            if (t == ref) continue;
+            b.c->e[k * T + t] = e[q * T + t];
+            sum += e[q * T + t];
+          }
+          b.c->sum[k] = sum;
+        }
+      ResidualBatch own_batch(frames, params.device);
+      std::vector<int> own_src(list.size(), -1);
+      for (const auto& [i, t] : own_jobs) {
+        if (own_src[i] < 0) own_src[i] = own_batch.addSource(src[i]);
+        own_batch.add(own_src[i], own_batch.addMotion(gpose[list[i]][t]), t);
+      }
+      const std::vector<double> r = own_batch.run();
+      for (std::size_t j = 0; j < no; ++j) own[own_jobs[j].first][own_jobs[j].second] = r[j];
+    } else {
 #pragma omp parallel for schedule(dynamic, 1)
-    for (std::size_t j = 0; j < nj + no; ++j) {
-      if (j < nj) {
-        const Job& b = jobs[j];
-        for (Eigen::Index k = b.k0; k < b.k1; ++k) fillPoint(*b.c, *b.sx, b.y, k);
-      } else {
-        const auto [i, t] = own_jobs[j - nj];
-        own[i][t] = residual(src[i], gpose[list[i]][t], frames[t]);
+      for (std::size_t j = 0; j < nj + no; ++j) {
+        if (j < nj) {
+          const Job& b = jobs[j];
+          for (Eigen::Index k = b.k0; k < b.k1; ++k) fillPoint(*b.c, *b.sx, b.y, k);
+        } else {
+          const auto [i, t] = own_jobs[j - nj];
+          own[i][t] = residual(src[i], gpose[list[i]][t], frames[t]);
+        }
       }
     }
     for (const Job& b : jobs) b.c->done = std::max(b.c->done, b.k1);
@@ -1968,6 +2014,14 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
         own_known[list[i]] = 1;
       }
   };
+  {
+    std::vector<int> alive;
+    for (int g = 0; g < G; ++g)
+      if (galive[g]) alive.push_back(g);
+    if (params.device) fillColumns(alive);
+#pragma omp parallel for schedule(dynamic, 1)
+    for (std::size_t i = 0; i < alive.size(); ++i) dcost[alive[i]] = dissolveCost(alive[i]);
+  }
   auto refreshDissolve = [&](const std::set<int>& parts) {
     const auto t0 = std::chrono::steady_clock::now();
     const std::vector<int> list(parts.begin(), parts.end());

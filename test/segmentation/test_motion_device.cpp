@@ -135,17 +135,23 @@ class RecordingDevice : public seg::MotionDevice {
     ++cost_batches;
     out.clear();
     const std::size_t T = frames.frames.size();
+    if (b.per_frame) ++error_batches;
     for (const auto& job : b.jobs) {
       double sum = 0.0;
       for (std::size_t t = 0; t < T; ++t) {
-        if (static_cast<int>(t) == b.reference_frame) continue;
+        if (static_cast<int>(t) == b.reference_frame) {
+          if (b.per_frame) out.push_back(0.0);
+          continue;
+        }
         const seg::icp_step::Rigid m = motionAt(b.motions, job.motion * T + t);
         double y[3], n[3];
         seg::icp_step::apply(m, &b.points[6 * job.point], y);
         seg::icp_step::rotate(m, &b.points[6 * job.point + 3], n);
-        sum += surfaceError(static_cast<int>(t), y, n);
+        const double e = surfaceError(static_cast<int>(t), y, n);
+        if (b.per_frame) out.push_back(e);
+        sum += e;
       }
-      out.push_back(sum);
+      if (!b.per_frame) out.push_back(sum);
     }
   }
   // The nearest point of frame t within sqrt(max_d2) (inclusive; none for a non-finite query),
@@ -218,7 +224,7 @@ class RecordingDevice : public seg::MotionDevice {
   }
   int fit_batches = 0;
   std::size_t fits = 0;
-  int calls = 0, frame_calls = 0, batches = 0, cost_batches = 0;
+  int calls = 0, frame_calls = 0, batches = 0, cost_batches = 0, error_batches = 0;
   std::size_t jobs = 0;
   bool fail = false;
   seg::DeviceFrames frames;
@@ -305,6 +311,7 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_GT(backend->device.batches, 1);  // the edges, then one batch per merge
   EXPECT_GT(backend->device.jobs, 1000u);
   EXPECT_GT(backend->device.cost_batches, 0);  // the border rounds and the final borders
+  EXPECT_GT(backend->device.error_batches, 0);  // the dissolve costs' errors per frame
   EXPECT_GT(backend->device.fit_batches, 0);   // the part fits, frame positions side by side
   EXPECT_GT(backend->device.fits, 100u);
   EXPECT_EQ(dev.deviceUsed(), "recording backend");

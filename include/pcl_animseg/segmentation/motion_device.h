@@ -72,13 +72,16 @@ struct ResidualJobs {
 
 /** \brief Point costs for a device to compute: job j is the sum over the frames but the
  * reference of the squared surface error (spacings^2) of point jobs[j].point moved by motion
- * jobs[j].motion's pose in each frame, added in frame order. */
+ * jobs[j].motion's pose in each frame, added in frame order. With `per_frame` the answer is the
+ * errors themselves instead of their sum: T values per job (frame order, 0 for the reference
+ * frame), job after job. */
 struct PointCostJobs {
   struct Job {
     int point;
     int motion;
   };
   int reference_frame = 0;
+  bool per_frame = false;
   std::vector<double> points;   ///< 6 per point: position, normal (reference coordinates)
   std::vector<double> motions;  ///< per motion, per frame, 12: the rotation row by row, then t
   std::vector<Job> jobs;
@@ -148,7 +151,7 @@ class MotionDevice {
                             std::vector<std::vector<double>>& residual) = 0;
   /** \brief One residual per job, in job order. */
   virtual void residuals(const ResidualJobs& jobs, std::vector<double>& out) = 0;
-  /** \brief One point cost per job, in job order. */
+  /** \brief One point cost per job, in job order (T per job with PointCostJobs::per_frame). */
   virtual void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) = 0;
   /** \brief One pose per job (12 doubles each, in job order). */
   virtual void partFits(const PartFitJobs& jobs, std::vector<double>& poses) = 0;
