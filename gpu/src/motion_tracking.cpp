@@ -208,22 +208,5 @@ void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector
                       poses);
 }
 
-void MotionTracking::wideFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses,
-                              std::vector<double>& residuals) {
-  const std::string what = "GPU wide fits";
-  if (!frames_) throw Error(what + ": no frames were set");
-  int sources = 0, motions = 0;
-  countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
-  if (jobs.iterations < 0) throw Error(what + ": negative iterations");
-  std::vector<detail::PartFitJob> list;
-  list.reserve(jobs.jobs.size());
-  for (const segmentation::PartFitJobs::Job& j : jobs.jobs) {
-    checkJob(j.source, sources, j.motion, motions, j.frame, frames_->frames, what);
-    list.push_back({j.source, j.motion, j.frame, j.r0, j.max_dist});
-  }
-  detail::runWideFits(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, jobs.iterations,
-                      poses, residuals);
-}
-
 }  // namespace gpu
 }  // namespace pcl_animseg

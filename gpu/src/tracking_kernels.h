@@ -109,13 +109,6 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<int>& source_begin, const std::vector<double>& motions,
                  const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses);
 
-/** The same fits without the r0 test, one block each (large sources): the fit (12 doubles per
- * job in `poses`) and its residual. */
-void runWideFits(FrameStore& frames, const std::vector<double>& points,
-                 const std::vector<int>& source_begin, const std::vector<double>& motions,
-                 const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses,
-                 std::vector<double>& residuals);
-
 /** A rigid motions' fit (segmentation::RigidFitJob) with its source's range: points
  * [source_begin, source_begin + source_count) of the packed sources (x, y, z doubles). */
 struct RigidJob {

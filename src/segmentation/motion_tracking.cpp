@@ -203,10 +203,6 @@ inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, c
  * finds its nearest points in parallel; the sums stay in point order, so that the result is the
  * same bit for bit on any number of threads. */
 constexpr Eigen::Index kParallelSource = 256;
-/** The whole body's ICP (the tracking's step 1): iterations, and matches within this many
- * spacings. */
-constexpr int kBodyIterations = 30;
-constexpr double kBodyMatchSpacings = 10.0;
 bool searchInParallel(const Source& src) {
   return src.p.cols() >= kParallelSource && !omp_in_parallel() && omp_get_max_threads() > 1;
 }
@@ -695,38 +691,17 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   //    nearest points in parallel: done serially these ICPs were a quarter of the tracking on 16
   //    cores). It depends on no sample's pose.
   timer.lap("tracking: samples, graphs, sources");
-  //    With a device, both fits of a frame are one batch of wide fits.
   std::vector<Pose> global(T, Pose::Identity());
   for (int t : frame_order) {
     const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
     std::vector<Pose> inits{global[tp]};
     if (tpp >= 0) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
-    const double max_dist = kBodyMatchSpacings * frames[t].spacing;
-    std::vector<Pose> cand(inits.size());
-    std::vector<double> r(inits.size());
-    if (params.device) {
-      PartFitJobs jobs;
-      jobs.iterations = kBodyIterations;
-      appendPoints(whole.p, whole.n, jobs.points);
-      jobs.source_begin.push_back(static_cast<int>(whole.p.cols()));
-      for (std::size_t k = 0; k < inits.size(); ++k) {
-        appendMotion(inits[k], jobs.motions);
-        jobs.jobs.push_back({0, static_cast<int>(k), t, 0.0, max_dist});
-      }
-      std::vector<double> poses;
-      params.device->wideFits(jobs, poses, r);
-      if (poses.size() != 12 * inits.size() || r.size() != inits.size())
-        throw Error("motion tracking: the device's body fits are incomplete");
-      for (std::size_t k = 0; k < inits.size(); ++k) cand[k] = motionAt(&poses[12 * k]);
-    } else {
-      for (std::size_t k = 0; k < inits.size(); ++k) {
-        cand[k] = icp(whole, inits[k], frames[t], kBodyIterations, max_dist);
-        r[k] = residual(whole, cand[k], frames[t]);
-      }
-    }
     double best = std::numeric_limits<double>::max();
-    for (std::size_t k = 0; k < inits.size(); ++k)
-      if (r[k] < best) best = r[k], global[t] = cand[k];
+    for (const Pose& init : inits) {
+      const Pose cand = icp(whole, init, frames[t], 30, 10.0 * frames[t].spacing);
+      const double r = residual(whole, cand, frames[t]);
+      if (r < best) best = r, global[t] = cand;
+    }
   }
   // 2. Each frame's order of the samples: BFS levels over the sample graph from the sample best
   //    explained by the global pose (unreached components start from their own best sample).

@@ -11,7 +11,6 @@
 #include <pcl_animseg/segmentation/task_graph.h>
 
 #include <cmath>
-#include <limits>
 #include <memory>
 #include <string>
 #include <vector>
@@ -120,9 +119,16 @@ class RecordingDevice : public seg::MotionDevice {
     jobs += b.jobs.size();
     out.clear();
     for (const auto& job : b.jobs) {
+      const seg::icp_step::Rigid m = motionAt(b.motions, job.motion);
+      double sum = 0.0;
       const int first = b.source_begin[job.source], end = b.source_begin[job.source + 1];
-      out.push_back(rmsOf(&b.points[6 * static_cast<std::size_t>(first)], end - first, job.frame,
-                          motionAt(b.motions, job.motion)));
+      for (int i = first; i < end; ++i) {
+        double y[3], n[3];
+        seg::icp_step::apply(m, &b.points[6 * i], y);
+        seg::icp_step::rotate(m, &b.points[6 * i + 3], n);
+        sum += surfaceError(job.frame, y, n);
+      }
+      out.push_back(end > first ? std::sqrt(sum / (end - first)) : 0.0);
     }
   }
   void pointCosts(const seg::PointCostJobs& b, std::vector<double>& out) override {
@@ -157,93 +163,66 @@ class RecordingDevice : public seg::MotionDevice {
     const int row = frames.frames[t].tree->nearest(q, std::nextafter(max_d2, 1e30f), d2);
     return row < 0 ? -1 : leaf_of[t][row];
   }
-  // The motion method's ICP from what it was given: damped, with icp_step (the point-to-plane
-  // terms of the matches whose normals agree); `pts`: m points of 6 doubles.
-  seg::icp_step::Rigid icpOf(const double* pts, int m, int frame, const seg::icp_step::Rigid& init,
-                             double max_dist, int iterations) const {
-    namespace is = seg::icp_step;
-    const auto& f = frames.frames[frame];
-    is::Rigid T = init;
-    const float max_d2 = static_cast<float>(max_dist * max_dist);
-    std::vector<double> moved(3 * static_cast<std::size_t>(m));
-    for (int it = 0; it < iterations; ++it) {
-      double c[3] = {0, 0, 0};
-      for (int i = 0; i < m; ++i) {
-        is::apply(T, &pts[6 * i], &moved[3 * i]);
-        for (int k = 0; k < 3; ++k) c[k] += moved[3 * i + k];
-      }
-      for (int k = 0; k < 3; ++k) c[k] /= static_cast<double>(std::max(1, m));
-      double sums[is::kTerms] = {};
-      int used = 0;
-      for (int i = 0; i < m; ++i) {
-        float d2 = 0.0f;
-        const int leaf = nearestLeaf(frame, &moved[3 * i], max_d2, d2);
-        if (leaf < 0) continue;
-        double tp[3], tn[3], n[3];
-        for (int k = 0; k < 3; ++k) {
-          tp[k] = f.tree->leafPoints()[3 * leaf + k];
-          tn[k] = f.leaf_normals[3 * leaf + k];
-        }
-        is::rotate(T, &pts[6 * i + 3], n);
-        const double cs = is::dot3(n, tn);
-        if ((f.unoriented ? std::fabs(cs) : cs) < frames.normal_cos) continue;
-        ++used;
-        double terms[is::kTerms];
-        is::pointTerms(&moved[3 * i], c, tp, tn, terms);
-        for (int q = 0; q < is::kTerms; ++q) sums[q] += terms[q];
-      }
-      if (used < 6) break;
-      double x[6];
-      if (!is::solveStep(sums, x)) break;
-      T = is::compose(is::stepMotion(x, c), T);
-      if (is::converged(x, f.spacing)) break;
-    }
-    return T;
-  }
-  // RMS surface error of m points (6 doubles each) under T against a frame, in point order.
-  double rmsOf(const double* pts, int m, int frame, const seg::icp_step::Rigid& T) const {
-    double sum = 0.0;
-    for (int i = 0; i < m; ++i) {
-      double y[3], n[3];
-      seg::icp_step::apply(T, &pts[6 * i], y);
-      seg::icp_step::rotate(T, &pts[6 * i + 3], n);
-      sum += surfaceError(frame, y, n);
-    }
-    return m > 0 ? std::sqrt(sum / m) : 0.0;
-  }
-  // The part fit, kept when its residual is at most r0.
+  // The motion method's part fit from what it was given: damped ICP with icp_step (the point-to-
+  // plane terms of the matches whose normals agree), kept when its residual is at most r0.
   void partFits(const seg::PartFitJobs& b, std::vector<double>& poses) override {
     ++fit_batches;
     fits += b.jobs.size();
     poses.clear();
+    namespace is = seg::icp_step;
     for (const auto& job : b.jobs) {
       const int first = b.source_begin[job.source], m = b.source_begin[job.source + 1] - first;
-      const double* pts = &b.points[6 * static_cast<std::size_t>(first)];
-      const seg::icp_step::Rigid init = motionAt(b.motions, job.motion);
-      const seg::icp_step::Rigid T = icpOf(pts, m, job.frame, init, job.max_dist, b.iterations);
-      const seg::icp_step::Rigid& kept = rmsOf(pts, m, job.frame, T) <= job.r0 ? T : init;
+      const auto& f = frames.frames[job.frame];
+      const is::Rigid init = motionAt(b.motions, job.motion);
+      is::Rigid T = init;
+      const float max_d2 = static_cast<float>(job.max_dist * job.max_dist);
+      std::vector<double> moved(3 * static_cast<std::size_t>(m));
+      for (int it = 0; it < b.iterations; ++it) {
+        double c[3] = {0, 0, 0};
+        for (int i = 0; i < m; ++i) {
+          is::apply(T, &b.points[6 * (first + i)], &moved[3 * i]);
+          for (int k = 0; k < 3; ++k) c[k] += moved[3 * i + k];
+        }
+        for (int k = 0; k < 3; ++k) c[k] /= static_cast<double>(std::max(1, m));
+        double sums[is::kTerms] = {};
+        int used = 0;
+        for (int i = 0; i < m; ++i) {
+          float d2 = 0.0f;
+          const int leaf = nearestLeaf(job.frame, &moved[3 * i], max_d2, d2);
+          if (leaf < 0) continue;
+          double tp[3], tn[3], n[3];
+          for (int k = 0; k < 3; ++k) {
+            tp[k] = f.tree->leafPoints()[3 * leaf + k];
+            tn[k] = f.leaf_normals[3 * leaf + k];
+          }
+          is::rotate(T, &b.points[6 * (first + i) + 3], n);
+          const double cs = is::dot3(n, tn);
+          if ((f.unoriented ? std::fabs(cs) : cs) < frames.normal_cos) continue;
+          ++used;
+          double terms[is::kTerms];
+          is::pointTerms(&moved[3 * i], c, tp, tn, terms);
+          for (int q = 0; q < is::kTerms; ++q) sums[q] += terms[q];
+        }
+        if (used < 6) break;
+        double x[6];
+        if (!is::solveStep(sums, x)) break;
+        T = is::compose(is::stepMotion(x, c), T);
+        if (is::converged(x, f.spacing)) break;
+      }
+      double sum = 0.0;
+      for (int i = 0; i < m; ++i) {
+        double y[3], n[3];
+        is::apply(T, &b.points[6 * (first + i)], y);
+        is::rotate(T, &b.points[6 * (first + i) + 3], n);
+        sum += surfaceError(job.frame, y, n);
+      }
+      const double r = m > 0 ? std::sqrt(sum / m) : 0.0;
+      const is::Rigid& kept = r <= job.r0 ? T : init;
       poses.resize(poses.size() + 12);
-      seg::icp_step::store(kept, &poses[poses.size() - 12]);
+      is::store(kept, &poses[poses.size() - 12]);
     }
   }
-  // The large fits: the fit and its residual, without the r0 test.
-  void wideFits(const seg::PartFitJobs& b, std::vector<double>& poses,
-                std::vector<double>& residuals) override {
-    ++wide_batches;
-    if (fail) throw pcl_animseg::Error("recording device: out of device memory");
-    poses.clear();
-    residuals.clear();
-    for (const auto& job : b.jobs) {
-      const int first = b.source_begin[job.source], m = b.source_begin[job.source + 1] - first;
-      const double* pts = &b.points[6 * static_cast<std::size_t>(first)];
-      const seg::icp_step::Rigid T =
-          icpOf(pts, m, job.frame, motionAt(b.motions, job.motion), job.max_dist, b.iterations);
-      residuals.push_back(rmsOf(pts, m, job.frame, T));
-      poses.resize(poses.size() + 12);
-      seg::icp_step::store(T, &poses[poses.size() - 12]);
-    }
-  }
-  int fit_batches = 0, wide_batches = 0;
+  int fit_batches = 0;
   std::size_t fits = 0;
   int calls = 0, frame_calls = 0, batches = 0, cost_batches = 0, error_batches = 0;
   std::size_t jobs = 0;
@@ -328,7 +307,6 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   seg::SegmentationResult got;
   dev.segment(got);
   EXPECT_EQ(backend->device.calls, 1);
-  EXPECT_EQ(backend->device.wide_batches, 7);  // the body's two fits in each frame but the first
   EXPECT_EQ(backend->device.frame_calls, 1);
   EXPECT_GT(backend->device.batches, 1);  // the edges, then one batch per merge
   EXPECT_GT(backend->device.jobs, 1000u);

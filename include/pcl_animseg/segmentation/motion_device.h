@@ -155,10 +155,6 @@ class MotionDevice {
   virtual void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) = 0;
   /** \brief One pose per job (12 doubles each, in job order). */
   virtual void partFits(const PartFitJobs& jobs, std::vector<double>& poses) = 0;
-  /** \brief Large fits (the tracking's whole body, hundreds of points or more): per job the fit
-   * without the r0 test (12 doubles each in `poses`) and its residual, in job order. */
-  virtual void wideFits(const PartFitJobs& jobs, std::vector<double>& poses,
-                        std::vector<double>& residuals) = 0;
 };
 
 }  // namespace segmentation

@@ -42,9 +42,6 @@ class MotionTracking : public segmentation::MotionDevice {
   void residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) override;
   void pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) override;
   void partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) override;
-  /** \brief One block of 128 threads per fit. */
-  void wideFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses,
-                std::vector<double>& residuals) override;
   /** \brief Seconds of the last trackSamples on the device (uploads, kernels, downloads). */
   double lastDeviceSeconds() const { return device_seconds_; }
   /** \brief Kernel launches (waves) of the last trackSamples. */
