@@ -200,8 +200,8 @@ inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, c
 }
 
 /** A source this large, outside any parallel region (the whole body's ICP of the tracking),
- * finds its nearest points in parallel; the sums stay in point order, so that the result is the
- * same bit for bit on any number of threads. */
+ * is moved, matched and turned into per-point terms in parallel; the sums stay in point order,
+ * so that the result is the same bit for bit on any number of threads. */
 constexpr Eigen::Index kParallelSource = 256;
 bool searchInParallel(const Source& src) {
   return src.p.cols() >= kParallelSource && !omp_in_parallel() && omp_get_max_threads() > 1;
@@ -241,7 +241,7 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
   const Eigen::Index m = src.p.cols();
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const bool parallel = searchInParallel(src);
-  std::vector<int> match(parallel ? static_cast<std::size_t>(m) : 0);
+  std::vector<char> usable(parallel ? static_cast<std::size_t>(m) : 0);
   Eigen::Matrix3Xd moved(3, m);  // the source under T, once per iteration
   auto nearestTo = [&](Eigen::Index i) {
     float d2;
@@ -249,33 +249,56 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
     return f.tree.nearest(static_cast<float>(y[0]), static_cast<float>(y[1]),
                           static_cast<float>(y[2]), max_d2, d2);
   };
+  // A point's terms (kTerms doubles), or false where it has no usable match.
+  auto termsOf = [&](Eigen::Index i, int k, const double* c, double* terms) {
+    if (k < 0) return false;
+    const auto& t = (*f.cloud)[k];
+    const double tn[3] = {t.normal_x, t.normal_y, t.normal_z};
+    const double tp[3] = {t.x, t.y, t.z};
+    double n[3];
+    icp_step::rotate(T, src.n.col(i).data(), n);
+    if (normalCos(icp_step::dot3(n, tn), f) < kNormalCos) return false;
+    icp_step::pointTerms(moved.col(i).data(), c, tp, tn, terms);
+    return true;
+  };
+  // In parallel: each point's move, search and terms, into per-point slots; the sums below stay
+  // in point order, as without.
+  std::vector<double> point_terms(parallel ? static_cast<std::size_t>(m) * icp_step::kTerms : 0);
   for (int it = 0; it < iterations; ++it) {
     double c[3] = {0.0, 0.0, 0.0};
-    for (Eigen::Index i = 0; i < m; ++i) {
-      icp_step::apply(T, src.p.col(i).data(), moved.col(i).data());
-      for (int k = 0; k < 3; ++k) c[k] += moved(k, i);
+    if (parallel) {
+#pragma omp parallel for schedule(static)
+      for (Eigen::Index i = 0; i < m; ++i)
+        icp_step::apply(T, src.p.col(i).data(), moved.col(i).data());
+      for (Eigen::Index i = 0; i < m; ++i)
+        for (int k = 0; k < 3; ++k) c[k] += moved(k, i);
+    } else {
+      for (Eigen::Index i = 0; i < m; ++i) {
+        icp_step::apply(T, src.p.col(i).data(), moved.col(i).data());
+        for (int k = 0; k < 3; ++k) c[k] += moved(k, i);
+      }
     }
     const double count = static_cast<double>(std::max<Eigen::Index>(1, m));
     for (int k = 0; k < 3; ++k) c[k] /= count;
     double sums[icp_step::kTerms] = {};
     int used = 0;
-    if (parallel) {  // the searches first, the sums below in point order as without
+    if (parallel) {
 #pragma omp parallel for schedule(static)
-      for (Eigen::Index i = 0; i < m; ++i) match[i] = nearestTo(i);
-    }
-    for (Eigen::Index i = 0; i < m; ++i) {
-      const int k = parallel ? match[i] : nearestTo(i);
-      if (k < 0) continue;
-      const auto& t = (*f.cloud)[k];
-      const double tn[3] = {t.normal_x, t.normal_y, t.normal_z};
-      const double tp[3] = {t.x, t.y, t.z};
-      double n[3];
-      icp_step::rotate(T, src.n.col(i).data(), n);
-      if (normalCos(icp_step::dot3(n, tn), f) < kNormalCos) continue;
-      ++used;
-      double terms[icp_step::kTerms];
-      icp_step::pointTerms(moved.col(i).data(), c, tp, tn, terms);
-      for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
+      for (Eigen::Index i = 0; i < m; ++i)
+        usable[i] = termsOf(i, nearestTo(i), c, &point_terms[i * icp_step::kTerms]) ? 1 : 0;
+      for (Eigen::Index i = 0; i < m; ++i) {
+        if (!usable[i]) continue;
+        ++used;
+        const double* terms = &point_terms[i * icp_step::kTerms];
+        for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
+      }
+    } else {
+      for (Eigen::Index i = 0; i < m; ++i) {
+        double terms[icp_step::kTerms];
+        if (!termsOf(i, nearestTo(i), c, terms)) continue;
+        ++used;
+        for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
+      }
     }
     if (used < 6) break;
     double x[6];
