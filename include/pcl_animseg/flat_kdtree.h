@@ -116,6 +116,44 @@ class FlatKdTree3 {
     return static_cast<int>(rows.size());
   }
 
+  /** \brief Row of the nearest point, the lowest row among equal distances, and whether another
+   * point lies at exactly that distance (`tied`); -1 for an empty tree. Its squared distance in
+   * `d2`. Without a tie it is the first of knn(q, k) for every k (which, among ties, returns
+   * what its walk keeps). */
+  int nearestLowestRow(const float q[3], float& d2, bool& tied) const {
+    tied = false;
+    if (nodes_.empty()) return -1;
+    float best = std::numeric_limits<float>::infinity();
+    int best_row = -1;
+    StackEntry stack[kMaxDepth];
+    int top = 0;
+    stack[top++] = {0, 0.0f};
+    while (top > 0) {
+      const StackEntry e = stack[--top];
+      if (e.min_d2 > best) continue;  // a cell as far as the best may hold a lower row
+      int n = e.node;
+      while (nodes_[n].dim >= 0) {
+        const Node& nd = nodes_[n];
+        const float diff = q[nd.dim] - nd.split;
+        const float far_d2 = std::max(e.min_d2, diff * diff);
+        if (far_d2 <= best) stack[top++] = {diff < 0.0f ? nd.b : nd.a, far_d2};
+        n = diff < 0.0f ? nd.a : nd.b;
+      }
+      const Node& leaf = nodes_[n];
+      for (int i = leaf.a; i < leaf.b; ++i) {
+        const float d = dist2(q, &pts_[3 * static_cast<std::size_t>(i)]);
+        if (d < best) {
+          best = d, best_row = rows_[i], tied = false;
+        } else if (d == best) {
+          tied = true;
+          best_row = std::min(best_row, rows_[i]);
+        }
+      }
+    }
+    if (best_row >= 0) d2 = best;
+    return best_row;
+  }
+
   /** \brief Rows within squared distance `r2` (inclusive), closest first (equal distances:
    * lower row first); at most `max_nn` of the closest when max_nn > 0. */
   int radius(const float q[3], float r2, std::size_t max_nn, std::vector<int>& rows,

@@ -107,6 +107,20 @@ class KdTree {
     return row < 0 ? -1 : map_[row];
   }
 
+  /** \brief The nearest point (the lowest index among equal distances) and whether another
+   * point lies at exactly the same distance (`tied`); -1 for an empty tree or a non-finite
+   * query. Its squared distance in `sqr_distance`. Without a tie it is the first point of
+   * nearestKSearch(p, k) for every k, found at the cost of a nearest-point search: for callers
+   * that usually need only that one. */
+  int nearestFirst(const PointT& p, float& sqr_distance, bool& tied) const {
+    tied = false;
+    if (map_.empty() || !std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z))
+      return -1;
+    const float q[3] = {p.x, p.y, p.z};
+    const int row = tree_.nearestLowestRow(q, sqr_distance, tied);
+    return row < 0 ? -1 : map_[row];
+  }
+
   /** \brief All points within `radius` (at most `max_nn` of the closest when max_nn > 0),
    * closest first; returns how many. */
   int radiusSearch(const PointT& p, double radius, std::vector<int>& indices,

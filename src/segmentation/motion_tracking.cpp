@@ -2380,17 +2380,29 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
       mt.setInputCloud(moved);
       const int n = static_cast<int>(fc.size());
       for (int j = 0; j < n; ++j) {
+        auto compatible = [&](int m) {
+          const auto& q = (*moved)[m];
+          return normalCos(q.normal_x * fc[j].normal_x + q.normal_y * fc[j].normal_y +
+                               q.normal_z * fc[j].normal_z,
+                           frames[t]) > kNormalCos;
+        };
+        // Usually the nearest point has a compatible normal: then it is the pick, found without
+        // the k-NN search (unless another point lies at exactly its distance: the k-NN's order
+        // of such ties decides, as before).
+        float nd2;
+        bool tied;
+        const int first = mt.nearestFirst(fc[j], nd2, tied);
+        if (first >= 0 && !tied && compatible(first)) {
+          flat[offsets[t] + j] = label[first];
+          continue;
+        }
         mt.nearestKSearch(fc[j], kq, idx, d2);
         int pick = idx.empty() ? -1 : idx[0];
-        for (int m : idx) {
-          const auto& q = (*moved)[m];
-          if (normalCos(q.normal_x * fc[j].normal_x + q.normal_y * fc[j].normal_y +
-                            q.normal_z * fc[j].normal_z,
-                        frames[t]) > kNormalCos) {
+        for (int m : idx)
+          if (compatible(m)) {
             pick = m;
             break;
           }
-        }
         flat[offsets[t] + j] = pick < 0 ? -1 : label[pick];
       }
     }

@@ -127,6 +127,74 @@ TEST(KdTree, DuplicatePoints) {
   EXPECT_EQ(d, 0.0f);
 }
 
+// nearestFirst: without a tie, the first point of every k-NN; with one (equal distances), it says
+// so, and the k-NN's first lies at the same distance. An integer grid with duplicates and NaN
+// points, queried at grid points, cell centres and edge midpoints (2, 4 and 8 equidistant
+// points) and at random places.
+TEST(KdTree, NearestFirstIsTheFirstOfTheKnn) {
+  Cloud::Ptr cloud(new Cloud);
+  for (int x = 0; x < 12; ++x)
+    for (int y = 0; y < 12; ++y)
+      for (int z = 0; z < 4; ++z) {
+        pcl::PointNormal p;
+        p.x = static_cast<float>(x);
+        p.y = static_cast<float>(y);
+        p.z = static_cast<float>(z);
+        cloud->push_back(p);
+        if ((x * 7 + y * 3 + z) % 11 == 0) cloud->push_back(p);  // a duplicate, a later index
+        if ((x + y + z) % 29 == 3) {
+          p.y = std::numeric_limits<float>::quiet_NaN();
+          cloud->push_back(p);
+        }
+      }
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
+  tree.setInputCloud(cloud);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> u(-1.0f, 12.0f);
+  std::vector<pcl::PointNormal> queries;
+  for (int x = 0; x < 11; ++x)
+    for (int y = 0; y < 11; ++y)
+      for (int z = 0; z < 3; ++z)
+        for (float o : {0.0f, 0.5f}) {
+          pcl::PointNormal q;
+          q.x = static_cast<float>(x) + o;
+          q.y = static_cast<float>(y) + o;
+          q.z = static_cast<float>(z) + (x % 2 ? o : 0.0f);
+          queries.push_back(q);
+        }
+  for (int i = 0; i < 2000; ++i) {
+    pcl::PointNormal q;
+    q.x = u(rng), q.y = u(rng), q.z = u(rng) / 3.0f;
+    queries.push_back(q);
+  }
+  std::vector<int> idx;
+  std::vector<float> d2;
+  int ties = 0;
+  for (const auto& q : queries)
+    for (int k : {2, 8}) {
+      ASSERT_EQ(tree.nearestKSearch(q, k, idx, d2), k);
+      float d = -1.0f;
+      bool tied = true;
+      const int first = tree.nearestFirst(q, d, tied);
+      EXPECT_EQ(d, d2[0]);
+      EXPECT_EQ(tied, d2[0] == d2[1]) << q.x << " " << q.y << " " << q.z << " k " << k;
+      if (tied)
+        ++ties;
+      else
+        EXPECT_EQ(first, idx[0]) << q.x << " " << q.y << " " << q.z << " k " << k;
+    }
+  EXPECT_GT(ties, 500);  // ties are exercised
+  EXPECT_LT(ties, static_cast<int>(queries.size()));  // and so are the others
+  float d = 0.0f;
+  bool tied = true;
+  pcl::PointNormal nan_q;
+  nan_q.x = std::numeric_limits<float>::quiet_NaN();
+  EXPECT_EQ(tree.nearestFirst(nan_q, d, tied), -1);
+  EXPECT_FALSE(tied);
+  pcl_animseg::KdTree<pcl::PointNormal> empty;
+  EXPECT_EQ(empty.nearestFirst(queries[0], d, tied), -1);
+}
+
 TEST(KdTree, EdgeCases) {
   pcl_animseg::KdTree<pcl::PointNormal> tree;
   std::vector<int> idx;
