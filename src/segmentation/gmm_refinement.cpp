@@ -64,12 +64,45 @@ std::vector<int> subsample(const std::vector<int>& idx, int cap) {
   return out;
 }
 
+// Each labelled point's k nearest points of its frame (itself included, closest first), found
+// once: the boundary scan, the fold test of the reassignment and the fold snap all ask for them.
+class NeighbourLists {
+ public:
+  void build(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree, int k,
+             const std::vector<int>& lab) {
+    k_ = k;
+    const std::size_t n = cloud.size();
+    idx_.assign(n * k, -1);
+    d2_.assign(n * k, 0.0f);
+    count_.assign(n, 0);
+    std::vector<int> idx;
+    std::vector<float> d2;
+    for (std::size_t j = 0; j < n; ++j) {
+      if (lab[j] < 0) continue;
+      count_[j] = tree.nearestKSearch(cloud[j], k, idx, d2);
+      std::copy(idx.begin(), idx.end(), idx_.begin() + j * k);
+      std::copy(d2.begin(), d2.end(), d2_.begin() + j * k);
+    }
+  }
+  bool empty() const { return count_.empty(); }
+  /** The lists of point j (a labelled point) into idx and d2, as nearestKSearch gives them. */
+  void get(std::size_t j, std::vector<int>& idx, std::vector<float>& d2) const {
+    idx.assign(idx_.begin() + j * k_, idx_.begin() + j * k_ + count_[j]);
+    d2.assign(d2_.begin() + j * k_, d2_.begin() + j * k_ + count_[j]);
+  }
+
+ private:
+  int k_ = 0;
+  std::vector<int> idx_, count_;
+  std::vector<float> d2_;
+};
+
 // The fold snap of one frame (RefinementParams::fold_snap_*); returns the points it moved.
 // Written by us: a Dijkstra that keeps each point's three nearest parts over the frame's k-NN
 // surface graph (no kept library has a multi-label one), run twice: once from the border points
 // for the band, then from the parts' points just beyond the band into it.
-std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree,
-                     double spacing, const RefinementParams& p, std::vector<int>& lab) {
+std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spacing,
+                     const RefinementParams& p, std::vector<int>& lab) {
   const int n = static_cast<int>(cloud.size());
   const int k = p.boundary_k;
   const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * spacing, 2));
@@ -82,7 +115,7 @@ std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNor
   std::vector<char> border(n, 0);
   for (int j = 0; j < n; ++j) {
     if (lab[j] < 0) continue;
-    tree.nearestKSearch(cloud[j], k + 1, idx, d2);
+    knn.get(j, idx, d2);
     int e = 0;
     for (std::size_t q = 0; q < idx.size() && e < k; ++q) {
       if (idx[q] == j || d2[q] > max_d2 || lab[idx[q]] < 0) continue;
@@ -311,6 +344,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // label changes only inside W, so a new boundary point is a changed point or a neighbour of one.
   // This keeps the kNN scan, the costliest step, to the band in later iterations.
   std::vector<std::vector<char>> candidate(frames);
+  std::vector<NeighbourLists> knn(frames);  // built by the first boundary scan
   const double candidate_reach = p.narrow_band + p.boundary_max_distance + 1.0;
   const bool restrict_scan = p.outer_band >= candidate_reach;
 
@@ -326,11 +360,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       const std::vector<int>& lab = labels[t];
       const double s = spacing[t];
       const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * s, 2));
+      if (knn[t].empty()) knn[t].build(cloud, trees[t], p.boundary_k + 1, lab);
       std::vector<int> idx;
       std::vector<float> d2;
       for (std::size_t j = 0; j < cloud.size(); ++j) {
         if (lab[j] < 0 || (!candidate[t].empty() && !candidate[t][j])) continue;
-        trees[t].nearestKSearch(cloud[j], p.boundary_k + 1, idx, d2);
+        knn[t].get(j, idx, d2);
         // The most frequent other label among the near neighbours names the pair.
         int other = -1, best = 0;
         for (std::size_t k = 1; k < idx.size(); ++k) {
@@ -512,7 +547,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * spacing[t], 2));
       std::vector<int> nn;
       std::vector<float> nd2;
-      trees[t].nearestKSearch(cloud[j], p.boundary_k + 1, nn, nd2);
+      knn[t].get(j, nn, nd2);
       bool seen = false;
       for (std::size_t k = 0; k < nn.size(); ++k) {
         if (labels[t][nn[k]] != target || nd2[k] > max_d2) continue;
@@ -588,7 +623,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     timer.lap("reassignment");
 #pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
     for (int t = 0; t < static_cast<int>(frames); ++t)
-      snapped += foldSnap(*sequence_->frame(t), trees[t], spacing[t], p, labels[t]);
+      snapped += foldSnap(*sequence_->frame(t), knn[t], spacing[t], p, labels[t]);
     stats_.snapped = snapped;
     timer.lap("fold snap");
   }
