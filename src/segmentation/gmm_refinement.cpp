@@ -413,19 +413,21 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (int q = 0; q < num_pairs; ++q)
         if (bcloud[q]) btree[q].setInputCloud(bcloud[q]);
       const double reach = p.outer_band * s;
-      std::vector<int> idx(1);
-      std::vector<float> d2(1);
+      // Searches bounded a little beyond the distance that decides prune far sooner, and find
+      // the same nearest point whenever it is within that distance: the same bands.
+      auto bound2 = [](double d) { return static_cast<float>(1.0201 * d * d); };
       for (std::size_t j = 0; j < cloud.size(); ++j) {
         const int l = lab[j];
         if (l < 0) continue;
-        all_tree.nearestKSearch(cloud[j], 1, idx, d2);
-        if (std::sqrt(d2[0]) > reach) continue;
+        const auto& x = cloud[j];
+        float nd2;
+        if (all_tree.nearest(x.x, x.y, x.z, bound2(reach), nd2) < 0) continue;
+        if (std::sqrt(nd2) > reach) continue;
         int best_q = -1;
         double best_d = reach;
         for (int q : pairs_of[l]) {
-          if (!bcloud[q]) continue;
-          btree[q].nearestKSearch(cloud[j], 1, idx, d2);
-          const double d = std::sqrt(d2[0]);
+          if (!bcloud[q] || btree[q].nearest(x.x, x.y, x.z, bound2(best_d), nd2) < 0) continue;
+          const double d = std::sqrt(nd2);
           if (d <= best_d) best_d = d, best_q = q;
         }
         if (best_q < 0) continue;
