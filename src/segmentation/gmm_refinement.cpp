@@ -493,16 +493,14 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (std::size_t k = 0; k < use.size(); ++k) x.row(k) = m.train_nrm[use[k]].transpose();
       out = math::fitGMM(x, gopt);
     };
-    int fitted = 0;
-#pragma omp parallel for schedule(dynamic) reduction(+ : fitted)
+    // First each model's seeds and training points of its patches, then every fit (a model's
+    // whole one and its patches') in one parallel loop: a few large models with many patches
+    // kept most of 16 cores waiting when each model fitted its patches in turn.
+    std::vector<std::vector<std::vector<int>>> patch_points(models.size());
+#pragma omp parallel for schedule(dynamic)
     for (int mi = 0; mi < static_cast<int>(models.size()); ++mi) {
       SideModel& m = models[mi];
       if (static_cast<int>(m.train_nrm.size()) < p.min_training_points) continue;
-      std::vector<int> all(m.train_nrm.size());
-      for (std::size_t k = 0; k < all.size(); ++k) all[k] = static_cast<int>(k);
-      fit(m, all, m.whole);
-      m.whole_ok = true;
-      ++fitted;
       for (const Eigen::Vector3d& x : m.train_pos) m.train_cloud->push_back(toXYZ(x));
       m.train_tree.setInputCloud(m.train_cloud);
       // Patch seeds: centroids of the boundary points in a voxel grid of the patch size.
@@ -520,18 +518,36 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (const auto& [key, c] : cells) {
         const Eigen::Vector3d seed = c.first / static_cast<double>(c.second);
         m.seeds->push_back(toXYZ(seed));
-        m.patch.emplace_back();
         m.train_tree.radiusSearch(toXYZ(seed), radius, idx, d2);
         std::sort(idx.begin(), idx.end());
         const bool ok = static_cast<int>(idx.size()) >= p.min_training_points;
-        if (ok) {
-          fit(m, idx, m.patch.back());
-          ++fitted;
-        }
+        patch_points[mi].push_back(ok ? idx : std::vector<int>());
         m.patch_ok.push_back(ok);
       }
+      m.patch.resize(m.patch_ok.size());
       if (!m.seeds->empty()) m.seed_tree.setInputCloud(m.seeds);
     }
+    std::vector<std::pair<int, int>> fits;  // (model, patch), patch -1: the model's whole fit
+    for (int mi = 0; mi < static_cast<int>(models.size()); ++mi) {
+      if (static_cast<int>(models[mi].train_nrm.size()) < p.min_training_points) continue;
+      fits.push_back({mi, -1});
+      for (int k = 0; k < static_cast<int>(models[mi].patch_ok.size()); ++k)
+        if (models[mi].patch_ok[k]) fits.push_back({mi, k});
+    }
+#pragma omp parallel for schedule(dynamic)
+    for (int f = 0; f < static_cast<int>(fits.size()); ++f) {
+      const auto [mi, k] = fits[f];
+      SideModel& m = models[mi];
+      if (k >= 0) {
+        fit(m, patch_points[mi][k], m.patch[k]);
+      } else {
+        std::vector<int> all(m.train_nrm.size());
+        for (std::size_t q = 0; q < all.size(); ++q) all[q] = static_cast<int>(q);
+        fit(m, all, m.whole);
+        m.whole_ok = true;
+      }
+    }
+    const int fitted = static_cast<int>(fits.size());
     if (iter == 0) stats_.models = fitted;
 
     timer.lap("models");
