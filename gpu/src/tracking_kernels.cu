@@ -69,6 +69,42 @@ struct Scratch {
   double v[kWarp][kCols];
 };
 
+// The threads that compute one fit together, each with its row of the scratch per round of
+// points: a warp (the many fits of the tracking, the residuals and large batches of part fits)
+// or a whole block (small batches of part fits, GroupOfBlock). share() hands thread q's `mine`
+// (q < count) to every thread's out[q].
+struct WarpGroup {
+  static constexpr int kSize = kWarp;
+  int rank;
+  double (*v)[kCols];
+  __device__ WarpGroup(int lane, Scratch& sc) : rank(lane), v(sc.v) {}
+  __device__ void sync() const { __syncwarp(); }
+  __device__ void share(double mine, int count, double* out) const {
+    for (int q = 0; q < count; ++q) out[q] = __shfl_sync(0xffffffffu, mine, q);
+  }
+};
+template <int N>
+struct GroupOfBlock {
+  static constexpr int kSize = N;
+  int rank;
+  double (*v)[kCols];  // N rows, shared
+  double* slot;        // kCols, shared
+  __device__ void sync() const { __syncthreads(); }
+  __device__ void share(double mine, int count, double* out) const {
+    if (rank < count) slot[rank] = mine;
+    __syncthreads();
+    for (int q = 0; q < count; ++q) out[q] = slot[q];
+    __syncthreads();
+  }
+};
+
+// A fit per block of kWideThreads threads instead of per warp for batches of at most
+// kWideFitBatch fits (part fits) or tasks (a wave of the tracking): a small batch is
+// latency-bound, and a block searches a 96-point source in one round per ICP iteration where a
+// warp needs three.
+constexpr int kWideThreads = 128;
+constexpr long long kWideFitBatch = 512;
+
 // FlatKdTree3::nearest (flat_kdtree.h) on the frame's copy: the nearest point with squared
 // distance < bound2, or -1. Distances in the CPU's float order, without contraction.
 __device__ int nearest(const Dev& d, int root, float qx, float qy, float qz, float bound2,
@@ -132,65 +168,71 @@ __device__ double surfaceErrorAt(const Dev& d, int frame, const double* y, const
                                 d.normal_cos, d.clip);
 }
 
-// Adds column q of the scratch rows 0..rows-1 that count, in row order, to `sum` (lane q).
-__device__ void addRows(const Scratch& sc, int rows, int q, double& sum) {
+// Adds column q of the scratch rows 0..rows-1 that count, in row order, to `sum` (thread q).
+__device__ void addRows(const double (*v)[kCols], int rows, int q, double& sum) {
   for (int j = 0; j < rows; ++j)
-    if (sc.v[j][kCols - 1] != 0.0) sum += sc.v[j][q];
+    if (v[j][kCols - 1] != 0.0) sum += v[j][q];
 }
 
 // RMS surface error of a source (6 doubles per point) under a pose, the errors added in point
-// order (motion_tracking.cpp's residual); the same in every lane.
+// order (motion_tracking.cpp's residual); the same in every thread of the group.
+template <class Group>
 __device__ double residual(const Dev& d, int frame, const double* src, int m, const Rigid& T,
-                           int lane, Scratch& sc) {
+                           const Group& g) {
   if (m == 0) return 0.0;
   double sum = 0.0;
-  for (int base = 0; base < m; base += kWarp) {
-    const int i = base + lane;
+  for (int base = 0; base < m; base += Group::kSize) {
+    const int i = base + g.rank;
     if (i < m) {
       double y[3], n[3];
       icp_step::apply(T, src + 6 * i, y);
       icp_step::rotate(T, src + 6 * i + 3, n);
-      sc.v[lane][0] = surfaceErrorAt(d, frame, y, n);
-      sc.v[lane][kCols - 1] = 1.0;
+      g.v[g.rank][0] = surfaceErrorAt(d, frame, y, n);
+      g.v[g.rank][kCols - 1] = 1.0;
     }
-    __syncwarp();
-    if (lane == 0) addRows(sc, min(kWarp, m - base), 0, sum);
-    __syncwarp();
+    g.sync();
+    if (g.rank == 0) addRows(g.v, min(Group::kSize, m - base), 0, sum);
+    g.sync();
   }
-  sum = __shfl_sync(0xffffffffu, sum, 0);
-  return sqrt(sum / static_cast<double>(m));
+  double total;
+  g.share(sum, 1, &total);
+  return sqrt(total / static_cast<double>(m));
 }
 
 // motion_tracking.cpp's icp(): the same steps (icp_step.h), the same sums in the same order.
+template <class Group>
 __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Rigid& init,
-                     double max_dist, int lane, Scratch& sc) {
+                     double max_dist, const Group& g) {
   Rigid T = init;
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double spacing = d.spacing[frame];
   const bool unoriented = d.unoriented[frame] != 0;
+  const int me = g.rank;
   for (int it = 0; it < d.iterations; ++it) {
-    // The moved source's centroid, summed in point order by lanes 0-2.
+    // The moved source's centroid, summed in point order by threads 0-2.
     double c[3] = {0.0, 0.0, 0.0};
     double mine = 0.0;
-    for (int base = 0; base < m; base += kWarp) {
-      const int i = base + lane;
+    for (int base = 0; base < m; base += Group::kSize) {
+      const int i = base + me;
       if (i < m) {
-        icp_step::apply(T, src + 6 * i, sc.v[lane]);
-        sc.v[lane][kCols - 1] = 1.0;
+        icp_step::apply(T, src + 6 * i, g.v[me]);
+        g.v[me][kCols - 1] = 1.0;
       }
-      __syncwarp();
-      if (lane < 3) addRows(sc, min(kWarp, m - base), lane, mine);
-      __syncwarp();
+      g.sync();
+      if (me < 3) addRows(g.v, min(Group::kSize, m - base), me, mine);
+      g.sync();
     }
     const double count = static_cast<double>(m > 1 ? m : 1);
-    for (int k = 0; k < 3; ++k) c[k] = __shfl_sync(0xffffffffu, mine, k) / count;
-    // The matched points' terms, summed in point order: term q by lane q, the count by lane 27.
+    g.share(mine, 3, c);
+    for (int k = 0; k < 3; ++k) c[k] /= count;
+    // The matched points' terms, summed in point order: term q by thread q, the count by thread
+    // 27.
     double sum = 0.0;
     int used = 0;
-    for (int base = 0; base < m; base += kWarp) {
-      const int i = base + lane;
+    for (int base = 0; base < m; base += Group::kSize) {
+      const int i = base + me;
       if (i < m) {
-        sc.v[lane][kCols - 1] = 0.0;
+        g.v[me][kCols - 1] = 0.0;
         double yw[3];
         icp_step::apply(T, src + 6 * i, yw);
         float d2;
@@ -202,22 +244,22 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
           icp_step::rotate(T, src + 6 * i + 3, n);
           const double cs = icp_step::dot3(n, tn);
           if (!((unoriented ? fabs(cs) : cs) < d.normal_cos)) {  // the CPU's test, NaN too
-            icp_step::pointTerms(yw, c, tp, tn, sc.v[lane]);
-            sc.v[lane][kCols - 1] = 1.0;
+            icp_step::pointTerms(yw, c, tp, tn, g.v[me]);
+            g.v[me][kCols - 1] = 1.0;
           }
         }
       }
-      __syncwarp();
-      const int rows = min(kWarp, m - base);
-      if (lane < icp_step::kTerms) addRows(sc, rows, lane, sum);
-      if (lane == icp_step::kTerms)
-        for (int j = 0; j < rows; ++j) used += sc.v[j][kCols - 1] != 0.0;
-      __syncwarp();
+      g.sync();
+      const int rows = min(Group::kSize, m - base);
+      if (me < icp_step::kTerms) addRows(g.v, rows, me, sum);
+      if (me == icp_step::kTerms)
+        for (int j = 0; j < rows; ++j) used += g.v[j][kCols - 1] != 0.0;
+      g.sync();
     }
-    used = __shfl_sync(0xffffffffu, used, icp_step::kTerms);
-    if (used < 6) break;
-    double sums[icp_step::kTerms];
-    for (int q = 0; q < icp_step::kTerms; ++q) sums[q] = __shfl_sync(0xffffffffu, sum, q);
+    // sums[q] from thread q, the count from thread 27.
+    double sums[icp_step::kTerms + 1];
+    g.share(me == icp_step::kTerms ? static_cast<double>(used) : sum, icp_step::kTerms + 1, sums);
+    if (static_cast<int>(sums[icp_step::kTerms]) < 6) break;
     double x[6];
     if (!icp_step::solveStep(sums, x)) break;
     T = icp_step::compose(icp_step::stepMotion(x, c), T);
@@ -257,13 +299,9 @@ __device__ Rigid start(const Dev& d, int t, int s, int c) {
   return prev;  // not reached: c < number of starts
 }
 
-__global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
-  __shared__ Scratch scratch[kWarpsPerBlock];
-  const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
-  const int lane = threadIdx.x % kWarp;
-  if (w >= n) return;  // the whole warp
-  Scratch& sc = scratch[threadIdx.x / kWarp];
-  const int task = tasks[w];
+// One (frame, sample) pose (motion_tracking.cpp's trackSamplesOn, step 3) by a group of threads.
+template <class Group>
+__device__ void trackTask(const Dev& d, int task, const Group& g) {
   const int S = d.S, t = task / S, s = task % S;
   const int* lev = d.level + static_cast<long long>(t) * S;
   int starts = d.two_before[t] >= 0 ? 3 : 2;
@@ -275,7 +313,7 @@ __global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
   double s0 = DBL_MAX, s1 = DBL_MAX;
   int i0 = -1, i1 = -1;
   for (int c = 0; c < starts; ++c) {
-    const double r = residual(d, t, probe, pm, start(d, t, s, c), lane, sc);
+    const double r = residual(d, t, probe, pm, start(d, t, s, c), g);
     if (i0 < 0 || r < s0) {
       s1 = s0, i1 = i0;
       s0 = r, i0 = c;
@@ -290,14 +328,30 @@ __global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
   const int tried[2] = {i0, i1};
   for (int k = 0; k < 2; ++k) {
     if (tried[k] < 0) continue;
-    const Rigid fit = icp(d, t, src, m, start(d, t, s, tried[k]), 4.0 * d.spacing[t], lane, sc);
-    const double r = residual(d, t, src, m, fit, lane, sc);
+    const Rigid fit = icp(d, t, src, m, start(d, t, s, tried[k]), 4.0 * d.spacing[t], g);
+    const double r = residual(d, t, src, m, fit, g);
     if (r < best) best = r, best_pose = fit;
   }
-  if (lane == 0) {
+  if (g.rank == 0) {
     icp_step::store(best_pose, d.poses + static_cast<long long>(task) * kPoseDoubles);
     d.residual[task] = best;
   }
+}
+
+__global__ void trackWave(Dev d, const int* __restrict__ tasks, int n) {
+  __shared__ Scratch scratch[kWarpsPerBlock];
+  const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
+  const int lane = threadIdx.x % kWarp;
+  if (w >= n) return;  // the whole warp
+  trackTask(d, tasks[w], WarpGroup(lane, scratch[threadIdx.x / kWarp]));
+}
+
+// trackWave with one block per task, for small waves (kWideFitBatch).
+__global__ void trackWaveWide(Dev d, const int* __restrict__ tasks) {
+  __shared__ double rows[kWideThreads][kCols];
+  __shared__ double slot[kCols];
+  trackTask(d, tasks[blockIdx.x],
+            GroupOfBlock<kWideThreads>{static_cast<int>(threadIdx.x), rows, slot});
 }
 
 // One residual per warp (motion_tracking.cpp's residual of one job).
@@ -313,8 +367,8 @@ __global__ void residualJobs(Dev d, const double* __restrict__ points,
   const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
   const double r =
       residual(d, job.frame, points + 6LL * b, m,
-               icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles), lane,
-               scratch[threadIdx.x / kWarp]);
+               icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles),
+               WarpGroup(lane, scratch[threadIdx.x / kWarp]));
   if (lane == 0) out[w] = r;
 }
 
@@ -328,15 +382,35 @@ __global__ void partFitJobs(Dev d, const double* __restrict__ points,
   const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
   const int lane = threadIdx.x % kWarp;
   if (w >= n) return;  // the whole warp
-  Scratch& sc = scratch[threadIdx.x / kWarp];
+  const WarpGroup g(lane, scratch[threadIdx.x / kWarp]);
   const PartFitJob job = jobs[w];
   const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
   const double* src = points + 6LL * b;
   const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
-  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, lane, sc);
-  const double r = residual(d, job.frame, src, m, cand, lane, sc);
+  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
+  const double r = residual(d, job.frame, src, m, cand, g);
   if (lane == 0)
     icp_step::store(r <= job.r0 ? cand : init, out + static_cast<long long>(w) * kPoseDoubles);
+}
+
+// partFitJobs with one block of kWideThreads threads per fit: the fit's points searched side by
+// side in rounds of kWideThreads, the sums still in point order (the same poses).
+__global__ void partFitJobsWide(Dev d, const double* __restrict__ points,
+                                const int* __restrict__ source_begin,
+                                const double* __restrict__ motions,
+                                const PartFitJob* __restrict__ jobs, double* out) {
+  __shared__ double rows[kWideThreads][kCols];
+  __shared__ double slot[kCols];
+  const GroupOfBlock<kWideThreads> g{static_cast<int>(threadIdx.x), rows, slot};
+  const PartFitJob job = jobs[blockIdx.x];
+  const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
+  const double* src = points + 6LL * b;
+  const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
+  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
+  const double r = residual(d, job.frame, src, m, cand, g);
+  if (threadIdx.x == 0)
+    icp_step::store(r <= job.r0 ? cand : init,
+                    out + static_cast<long long>(blockIdx.x) * kPoseDoubles);
 }
 
 // One point cost per thread (motion_tracking.cpp's pointCost): the point's surface errors under
@@ -611,7 +685,10 @@ double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vect
   for (int w = 0; w < waves; ++w) {
     const int n = in.wave_begin[w + 1] - in.wave_begin[w];
     if (n <= 0) continue;
-    trackWave<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, tasks.ptr() + in.wave_begin[w], n);
+    if (n <= kWideFitBatch)
+      trackWaveWide<<<n, kWideThreads>>>(d, tasks.ptr() + in.wave_begin[w]);
+    else
+      trackWave<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, tasks.ptr() + in.wave_begin[w], n);
     cudaCheckLaunch();
   }
   cudaSafeCall(cudaDeviceSynchronize());
@@ -649,12 +726,18 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
   Dev d = frameView(frames);
   d.iterations = iterations;
   const long long n = static_cast<long long>(jobs.size());
-  partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
-      d, static_cast<const double*>(frames.job_points.rawPtr()),
-      static_cast<const int*>(frames.job_begin.rawPtr()),
-      static_cast<const double*>(frames.job_motions.rawPtr()),
-      static_cast<const PartFitJob*>(frames.job_list.rawPtr()), static_cast<int>(n),
-      static_cast<double*>(frames.job_out.rawPtr()));
+  const auto* pts = static_cast<const double*>(frames.job_points.rawPtr());
+  const auto* begin = static_cast<const int*>(frames.job_begin.rawPtr());
+  const auto* mot = static_cast<const double*>(frames.job_motions.rawPtr());
+  const auto* list = static_cast<const PartFitJob*>(frames.job_list.rawPtr());
+  auto* out = static_cast<double*>(frames.job_out.rawPtr());
+  // A small batch: a fit per block finishes sooner; a large one fills the GPU with a fit per
+  // warp.
+  if (n <= kWideFitBatch)
+    partFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, pts, begin, mot, list, out);
+  else
+    partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, pts, begin, mot, list,
+                                                           static_cast<int>(n), out);
   cudaCheckLaunch();
   frames.job_out.downloadBytes(poses.data(), poses.size() * sizeof(double));
 }
