@@ -121,6 +121,8 @@ class FlatKdTree3 {
    * `d2`. Without a tie it is the first of knn(q, k) for every k (which, among ties, returns
    * what its walk keeps). */
   int nearestLowestRow(const float q[3], float& d2, bool& tied) const {
+    // nearestLeaf's walk (kept as its own copy for the same reason), with cells as far as the
+    // best still visited: they may hold a tie.
     tied = false;
     if (nodes_.empty()) return -1;
     float best = std::numeric_limits<float>::infinity();
