@@ -1,6 +1,7 @@
 // animseg: the one-shot pipeline of Fig. 1 — a sequence in, temporally coherent near-rigid parts out.
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/atomic_file.h>
+#include <pcl_animseg/io/segmentation_io.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/pipeline.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
@@ -180,16 +181,8 @@ int main(int argc, char** argv) {
         PipelineResult r = runPipeline(seq, params, progress);
 
         progress.begin("write", seq.size());
-        io::ensureDirectory(out);
-        for (std::size_t t = 0; t < seq.size(); ++t) {
-          std::vector<std::vector<int>> columns;
-          for (const auto& level : r.levels) columns.push_back(seq.toInputOrder(t, level[t]));
-          const std::string base = out + "/" + seq.name(t);
-          io::saveLabels(base + ".labels", columns);
-          io::saveLabelledPCD(base + ".pcd", *seq.frame(t), r.levels[0][t]);
-          io::saveLabelledPLY(base + ".ply", *seq.frame(t), r.levels[0][t]);
-          progress.update(t + 1);
-        }
+        io::saveSequenceLabels(out, seq, r.levels, /*ply=*/true,
+                               [&](std::size_t done) { progress.update(done); });
         segmentation::writeTransformsJson(out + "/transforms.json", seq, r.motions);
         progress.end();
         if (vm.count("png")) {

@@ -3,6 +3,7 @@
 #include <pcl_animseg/io/segmentation_io.h>
 #include <pcl_animseg/io/sequence_io.h>
 
+#include <exception>
 #include <fstream>
 #include <iomanip>
 #include <sstream>
@@ -110,15 +111,30 @@ std::vector<std::vector<int>> loadSequenceLabels(const std::string& dir,
 }
 
 void saveSequenceLabels(const std::string& dir, const PointCloudSequence& sequence,
-                        const std::vector<std::vector<std::vector<int>>>& levels) {
+                        const std::vector<std::vector<std::vector<int>>>& levels, bool ply,
+                        const std::function<void(std::size_t)>& frames_done) {
   if (levels.empty()) throw Error("no labels to save");
   ensureDirectory(dir);
-  for (std::size_t t = 0; t < sequence.size(); ++t) {
-    std::vector<std::vector<int>> columns;
-    for (const auto& level : levels) columns.push_back(sequence.toInputOrder(t, level.at(t)));
-    saveLabels(dir + "/" + sequence.name(t) + ".labels", columns);
-    saveLabelledPCD(dir + "/" + sequence.name(t) + ".pcd", *sequence.frame(t), levels[0][t]);
+  const long frames = static_cast<long>(sequence.size());
+  std::exception_ptr error;
+  std::size_t done = 0;
+#pragma omp parallel for schedule(dynamic, 1)
+  for (long t = 0; t < frames; ++t) {
+    try {
+      std::vector<std::vector<int>> columns;
+      for (const auto& level : levels) columns.push_back(sequence.toInputOrder(t, level.at(t)));
+      const std::string base = dir + "/" + sequence.name(t);
+      saveLabels(base + ".labels", columns);
+      saveLabelledPCD(base + ".pcd", *sequence.frame(t), levels[0][t]);
+      if (ply) saveLabelledPLY(base + ".ply", *sequence.frame(t), levels[0][t]);
+#pragma omp critical(save_sequence_labels)
+      if (frames_done) frames_done(++done);
+    } catch (...) {
+#pragma omp critical(save_sequence_labels)
+      if (!error) error = std::current_exception();
+    }
   }
+  if (error) std::rethrow_exception(error);
 }
 
 }  // namespace io

@@ -1,6 +1,7 @@
 #include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/frame_readers.h>
+#include <pcl_animseg/io/segmentation_io.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/synth/articulated.h>
 
@@ -105,4 +106,53 @@ TEST(WriteSequence, MeshFramesKeepVertexOrderAndFaces) {
     for (std::size_t k = 0; k < raw.faces.size(); k += 13)
       EXPECT_EQ(raw.faces[k].vertices, frames[t].faces[k].vertices);
   }
+}
+
+// io::saveSequenceLabels writes the frames side by side: every frame's .labels (every level, in
+// input order), .pcd and .ply, progress once per frame counting up, and an error of one frame
+// (its .labels path taken by a directory) rethrown after the others were written.
+TEST(WriteSequence, SaveSequenceLabelsWritesEveryFrame) {
+  sy::SynthParams p;
+  p.plan = sy::BodyPlan::Quadruped;
+  p.frames = 9;
+  p.points = 600;
+  const auto seq = sy::toSequence(sy::generate(p));
+  std::vector<std::vector<std::vector<int>>> levels(2);
+  for (std::size_t t = 0; t < seq.size(); ++t) {
+    const std::size_t n = seq.frame(t)->size();
+    levels[0].emplace_back(n);
+    levels[1].emplace_back(n);
+    for (std::size_t j = 0; j < n; ++j) {
+      levels[0][t][j] = static_cast<int>((j + t) % 5);
+      levels[1][t][j] = static_cast<int>((j + t) % 5) / 2;
+    }
+  }
+  TempDir tmp;
+  const std::string dir = (tmp.dir() / "out").string();
+  std::vector<std::size_t> reported;
+  pcl_animseg::io::saveSequenceLabels(dir, seq, levels, /*ply=*/true,
+                                      [&](std::size_t done) { reported.push_back(done); });
+  ASSERT_EQ(reported.size(), seq.size());
+  for (std::size_t k = 0; k < reported.size(); ++k) EXPECT_EQ(reported[k], k + 1);
+  for (std::size_t t = 0; t < seq.size(); ++t) {
+    const std::string base = dir + "/" + seq.name(t);
+    EXPECT_EQ(pcl_animseg::io::loadLabels(base + ".labels", 0), seq.toInputOrder(t, levels[0][t]));
+    EXPECT_EQ(pcl_animseg::io::loadLabels(base + ".labels", 1), seq.toInputOrder(t, levels[1][t]));
+    EXPECT_TRUE(fs::exists(base + ".pcd")) << base;
+    EXPECT_TRUE(fs::exists(base + ".ply")) << base;
+  }
+  // Without `ply` no .ply is written.
+  const std::string plain = (tmp.dir() / "plain").string();
+  pcl_animseg::io::saveSequenceLabels(plain, seq, levels);
+  EXPECT_TRUE(fs::exists(plain + "/" + seq.name(0) + ".pcd"));
+  EXPECT_FALSE(fs::exists(plain + "/" + seq.name(0) + ".ply"));
+  // A frame that cannot be written: the error comes back, the other frames are written.
+  const std::string bad = (tmp.dir() / "bad").string();
+  fs::create_directories(bad + "/" + seq.name(4) + ".labels");
+  EXPECT_THROW(pcl_animseg::io::saveSequenceLabels(bad, seq, levels), pcl_animseg::Error);
+  EXPECT_TRUE(fs::exists(bad + "/" + seq.name(8) + ".labels"));
+  // Levels that miss a frame: an error, not a crash.
+  levels[1].pop_back();
+  EXPECT_THROW(pcl_animseg::io::saveSequenceLabels((tmp.dir() / "short").string(), seq, levels),
+               std::exception);
 }

@@ -13,6 +13,7 @@
 #include <pcl_animseg/segmentation/segmentation_result.h>
 #include <pcl_animseg/sequence.h>
 
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -35,9 +36,15 @@ std::vector<std::vector<int>> loadSequenceLabels(const std::string& dir,
                                                  int column = 0);
 
 /** \brief Writes DIR/NAME.labels (columns = levels[l][t] in kept-point order, expanded to input
- * order with -1 for dropped points), DIR/NAME.pcd (level 0) for every frame. */
+ * order with -1 for dropped points), DIR/NAME.pcd (level 0) and, with `ply`, DIR/NAME.ply
+ * (coloured by level-0 part) for every frame. The frames are written side by side, each file
+ * atomically; `frames_done(n)` (optional) is called, one call at a time, after each frame with
+ * the number of frames written so far. The first error is rethrown once the others have
+ * finished. */
 void saveSequenceLabels(const std::string& dir, const PointCloudSequence& sequence,
-                        const std::vector<std::vector<std::vector<int>>>& levels);
+                        const std::vector<std::vector<std::vector<int>>>& levels,
+                        bool ply = false,
+                        const std::function<void(std::size_t)>& frames_done = nullptr);
 
 }  // namespace io
 }  // namespace pcl_animseg
