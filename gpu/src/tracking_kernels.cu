@@ -372,8 +372,21 @@ __global__ void residualJobs(Dev d, const double* __restrict__ points,
   if (lane == 0) out[w] = r;
 }
 
-// One part fit per warp (motion_tracking.cpp's fitParts, fitFrom): icp() from the start, kept
-// when its residual is at most r0.
+// One part fit (motion_tracking.cpp's fitParts, fitFrom: icp() from the job's motion, kept when
+// its residual is at most r0) by a group of threads; the pose to `out`.
+template <class Group>
+__device__ void partFit(const Dev& d, const double* points, const int* source_begin,
+                        const double* motions, const PartFitJob& job, double* out,
+                        const Group& g) {
+  const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
+  const double* src = points + 6LL * b;
+  const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
+  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
+  const double r = residual(d, job.frame, src, m, cand, g);
+  if (g.rank == 0) icp_step::store(r <= job.r0 ? cand : init, out);
+}
+
+// One part fit per warp (partFit).
 __global__ void partFitJobs(Dev d, const double* __restrict__ points,
                             const int* __restrict__ source_begin,
                             const double* __restrict__ motions, const PartFitJob* __restrict__ jobs,
@@ -382,18 +395,11 @@ __global__ void partFitJobs(Dev d, const double* __restrict__ points,
   const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
   const int lane = threadIdx.x % kWarp;
   if (w >= n) return;  // the whole warp
-  const WarpGroup g(lane, scratch[threadIdx.x / kWarp]);
-  const PartFitJob job = jobs[w];
-  const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
-  const double* src = points + 6LL * b;
-  const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
-  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
-  const double r = residual(d, job.frame, src, m, cand, g);
-  if (lane == 0)
-    icp_step::store(r <= job.r0 ? cand : init, out + static_cast<long long>(w) * kPoseDoubles);
+  partFit(d, points, source_begin, motions, jobs[w], out + static_cast<long long>(w) * kPoseDoubles,
+          WarpGroup(lane, scratch[threadIdx.x / kWarp]));
 }
 
-// partFitJobs with one block of kWideThreads threads per fit: the fit's points searched side by
+// One part fit per block of kWideThreads threads (partFit): the fit's points searched side by
 // side in rounds of kWideThreads, the sums still in point order (the same poses).
 __global__ void partFitJobsWide(Dev d, const double* __restrict__ points,
                                 const int* __restrict__ source_begin,
@@ -401,16 +407,9 @@ __global__ void partFitJobsWide(Dev d, const double* __restrict__ points,
                                 const PartFitJob* __restrict__ jobs, double* out) {
   __shared__ double rows[kWideThreads][kCols];
   __shared__ double slot[kCols];
-  const GroupOfBlock<kWideThreads> g{static_cast<int>(threadIdx.x), rows, slot};
-  const PartFitJob job = jobs[blockIdx.x];
-  const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
-  const double* src = points + 6LL * b;
-  const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
-  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
-  const double r = residual(d, job.frame, src, m, cand, g);
-  if (threadIdx.x == 0)
-    icp_step::store(r <= job.r0 ? cand : init,
-                    out + static_cast<long long>(blockIdx.x) * kPoseDoubles);
+  partFit(d, points, source_begin, motions, jobs[blockIdx.x],
+          out + static_cast<long long>(blockIdx.x) * kPoseDoubles,
+          GroupOfBlock<kWideThreads>{static_cast<int>(threadIdx.x), rows, slot});
 }
 
 // One point cost per thread (motion_tracking.cpp's pointCost): the point's surface errors under

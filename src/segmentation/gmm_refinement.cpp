@@ -496,11 +496,14 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // First each model's seeds and training points of its patches, then every fit (a model's
     // whole one and its patches') in one parallel loop: a few large models with many patches
     // kept most of 16 cores waiting when each model fitted its patches in turn.
+    auto trained = [&](const SideModel& m) {
+      return static_cast<int>(m.train_nrm.size()) >= p.min_training_points;
+    };
     std::vector<std::vector<std::vector<int>>> patch_points(models.size());
 #pragma omp parallel for schedule(dynamic)
     for (int mi = 0; mi < static_cast<int>(models.size()); ++mi) {
       SideModel& m = models[mi];
-      if (static_cast<int>(m.train_nrm.size()) < p.min_training_points) continue;
+      if (!trained(m)) continue;
       for (const Eigen::Vector3d& x : m.train_pos) m.train_cloud->push_back(toXYZ(x));
       m.train_tree.setInputCloud(m.train_cloud);
       // Patch seeds: centroids of the boundary points in a voxel grid of the patch size.
@@ -529,7 +532,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     }
     std::vector<std::pair<int, int>> fits;  // (model, patch), patch -1: the model's whole fit
     for (int mi = 0; mi < static_cast<int>(models.size()); ++mi) {
-      if (static_cast<int>(models[mi].train_nrm.size()) < p.min_training_points) continue;
+      if (!trained(models[mi])) continue;
       fits.push_back({mi, -1});
       for (int k = 0; k < static_cast<int>(models[mi].patch_ok.size()); ++k)
         if (models[mi].patch_ok[k]) fits.push_back({mi, k});
