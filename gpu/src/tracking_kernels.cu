@@ -20,6 +20,7 @@
 #include <cfloat>
 #include <chrono>
 #include <cmath>
+#include <cstring>
 
 #include "cuda_check.h"
 #include "tracking_kernels.h"
@@ -590,17 +591,46 @@ void put(DeviceMemory& m, const void* host, std::size_t bytes) {
   m.uploadBytes(host, bytes);
 }
 
-// A batch's points, their sources' ranges (when the jobs name sources), motions and jobs
-// uploaded into the store's batch buffers, and its output buffer grown to `out_bytes`.
+// Where a batch's inputs lie in the store's job_in buffer.
 template <class Job>
-void putBatch(FrameStore& frames, const std::vector<double>& points,
-              const std::vector<int>* source_begin, const std::vector<double>& motions,
-              const std::vector<Job>& jobs, std::size_t out_bytes) {
-  put(frames.job_points, points.data(), points.size() * sizeof(double));
-  if (source_begin) put(frames.job_begin, source_begin->data(), source_begin->size() * sizeof(int));
-  put(frames.job_motions, motions.data(), motions.size() * sizeof(double));
-  put(frames.job_list, jobs.data(), jobs.size() * sizeof(Job));
+struct BatchView {
+  const double* points = nullptr;
+  const int* begin = nullptr;
+  const double* motions = nullptr;
+  const Job* list = nullptr;
+};
+
+// A batch's points, their sources' ranges (when the jobs name sources), motions and jobs
+// packed into the store's staging buffer and uploaded with one copy, each part at a 16-byte
+// boundary; the output buffer grown to `out_bytes`.
+template <class Job>
+BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
+                        const std::vector<int>* source_begin, const std::vector<double>& motions,
+                        const std::vector<Job>& jobs, std::size_t out_bytes) {
+  auto aligned = [](std::size_t b) { return (b + 15) & ~static_cast<std::size_t>(15); };
+  const std::size_t n_points = points.size() * sizeof(double);
+  const std::size_t n_begin = source_begin ? source_begin->size() * sizeof(int) : 0;
+  const std::size_t n_motions = motions.size() * sizeof(double);
+  const std::size_t n_jobs = jobs.size() * sizeof(Job);
+  const std::size_t at_begin = aligned(n_points);
+  const std::size_t at_motions = at_begin + aligned(n_begin);
+  const std::size_t at_jobs = at_motions + aligned(n_motions);
+  const std::size_t total = at_jobs + n_jobs;
+  std::vector<unsigned char>& st = frames.staging;
+  if (st.size() < total) st.resize(total);
+  if (n_points) std::memcpy(st.data(), points.data(), n_points);
+  if (n_begin) std::memcpy(st.data() + at_begin, source_begin->data(), n_begin);
+  if (n_motions) std::memcpy(st.data() + at_motions, motions.data(), n_motions);
+  if (n_jobs) std::memcpy(st.data() + at_jobs, jobs.data(), n_jobs);
+  put(frames.job_in, st.data(), total);
   grow(frames.job_out, out_bytes);
+  const auto* base = static_cast<const unsigned char*>(frames.job_in.rawPtr());
+  BatchView<Job> v;
+  v.points = reinterpret_cast<const double*>(base);
+  v.begin = reinterpret_cast<const int*>(base + at_begin);
+  v.motions = reinterpret_cast<const double*>(base + at_motions);
+  v.list = reinterpret_cast<const Job*>(base + at_jobs);
+  return v;
 }
 
 int blocksFor(long long warps) {
@@ -615,13 +645,13 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   poses.assign(jobs.size() * kPoseDoubles, 0.0);
   rms.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  put(surfaces.job_list, jobs.data(), jobs.size() * sizeof(RigidJob));
+  put(surfaces.job_in, jobs.data(), jobs.size() * sizeof(RigidJob));
   grow(surfaces.job_out, jobs.size() * (kPoseDoubles + 1) * sizeof(double));
   const Dev d = frameView(surfaces);
   const int n = static_cast<int>(jobs.size());
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
   rigidFitJobs<<<n, kRigidThreads>>>(d, sources.ptr(),
-                                     static_cast<const RigidJob*>(surfaces.job_list.rawPtr()),
+                                     static_cast<const RigidJob*>(surfaces.job_in.rawPtr()),
                                      params, out, out + static_cast<std::size_t>(n) * kPoseDoubles);
   cudaCheckLaunch();
   std::vector<double> all(jobs.size() * (kPoseDoubles + 1));
@@ -702,14 +732,12 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
                   const std::vector<ResidualJob>& jobs, std::vector<double>& out) {
   out.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  putBatch(frames, points, &source_begin, motions, jobs, jobs.size() * sizeof(double));
+  const auto in =
+      putBatch(frames, points, &source_begin, motions, jobs, jobs.size() * sizeof(double));
   const Dev d = frameView(frames);
   const long long n = static_cast<long long>(jobs.size());
   residualJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
-      d, static_cast<const double*>(frames.job_points.rawPtr()),
-      static_cast<const int*>(frames.job_begin.rawPtr()),
-      static_cast<const double*>(frames.job_motions.rawPtr()),
-      static_cast<const ResidualJob*>(frames.job_list.rawPtr()), static_cast<int>(n),
+      d, in.points, in.begin, in.motions, in.list, static_cast<int>(n),
       static_cast<double*>(frames.job_out.rawPtr()));
   cudaCheckLaunch();
   // Synchronises, and reports a kernel fault.
@@ -721,14 +749,15 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses) {
   poses.assign(jobs.size() * kPoseDoubles, 0.0);
   if (jobs.empty()) return;
-  putBatch(frames, points, &source_begin, motions, jobs, poses.size() * sizeof(double));
+  const auto in =
+      putBatch(frames, points, &source_begin, motions, jobs, poses.size() * sizeof(double));
   Dev d = frameView(frames);
   d.iterations = iterations;
   const long long n = static_cast<long long>(jobs.size());
-  const auto* pts = static_cast<const double*>(frames.job_points.rawPtr());
-  const auto* begin = static_cast<const int*>(frames.job_begin.rawPtr());
-  const auto* mot = static_cast<const double*>(frames.job_motions.rawPtr());
-  const auto* list = static_cast<const PartFitJob*>(frames.job_list.rawPtr());
+  const double* pts = in.points;
+  const int* begin = in.begin;
+  const double* mot = in.motions;
+  const PartFitJob* list = in.list;
   auto* out = static_cast<double*>(frames.job_out.rawPtr());
   // A small batch: a fit per block finishes sooner; a large one fills the GPU with a fit per
   // warp.
@@ -746,14 +775,12 @@ void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vecto
                    std::vector<double>& out) {
   out.assign(jobs.size() * (per_frame ? static_cast<std::size_t>(frames.frames) : 1), 0.0);
   if (jobs.empty()) return;
-  putBatch(frames, points, nullptr, motions, jobs, out.size() * sizeof(double));
+  const auto in = putBatch(frames, points, nullptr, motions, jobs, out.size() * sizeof(double));
   const Dev d = frameView(frames);
   const int n = static_cast<int>(jobs.size());
   constexpr int kThreads = 128;
   pointCostJobs<<<(n + kThreads - 1) / kThreads, kThreads>>>(
-      d, frames.frames, ref, per_frame, static_cast<const double*>(frames.job_points.rawPtr()),
-      static_cast<const double*>(frames.job_motions.rawPtr()),
-      static_cast<const PointCostJob*>(frames.job_list.rawPtr()), n,
+      d, frames.frames, ref, per_frame, in.points, in.motions, in.list, n,
       static_cast<double*>(frames.job_out.rawPtr()));
   cudaCheckLaunch();
   frames.job_out.downloadBytes(out.data(), out.size() * sizeof(double));
