@@ -326,6 +326,9 @@ class GkdBackend : public JointKernelSum::Backend {
     StageTimer timer;
     tree_.build(x);
     timer.lap("gkdtree build");
+    if (timer.on())
+      std::fprintf(stderr, "[mean shift] gkdtree: %ld points, %zu samples (N/M %.1f)\n",
+                   static_cast<long>(x.rows()), tree_.numSamples(), tree_.samplingFactor());
     tree_.splatBlur(values, sample_values_);
     timer.lap("gkdtree splat + blur");
   }
