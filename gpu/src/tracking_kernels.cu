@@ -607,27 +607,27 @@ template <class Job>
 BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
                         const std::vector<int>* source_begin, const std::vector<double>& motions,
                         const std::vector<Job>& jobs, std::size_t out_bytes) {
-  auto aligned = [](std::size_t b) { return (b + 15) & ~static_cast<std::size_t>(15); };
-  const std::size_t n_points = points.size() * sizeof(double);
-  const std::size_t n_begin = source_begin ? source_begin->size() * sizeof(int) : 0;
-  const std::size_t n_motions = motions.size() * sizeof(double);
-  const std::size_t n_jobs = jobs.size() * sizeof(Job);
-  const std::size_t at_begin = aligned(n_points);
-  const std::size_t at_motions = at_begin + aligned(n_begin);
-  const std::size_t at_jobs = at_motions + aligned(n_motions);
-  const std::size_t total = at_jobs + n_jobs;
   std::vector<unsigned char>& st = frames.staging;
-  if (st.size() < total) st.resize(total);
-  if (n_points) std::memcpy(st.data(), points.data(), n_points);
-  if (n_begin) std::memcpy(st.data() + at_begin, source_begin->data(), n_begin);
-  if (n_motions) std::memcpy(st.data() + at_motions, motions.data(), n_motions);
-  if (n_jobs) std::memcpy(st.data() + at_jobs, jobs.data(), n_jobs);
-  put(frames.job_in, st.data(), total);
+  std::size_t used = 0;
+  // Appends one part at the next 16-byte boundary; returns where it starts.
+  auto add = [&](const void* data, std::size_t bytes) {
+    const std::size_t at = (used + 15) & ~static_cast<std::size_t>(15);
+    if (st.size() < at + bytes) st.resize(at + bytes);
+    if (bytes) std::memcpy(st.data() + at, data, bytes);
+    used = at + bytes;
+    return at;
+  };
+  const std::size_t at_points = add(points.data(), points.size() * sizeof(double));
+  const std::size_t at_begin =
+      source_begin ? add(source_begin->data(), source_begin->size() * sizeof(int)) : 0;
+  const std::size_t at_motions = add(motions.data(), motions.size() * sizeof(double));
+  const std::size_t at_jobs = add(jobs.data(), jobs.size() * sizeof(Job));
+  put(frames.job_in, st.data(), used);
   grow(frames.job_out, out_bytes);
   const auto* base = static_cast<const unsigned char*>(frames.job_in.rawPtr());
   BatchView<Job> v;
-  v.points = reinterpret_cast<const double*>(base);
-  v.begin = reinterpret_cast<const int*>(base + at_begin);
+  v.points = reinterpret_cast<const double*>(base + at_points);
+  if (source_begin) v.begin = reinterpret_cast<const int*>(base + at_begin);
   v.motions = reinterpret_cast<const double*>(base + at_motions);
   v.list = reinterpret_cast<const Job*>(base + at_jobs);
   return v;
@@ -754,18 +754,15 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
   Dev d = frameView(frames);
   d.iterations = iterations;
   const long long n = static_cast<long long>(jobs.size());
-  const double* pts = in.points;
-  const int* begin = in.begin;
-  const double* mot = in.motions;
-  const PartFitJob* list = in.list;
   auto* out = static_cast<double*>(frames.job_out.rawPtr());
   // A small batch: a fit per block finishes sooner; a large one fills the GPU with a fit per
   // warp.
   if (n <= kWideFitBatch)
-    partFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, pts, begin, mot, list, out);
+    partFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
+                                                            in.list, out);
   else
-    partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, pts, begin, mot, list,
-                                                           static_cast<int>(n), out);
+    partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, in.points, in.begin, in.motions,
+                                                           in.list, static_cast<int>(n), out);
   cudaCheckLaunch();
   frames.job_out.downloadBytes(poses.data(), poses.size() * sizeof(double));
 }
