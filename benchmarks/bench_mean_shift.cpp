@@ -3,7 +3,7 @@
 //
 //   bench_mean_shift [--points N] [--frames T] [--refine K] [--exact-every1 a] [--exact-every2 b]
 //                    [--full 0|1] [--features synthetic|pipeline] [--plan P] [--bandwidth W]
-//                    [--w4 W4]
+//                    [--w4 W4] [--exact 0|1]
 //
 // Runs MeanShiftSegmentation (paper method: every point iterated, so the cost is the kernel
 // sums) on one of two 30-D inputs:
@@ -17,7 +17,7 @@
 //    rule of Eq. 5 applies) and the 24-D signatures of Sect. 3.1. Real signatures vary slowly
 //    over a surface, so the data are dense: with the paper's bandwidth (w = 0.3) the filter's
 //    cells hold N/M ~ 760 points at 800k, the paper's regime (1024-8192).
-// Exact backend: too slow at 800k, so it runs on two per-frame subsamples and is extrapolated
+// Exact backend (--exact 0 skips it): too slow at 800k, so it runs on two per-frame subsamples and is extrapolated
 // with the fitted power law (its cost grows faster than N: the neighbours within 3 bandwidths
 // grow with the density). Prints wall, user and system CPU time (the machine is shared: CPU time
 // is the fairer number), peak RSS (getrusage) and, on the subsamples, the ARI between the two
@@ -186,8 +186,25 @@ Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, doub
   return t;
 }
 
+const char* const kOptions[] = {"--points",   "--frames", "--refine",   "--exact-every1",
+                                 "--exact-every2", "--full", "--features", "--plan",
+                                 "--bandwidth", "--w4",     "--exact"};
+
+/** Every argument is a known option followed by its value; anything else is an error. */
+void checkArguments(int argc, char** argv) {
+  for (int i = 1; i < argc; i += 2) {
+    bool known = false;
+    for (const char* o : kOptions) known = known || std::strcmp(argv[i], o) == 0;
+    if (!known)
+      throw std::runtime_error(std::string("unknown option '") + argv[i] +
+                               "' (options: --points --frames --refine --exact-every1 "
+                               "--exact-every2 --full --features --plan --bandwidth --w4 --exact)");
+    if (i + 1 >= argc) throw std::runtime_error(std::string(argv[i]) + " needs a value");
+  }
+}
+
 const char* argText(int argc, char** argv, const char* name, const char* def) {
-  for (int i = 1; i + 1 < argc; ++i)
+  for (int i = 1; i + 1 < argc; i += 2)
     if (std::strcmp(argv[i], name) == 0) return argv[i + 1];
   return def;
 }
@@ -205,6 +222,7 @@ double argReal(int argc, char** argv, const char* name, double def) {
 int main(int argc, char** argv) {
   try {
     std::setvbuf(stdout, nullptr, _IONBF, 0);
+    checkArguments(argc, argv);
     const int n = static_cast<int>(argValue(argc, argv, "--points", 800000));
     const int frames = static_cast<int>(argValue(argc, argv, "--frames", 48));
     const int refine = static_cast<int>(
@@ -212,6 +230,7 @@ int main(int argc, char** argv) {
     const int sub1 = static_cast<int>(argValue(argc, argv, "--exact-every1", 80));
     const int sub2 = static_cast<int>(argValue(argc, argv, "--exact-every2", 40));
     const bool run_full = argValue(argc, argv, "--full", 1) != 0;
+    const bool run_exact = argValue(argc, argv, "--exact", 1) != 0;
     const std::string features = argText(argc, argv, "--features", "synthetic");
     const std::string plan = argText(argc, argv, "--plan", "humanoid");
     const seg::MeanShiftParams defaults;
@@ -234,6 +253,10 @@ int main(int argc, char** argv) {
       std::printf("gkdtree (refine %d): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
                   "MiB\n",
                   refine, g.wall, g.cpu, g.clusters, peakRssMiB());
+    }
+    if (!run_exact) {
+      std::printf("peak RSS %.0f MiB\n", peakRssMiB());
+      return 0;
     }
     // Exact on two subsamples (every k-th point of every frame), power-law extrapolation.
     double nn[2], cpu[2];

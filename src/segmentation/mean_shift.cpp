@@ -197,29 +197,121 @@ struct JointKernelSum::Backend {
 
 namespace {
 
+// Kernels of the refinement's chunked exact sums (ExactBackend::evaluateCached), written by hand
+// on raw arrays so that GCC can compile them a second time for AVX2 and pick one when the library
+// is loaded (the build itself targets plain x86-64). Neither version contracts a multiply and
+// an add (no FMA), and each lane does the same operations in the same order, so both give the
+// same bits.
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && \
+    !defined(__SANITIZE_ADDRESS__)
+#define ANIMSEG_AVX2_CLONE __attribute__((target_clones("avx2", "default")))
+#else
+#define ANIMSEG_AVX2_CLONE
+#endif
+
+constexpr std::uint32_t kScanStrip = 32;  // distances computed side by side
+constexpr int kValueBlock = 16;           // components of a sum kept in registers together
+typedef float Float8 __attribute__((vector_size(32)));
+typedef float Float4 __attribute__((vector_size(16)));
+typedef double Double4 __attribute__((vector_size(32)));
+
+/** Terms of the points lo..hi-1 within squared distance r2 of q, in index order: their indices
+ * and exp(-d2/2). xc holds the data column-major (coordinate k of point i at xc[k * n + i]). Each
+ * distance is summed over the coordinates in order, as one point at a time would. */
+ANIMSEG_AVX2_CLONE
+std::size_t scanTerms(const float* q, const float* xc, std::size_t n, int d, std::uint32_t lo,
+                      std::uint32_t hi, float r2, std::uint32_t* index, double* weight) {
+  std::size_t terms = 0;
+  for (std::uint32_t i0 = lo; i0 < hi; i0 += kScanStrip) {
+    const std::uint32_t w = std::min<std::uint32_t>(kScanStrip, hi - i0);
+    float t[kScanStrip] = {};
+    if (w == kScanStrip) {
+      Float8 acc[kScanStrip / 8] = {};
+      for (int k = 0; k < d; ++k) {
+        const float* xk = xc + static_cast<std::size_t>(k) * n + i0;
+        for (std::uint32_t b = 0; b < kScanStrip / 8; ++b) {
+          Float8 a;
+          std::memcpy(&a, xk + 8 * b, sizeof a);
+          a = q[k] - a;
+          acc[b] += a * a;
+        }
+      }
+      std::memcpy(t, acc, sizeof acc);
+    } else {
+      for (int k = 0; k < d; ++k) {
+        const float* xk = xc + static_cast<std::size_t>(k) * n + i0;
+        for (std::uint32_t i = 0; i < w; ++i) t[i] += (q[k] - xk[i]) * (q[k] - xk[i]);
+      }
+    }
+    for (std::uint32_t i = 0; i < w; ++i)
+      if (t[i] < r2) {
+        index[terms] = i0 + i;
+        weight[terms++] = std::exp(-0.5 * t[i]);
+      }
+  }
+  return terms;
+}
+
+/** acc[c] += weight[e] * values[index[e] * stride + c] for the terms e in order, c < stride (a
+ * multiple of kValueBlock): kValueBlock components at a time, kept in registers over the terms. */
+ANIMSEG_AVX2_CLONE
+void addTerms(const float* values, int stride, const std::uint32_t* index, const double* weight,
+              std::size_t terms, double* acc) {
+  for (int c0 = 0; c0 < stride; c0 += kValueBlock) {
+    Double4 a[kValueBlock / 4];
+    std::memcpy(a, acc + c0, sizeof a);
+    for (std::size_t e = 0; e < terms; ++e) {
+      const double w = weight[e];
+      const float* ve = values + static_cast<std::size_t>(index[e]) * stride + c0;
+      for (int b = 0; b < kValueBlock / 4; ++b) {
+        Float4 f;
+        std::memcpy(&f, ve + 4 * b, sizeof f);
+        a[b] += w * __builtin_convertvector(f, Double4);
+      }
+    }
+    std::memcpy(acc + c0, a, sizeof a);
+  }
+}
+
 // Exact reference: FLANN kd-tree (single tree, exact search) radius search at 3 bandwidths
 // (the Gaussian is 1.1% there), then the exact kernel.
 class ExactBackend : public JointKernelSum::Backend {
  public:
-  /** cache_margin > 0: a query row keeps the list of the data within 3 + margin of where it was
-   * last searched (its anchor) and, while it stays within `margin` of the anchor, sums over that
-   * list instead of searching the tree again (every point within 3 of the query is on it, so the
-   * sums are the same; the tree search is most of an exact step's cost in 30-D). The cached
-   * backend also searches the data in their principal axes (a rotation: the same distances up to
-   * rounding), where the tree's axis-aligned cuts follow the data. */
+  /** cache_margin > 0 (the refinement's few, long-lived queries): a query row keeps the list of
+   * the data within 3 + margin of where it was last searched (its anchor) and, while it stays
+   * within `margin` of the anchor, sums over that list instead of searching the tree again
+   * (every point within 3 of the query is on it, so the sums are the same; in sparse 30-D data
+   * the tree search is most of an exact step's cost). The cached backend searches the data in
+   * their principal axes (a rotation: the same distances up to rounding), where the tree's
+   * axis-aligned cuts follow the data; on data so dense that the lists would hold more than a
+   * quarter of the points (denseData) it builds no tree and every query scans all points. */
   ExactBackend(const Eigen::MatrixXf& x, const Eigen::MatrixXf& values, float cache_margin = 0.0f)
-      : x_(x), values_(values.transpose()), margin_(cache_margin) {
+      : values_(values.transpose()), values_count_(values.cols()), margin_(cache_margin) {
+    if (margin_ > 0.0f) {
+      const Eigen::Index vp = (values_.rows() + kValueBlock - 1) / kValueBlock * kValueBlock;
+      padded_ = Eigen::MatrixXf::Zero(vp, values_.cols());
+      padded_.topRows(values_.rows()) = values_;
+      values_.resize(0, 0);
+      if (denseData(x)) {
+        scan_all_ = true;  // no tree: every query scans every point
+        xc_ = x;
+        return;
+      }
+    }
+    x_ = x;
     if (margin_ > 0.0f && x.rows() > 1) {
       const Eigen::RowVectorXd mean = x.cast<double>().colwise().mean();
       Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(x.cols(), x.cols());
-      for (Eigen::Index i = 0; i < x.rows(); ++i) {
-        const Eigen::RowVectorXd c = x.row(i).cast<double>() - mean;
+      for (Eigen::Index i0 = 0; i0 < x.rows(); i0 += 65536) {
+        const Eigen::Index m = std::min<Eigen::Index>(65536, x.rows() - i0);
+        const Eigen::MatrixXd c = x.middleRows(i0, m).cast<double>().rowwise() - mean;
         cov.noalias() += c.transpose() * c;
       }
       Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(cov);
       rotation_ = eig.eigenvectors().rowwise().reverse().cast<float>();  // largest axis first
       x_ = x * rotation_;
     }
+    if (margin_ > 0.0f) xc_ = x_;  // column-major: a coordinate of consecutive points is contiguous
     index_ = std::make_unique<flann::KDTreeSingleIndex<flann::L2<float>>>(
         flann::Matrix<float>(x_.data(), x_.rows(), x_.cols()),
         flann::KDTreeSingleIndexParams(15));
@@ -227,14 +319,14 @@ class ExactBackend : public JointKernelSum::Backend {
   }
   void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows,
                 Eigen::MatrixXf& out) const override {
+    if (margin_ > 0.0f) {
+      evaluateCached(q, rows, out);
+      return;
+    }
     const int v = static_cast<int>(values_.rows());
     const int nr = static_cast<int>(rows.size());
     const int d = static_cast<int>(q.cols());
     const float r2 = 9.0f;
-    const bool caching = margin_ > 0.0f;
-    if (caching && cache_.size() < static_cast<std::size_t>(q.rows())) cache_.resize(q.rows());
-    const float wide = (3.0f + margin_) * (3.0f + margin_);
-    const float m2 = margin_ * margin_;
     long searches = 0;
 #pragma omp parallel reduction(+ : searches)
     {
@@ -246,52 +338,14 @@ class ExactBackend : public JointKernelSum::Backend {
       sp.sorted = false;
 #pragma omp for schedule(dynamic, 16)
       for (int r = 0; r < nr; ++r) {
-        if (rotation_.size()) {
-          Eigen::Map<Eigen::RowVectorXf>(qb.data(), d).noalias() = q.row(rows[r]) * rotation_;
-        } else {
-          for (int k = 0; k < d; ++k) qb[k] = q(rows[r], k);
-        }
+        for (int k = 0; k < d; ++k) qb[k] = q(rows[r], k);
         acc.setZero();
-        if (!caching) {
-          // FLANN's L2 is the squared distance, so the radius is squared too.
-          flann::RadiusResultSet<float> found(r2);
-          flannFindNeighbors(*index_, found, qb.data(), sp, idx, dst, false);
-          ++searches;
-          for (std::size_t m = 0; m < idx.size(); ++m)
-            acc += std::exp(-0.5 * dst[m]) * values_.col(idx[m]).cast<double>();
-        } else {
-          Cached& c = cache_[rows[r]];
-          float moved = 0.0f;
-          if (c.anchor.size() == static_cast<std::size_t>(d))
-            for (int k = 0; k < d; ++k) moved += (qb[k] - c.anchor[k]) * (qb[k] - c.anchor[k]);
-          if (c.anchor.size() != static_cast<std::size_t>(d) || !(moved <= m2)) {
-            // Anchored ahead of the query along its last move (trajectories keep their
-            // direction), so that the list lasts about twice as long; the query itself is within
-            // the margin of the anchor, so the list holds everything within 3 of it.
-            std::vector<float> anchor = qb;
-            if (c.last.size() == static_cast<std::size_t>(d)) {
-              float len2 = 0.0f;
-              for (int k = 0; k < d; ++k) len2 += (qb[k] - c.last[k]) * (qb[k] - c.last[k]);
-              if (len2 > 0.0f) {
-                const float t = lead_ * margin_ / std::sqrt(len2);
-                for (int k = 0; k < d; ++k) anchor[k] += t * (qb[k] - c.last[k]);
-              }
-            }
-            flann::RadiusResultSet<float> found(wide);
-            flannFindNeighbors(*index_, found, anchor.data(), sp, idx, dst, false);
-            ++searches;
-            c.anchor = anchor;
-            c.list.assign(idx.begin(), idx.end());
-            std::sort(c.list.begin(), c.list.end());
-          }
-          for (const std::uint32_t j : c.list) {
-            const float* xj = x_.data() + static_cast<std::size_t>(j) * d;
-            float d2 = 0.0f;
-            for (int k = 0; k < d; ++k) d2 += (qb[k] - xj[k]) * (qb[k] - xj[k]);
-            if (d2 < r2) acc += std::exp(-0.5 * d2) * values_.col(j).cast<double>();
-          }
-          c.last = qb;
-        }
+        // FLANN's L2 is the squared distance, so the radius is squared too.
+        flann::RadiusResultSet<float> found(r2);
+        flannFindNeighbors(*index_, found, qb.data(), sp, idx, dst, false);
+        ++searches;
+        for (std::size_t m = 0; m < idx.size(); ++m)
+          acc += std::exp(-0.5 * dst[m]) * values_.col(idx[m]).cast<double>();
         for (int c = 0; c < v; ++c) out(rows[r], c) += static_cast<float>(acc[c]);
       }
     }
@@ -306,14 +360,206 @@ class ExactBackend : public JointKernelSum::Backend {
  private:
   struct Cached {
     std::vector<float> anchor, last;
-    std::vector<std::uint32_t> list;
+    std::vector<std::uint32_t> list;  // sorted
+    bool scan = false;                // the list held more than a quarter of the data
   };
+
+  /** The cached evaluation (the refinement's few, long-lived queries), in two parallel phases.
+   * 1. Each query row renews its neighbour list where it left its anchor. A row whose list
+   *    holds more than a quarter of the data (at the paper's bandwidth about half of it lies
+   *    within 3.5 bandwidths) drops the list and the searches for good: it scans every point.
+   * 2. The data in chunks of kSumChunk consecutive points: a chunk's task sums, for every row,
+   *    the terms of the chunk's points that are on the row's list (all of them for a scanning
+   *    row), so the chunk is read from memory once per step for all rows. Where most of a chunk
+   *    is on the list, the distances of all its points are computed side by side. Each row then
+   *    adds its chunks' sums in chunk order: the same sums for any number of threads, and the
+   *    rows keep every core busy however few they are. */
+  void evaluateCached(const Eigen::MatrixXf& q, const std::vector<int>& rows,
+                      Eigen::MatrixXf& out) const {
+    const int v = static_cast<int>(values_count_);
+    const int nr = static_cast<int>(rows.size());
+    const int d = static_cast<int>(q.cols());
+    const std::size_t n = static_cast<std::size_t>(xc_.rows());
+    const float r2 = 9.0f;
+    if (cache_.size() < static_cast<std::size_t>(q.rows())) cache_.resize(q.rows());
+    const float wide = (3.0f + margin_) * (3.0f + margin_);
+    const float m2 = margin_ * margin_;
+    Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> qr(nr, d);
+    long searches = 0;
+#pragma omp parallel reduction(+ : searches)
+    {
+      std::vector<std::size_t> idx;
+      std::vector<float> dst;
+      flann::SearchParams sp(flann::FLANN_CHECKS_UNLIMITED);
+      sp.sorted = false;
+#pragma omp for schedule(dynamic, 1)
+      for (int r = 0; r < nr; ++r) {
+        float* qb = qr.data() + static_cast<std::size_t>(r) * d;
+        if (rotation_.size()) {
+          Eigen::Map<Eigen::RowVectorXf>(qb, d).noalias() = q.row(rows[r]) * rotation_;
+        } else {
+          for (int k = 0; k < d; ++k) qb[k] = q(rows[r], k);
+        }
+        Cached& c = cache_[rows[r]];
+        c.scan = c.scan || scan_all_;
+        if (c.scan) continue;
+        float moved = 0.0f;
+        if (c.anchor.size() == static_cast<std::size_t>(d))
+          for (int k = 0; k < d; ++k) moved += (qb[k] - c.anchor[k]) * (qb[k] - c.anchor[k]);
+        if (c.anchor.size() == static_cast<std::size_t>(d) && moved <= m2) continue;
+        // Anchored ahead of the query along its last move (trajectories keep their direction),
+        // so that the list lasts about twice as long; the query itself is within the margin of
+        // the anchor, so the list holds everything within 3 of it.
+        std::vector<float> anchor(qb, qb + d);
+        if (c.last.size() == static_cast<std::size_t>(d)) {
+          float len2 = 0.0f;
+          for (int k = 0; k < d; ++k) len2 += (qb[k] - c.last[k]) * (qb[k] - c.last[k]);
+          if (len2 > 0.0f) {
+            const float t = lead_ * margin_ / std::sqrt(len2);
+            for (int k = 0; k < d; ++k) anchor[k] += t * (qb[k] - c.last[k]);
+          }
+        }
+        flann::RadiusResultSet<float> found(wide);
+        flannFindNeighbors(*index_, found, anchor.data(), sp, idx, dst, false);
+        ++searches;
+        c.anchor = anchor;
+        if (idx.size() * 4 > n) {
+          c.scan = true;
+          std::vector<std::uint32_t>().swap(c.list);
+          continue;
+        }
+        c.list.assign(idx.begin(), idx.end());
+        std::sort(c.list.begin(), c.list.end());
+      }
+    }
+    searches_ += searches;
+    const int vp = static_cast<int>(padded_.rows());
+    // Terms of the listed points within 3 of qb, in list order.
+    auto listTerms = [&](const float* qb, const std::uint32_t* first, const std::uint32_t* last,
+                         std::uint32_t* index, double* weight) {
+      std::size_t terms = 0;
+      for (const std::uint32_t* m = first; m != last; ++m) {
+        const float* xj = x_.data() + static_cast<std::size_t>(*m) * d;
+        float dj = 0.0f;
+        for (int k = 0; k < d; ++k) dj += (qb[k] - xj[k]) * (qb[k] - xj[k]);
+        if (dj < r2) {
+          index[terms] = *m;
+          weight[terms++] = std::exp(-0.5 * dj);
+        }
+      }
+      return terms;
+    };
+    // Rows that scan or have long lists go by chunks (below); the others sum their own lists,
+    // one row per task.
+    std::vector<int> wide_rows, narrow_rows;
+    for (int r = 0; r < nr; ++r) {
+      const Cached& c = cache_[rows[r]];
+      (c.scan || c.list.size() > kLongList ? wide_rows : narrow_rows).push_back(r);
+    }
+#pragma omp parallel
+    {
+      std::vector<std::uint32_t> term_index;
+      std::vector<double> term_weight, acc(vp);
+#pragma omp for schedule(dynamic, 16)
+      for (std::size_t i = 0; i < narrow_rows.size(); ++i) {
+        const int r = narrow_rows[i];
+        const std::vector<std::uint32_t>& list = cache_[rows[r]].list;
+        term_index.resize(list.size());
+        term_weight.resize(list.size());
+        const std::size_t terms =
+            listTerms(qr.data() + static_cast<std::size_t>(r) * d, list.data(),
+                      list.data() + list.size(), term_index.data(), term_weight.data());
+        std::fill(acc.begin(), acc.end(), 0.0);
+        addTerms(padded_.data(), vp, term_index.data(), term_weight.data(), terms, acc.data());
+        for (int k = 0; k < v; ++k) out(rows[r], k) += static_cast<float>(acc[k]);
+      }
+    }
+    const std::size_t nc = (n + kSumChunk - 1) / kSumChunk;
+    const std::size_t nw = wide_rows.size();
+    Eigen::MatrixXd partial = Eigen::MatrixXd::Zero(vp, static_cast<Eigen::Index>(nc * nw));
+    if (nw > 0) {
+#pragma omp parallel
+      {
+        std::vector<std::uint32_t> term_index(kSumChunk);  // the terms within 3, in index order
+        std::vector<double> term_weight(kSumChunk);
+#pragma omp for schedule(dynamic, 1)
+        for (std::ptrdiff_t ch = 0; ch < static_cast<std::ptrdiff_t>(nc); ++ch) {
+          const std::uint32_t lo = static_cast<std::uint32_t>(ch * kSumChunk);
+          const std::uint32_t hi = static_cast<std::uint32_t>(std::min(n, (ch + 1) * kSumChunk));
+          for (std::size_t w = 0; w < nw; ++w) {
+            const Cached& c = cache_[rows[wide_rows[w]]];
+            const std::uint32_t* from = c.list.data();
+            const std::uint32_t* to = from;
+            if (!c.scan) {
+              from = std::lower_bound(c.list.data(), c.list.data() + c.list.size(), lo);
+              to = std::lower_bound(from, c.list.data() + c.list.size(), hi);
+              if (from == to) continue;
+            }
+            const float* qb = qr.data() + static_cast<std::size_t>(wide_rows[w]) * d;
+            // All the chunk's points where most of them are on the list: the list holds every
+            // point within 3 of the query, so the points within 3 are the same terms in the same
+            // order as the list's.
+            const std::size_t terms =
+                c.scan || static_cast<std::size_t>(to - from) * 4 >= hi - lo
+                    ? scanTerms(qb, xc_.data(), n, d, lo, hi, r2, term_index.data(),
+                                term_weight.data())
+                    : listTerms(qb, from, to, term_index.data(), term_weight.data());
+            addTerms(padded_.data(), vp, term_index.data(), term_weight.data(), terms,
+                     partial.data() + (w * nc + ch) * vp);
+          }
+        }
+      }
+    }
+    for (std::size_t w = 0; w < nw; ++w) {
+      const double* first = partial.data() + w * nc * vp;
+      for (int k = 0; k < v; ++k) {
+        double sum = 0.0;
+        for (std::size_t ch = 0; ch < nc; ++ch) sum += first[ch * vp + k];
+        out(rows[wide_rows[w]], k) += static_cast<float>(sum);
+      }
+    }
+    for (int r = 0; r < nr; ++r) {
+      const float* qb = qr.data() + static_cast<std::size_t>(r) * d;
+      cache_[rows[r]].last.assign(qb, qb + d);
+    }
+  }
+
+  /** Whether the data are so dense at the bandwidth that a query's neighbour list would hold
+   * more than a quarter of them (then every query scans all points, and no tree is built): the
+   * median over 32 of the data points, each counting its neighbours within 3 + margin among
+   * about 2^16 evenly spaced points. Only a question of speed: scans and lists give the same
+   * sums. */
+  bool denseData(const Eigen::MatrixXf& x) const {
+    const Eigen::Index n = x.rows();
+    if (n < 4096) return false;
+    const Eigen::Index step = std::max<Eigen::Index>(1, n / 65536);
+    const Eigen::Index m = (n + step - 1) / step;
+    Eigen::MatrixXf sample(m, x.cols());
+    for (Eigen::Index i = 0; i < m; ++i) sample.row(i) = x.row(i * step);
+    const float wide = (3.0f + margin_) * (3.0f + margin_);
+    std::vector<double> share(32);
+#pragma omp parallel for schedule(dynamic, 1)
+    for (int s = 0; s < 32; ++s) {
+      const Eigen::RowVectorXf q = x.row(s * (n / 32));
+      share[s] = static_cast<double>(((sample.rowwise() - q).rowwise().squaredNorm().array() <
+                                      wide).count()) / static_cast<double>(m);
+    }
+    std::nth_element(share.begin(), share.begin() + 16, share.end());
+    return share[16] > 0.25;
+  }
+
+  static constexpr std::size_t kSumChunk = 2048;  // data points per parallel partial sum
+  static constexpr std::size_t kLongList = 4 * kSumChunk;  // longer lists are summed by chunks
   Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> x_;
-  Eigen::MatrixXf values_;  // v x n
+  Eigen::MatrixXf xc_;      // x_ column-major (cached backend only)
+  Eigen::MatrixXf padded_;  // values_ with zero rows up to a multiple of kValueBlock (cached)
+  Eigen::MatrixXf values_;  // v x n (uncached backend only)
+  Eigen::Index values_count_ = 0;  // v
   std::unique_ptr<flann::KDTreeSingleIndex<flann::L2<float>>> index_;
   float margin_ = 0.0f;
-  float lead_ = 0.8f;  // anchor this many margins ahead of the query (see evaluate)
+  float lead_ = 0.8f;  // anchor this many margins ahead of the query (see evaluateCached)
   Eigen::MatrixXf rotation_;  // d x d principal axes (columns), empty: none
+  bool scan_all_ = false;  // dense data (denseData): no tree, every query scans every point
   mutable std::vector<Cached> cache_;
   mutable long searches_ = 0;
 };
@@ -747,11 +993,14 @@ using detail::StageTimer;
  * queries interpolated between nearby cells) add modes and stop points on slopes. The end points
  * are grouped in cells of a tenth of the merge radius and each group's first point continues with
  * up to `refine_iterations` EXACT mean shift steps (the exact backend's kernel sums over all data
- * points); the group follows it. Cheap because groups are few compared with points. The tree
- * search in 30-D is most of an exact step's cost (the ~50 points within 3 bandwidths are quickly
- * summed), so each group keeps its neighbour list while it moves less than half a bandwidth
- * (JointKernelSum's cache margin; the same sums) and the tree is built in the data's principal
- * axes: together 2.5-3x fewer seconds than a plain search per step, same end points. */
+ * points); the group follows it. Cheap because groups are few compared with points. On sparse
+ * data the tree search in 30-D is most of an exact step's cost (the ~50 points within 3
+ * bandwidths are quickly summed), so each group keeps its neighbour list while it moves less than
+ * half a bandwidth (JointKernelSum's cache margin; the same sums) and the tree is built in the
+ * data's principal axes: together 2.5-3x fewer seconds than a plain search per step. On dense
+ * data (the paper's bandwidth: half of the data within 3.5 bandwidths of a group) the sums are
+ * the cost, and the few groups' steps are summed together chunk by chunk of the data on every
+ * core (see ExactBackend::evaluateCached). */
 void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
                      const std::vector<char>& row_key, Eigen::MatrixXf& y) {
   StageTimer timer;

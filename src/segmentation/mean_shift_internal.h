@@ -50,7 +50,9 @@ class JointKernelSum {
  public:
   /** exact_cache_margin > 0 (exact backend): each query row keeps its neighbour list within
    * 3 + margin bandwidths and reuses it while it moves less than the margin (same sums, fewer
-   * tree searches: for the refinement's many small steps). plain_stride > 1: the sums over
+   * tree searches: for the refinement's many small steps); long lists, and all the sums on data
+   * too dense for lists, are summed by chunks of the data on all cores (the same sums for any
+   * number of threads). plain_stride > 1: the sums over
    * the non-keypoint points use every plain_stride-th of them, weighted by how many each stands
    * for (densities for reporting only, see finishResult). */
   JointKernelSum(const JointSpace& space, const Eigen::MatrixXf& values,

@@ -4,6 +4,10 @@
 #include <gtest/gtest.h>
 
 #include "synthetic_parts.h"
+// White-box: the kernel sums behind both backends (not installed).
+#include "../../src/segmentation/mean_shift_internal.h"
+
+#include <omp.h>
 
 #include <algorithm>
 #include <cmath>
@@ -295,4 +299,91 @@ TEST(MeanShift, IndexedModeGroupingEqualsTheAllPairsScan) {
   EXPECT_THROW(seg::groupModes(Eigen::MatrixXf::Zero(3, 2), Eigen::RowVectorXf::Ones(2),
                                Eigen::VectorXf::Ones(2), 0.5, l, m),
                pcl_animseg::Error);
+}
+
+namespace {
+
+// A joint space of plain 6-D points (unit metric, no keypoints): `blob` points within about one
+// bandwidth of the origin, then `spread` points uniformly in a cube of side `side` bandwidths.
+seg::detail::JointSpace kernelSpace(int blob, int spread, float side, unsigned seed) {
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> g(0.0f, 0.4f);
+  std::uniform_real_distribution<float> u(-0.5f * side, 0.5f * side);
+  seg::detail::JointSpace s;
+  s.z.resize(blob + spread, 6);
+  for (int i = 0; i < blob + spread; ++i)
+    for (int k = 0; k < 6; ++k) s.z(i, k) = i < blob ? g(rng) : u(rng);
+  s.metric_plain = s.metric_key = Eigen::RowVectorXf::Ones(6);
+  s.keypoint.assign(blob + spread, 0);
+  s.offsets = {0, static_cast<std::size_t>(blob + spread)};
+  return s;
+}
+
+// The refinement's exact sums (a cache margin: neighbour lists kept between steps, long lists
+// and dense data summed by chunks of the data in parallel) against the plain exact backend's
+// (a tree search per query), over three steps: a first, a small move that reuses the lists, and
+// a move beyond the margin that renews them. Also the same bits with one thread and with two.
+// Returns the densities at the queries' first positions.
+Eigen::VectorXf expectCachedSumsExact(const seg::detail::JointSpace& space, int queries,
+                                      unsigned seed) {
+  const Eigen::Index n = space.z.rows();
+  Eigen::MatrixXf values(n, 7);
+  values << space.z, Eigen::VectorXf::Ones(n);
+  seg::MeanShiftParams p;
+  p.backend = seg::MeanShiftBackend::Exact;
+  const seg::detail::JointKernelSum plain(space, values, p);
+  const seg::detail::JointKernelSum cached(space, values, p, 0.5f);
+  const seg::detail::JointKernelSum cached1(space, values, p, 0.5f);
+  std::mt19937 rng(seed);
+  std::normal_distribution<float> g(0.0f, 1.0f);
+  Eigen::MatrixXf y(queries, 6);
+  std::vector<int> rows(queries);
+  for (int r = 0; r < queries; ++r) {
+    rows[r] = r;
+    y.row(r) = space.z.row((r * 7919) % n);  // in the blob and among the spread points
+  }
+  Eigen::VectorXf density;
+  for (const float move : {0.0f, 0.1f, 1.5f}) {
+    for (int r = 0; r < queries; ++r)
+      for (int k = 0; k < 6; ++k) y(r, k) += move * g(rng) / std::sqrt(6.0f);
+    Eigen::MatrixXf a(queries, 7), b(queries, 7), c(queries, 7);
+    plain.evaluate(y, rows, {}, a);
+    cached.evaluate(y, rows, {}, b);
+    const int threads = omp_get_max_threads();
+    omp_set_num_threads(1);
+    cached1.evaluate(y, rows, {}, c);
+    omp_set_num_threads(threads);
+    if (density.size() == 0) density = a.col(6);
+    for (int r = 0; r < queries; ++r) {
+      for (int k = 0; k < 7; ++k) {
+        EXPECT_NEAR(b(r, k), a(r, k), 1e-5f * std::max(1.0f, std::abs(a(r, k))))
+            << "query " << r << ", value " << k << ", move " << move;
+        EXPECT_EQ(b(r, k), c(r, k)) << "query " << r << ", value " << k << ": threads matter";
+      }
+    }
+  }
+  return density;
+}
+
+}  // namespace
+
+// Dense data (a query's lists would hold most points): every query scans the whole data.
+TEST(MeanShiftKernelSums, CachedSumsAreExactOnDenseData) {
+  const Eigen::VectorXf f = expectCachedSumsExact(kernelSpace(6000, 0, 0.0f, 3), 24, 4);
+  EXPECT_GT(f.minCoeff(), 500.0f);  // thousands of points within 3 of every query
+}
+
+// Sparse data: each query sums its own short neighbour list.
+TEST(MeanShiftKernelSums, CachedSumsAreExactOnSparseData) {
+  const Eigen::VectorXf f = expectCachedSumsExact(kernelSpace(0, 20000, 12.0f, 5), 24, 6);
+  EXPECT_GE(f.minCoeff(), 1.0f);  // each query sits on a data point...
+  EXPECT_LT(f.maxCoeff(), 50.0f);  // ...with few others near it
+}
+
+// A dense blob in sparse data: the blob's queries have lists longer than the chunk threshold
+// (summed by chunks of the data, part scanned and part from the list), the others short ones.
+TEST(MeanShiftKernelSums, CachedSumsAreExactWithLongAndShortLists) {
+  const Eigen::VectorXf f = expectCachedSumsExact(kernelSpace(12000, 36000, 14.0f, 7), 24, 8);
+  EXPECT_GT(f.maxCoeff(), 1000.0f);  // queries in the blob
+  EXPECT_LT(f.minCoeff(), 50.0f);    // queries among the spread points
 }
