@@ -474,10 +474,16 @@ class ExactBackend : public JointKernelSum::Backend {
         for (int k = 0; k < v; ++k) out(rows[r], k) += static_cast<float>(acc[k]);
       }
     }
+    // The wide rows in batches whose partial sums take at most kPartialBytes (each row's sums
+    // do not depend on the batch).
     const std::size_t nc = (n + kSumChunk - 1) / kSumChunk;
-    const std::size_t nw = wide_rows.size();
-    Eigen::MatrixXd partial = Eigen::MatrixXd::Zero(vp, static_cast<Eigen::Index>(nc * nw));
-    if (nw > 0) {
+    const std::size_t batch =
+        std::max<std::size_t>(1, kPartialBytes / (sizeof(double) * vp * nc));
+    Eigen::MatrixXd partial;
+    for (std::size_t w0 = 0; w0 < wide_rows.size(); w0 += batch) {
+      const std::size_t nw = std::min(batch, wide_rows.size() - w0);
+      const int* wide = wide_rows.data() + w0;
+      partial.setZero(vp, static_cast<Eigen::Index>(nc * nw));
 #pragma omp parallel
       {
         std::vector<std::uint32_t> term_index(kSumChunk);  // the terms within 3, in index order
@@ -487,7 +493,7 @@ class ExactBackend : public JointKernelSum::Backend {
           const std::uint32_t lo = static_cast<std::uint32_t>(ch * kSumChunk);
           const std::uint32_t hi = static_cast<std::uint32_t>(std::min(n, (ch + 1) * kSumChunk));
           for (std::size_t w = 0; w < nw; ++w) {
-            const Cached& c = cache_[rows[wide_rows[w]]];
+            const Cached& c = cache_[rows[wide[w]]];
             const std::uint32_t* from = c.list.data();
             const std::uint32_t* to = from;
             if (!c.scan) {
@@ -495,10 +501,10 @@ class ExactBackend : public JointKernelSum::Backend {
               to = std::lower_bound(from, c.list.data() + c.list.size(), hi);
               if (from == to) continue;
             }
-            const float* qb = qr.data() + static_cast<std::size_t>(wide_rows[w]) * d;
+            const float* qb = qr.data() + static_cast<std::size_t>(wide[w]) * d;
             // All the chunk's points where most of them are on the list: the list holds every
-            // point within 3 of the query, so the points within 3 are the same terms in the same
-            // order as the list's.
+            // point within 3 of the query, so the points within 3 are the same terms in the
+            // same order as the list's.
             const std::size_t terms =
                 c.scan || static_cast<std::size_t>(to - from) * 4 >= hi - lo
                     ? scanTerms(qb, xc_.data(), n, d, lo, hi, r2, term_index.data(),
@@ -509,13 +515,13 @@ class ExactBackend : public JointKernelSum::Backend {
           }
         }
       }
-    }
-    for (std::size_t w = 0; w < nw; ++w) {
-      const double* first = partial.data() + w * nc * vp;
-      for (int k = 0; k < v; ++k) {
-        double sum = 0.0;
-        for (std::size_t ch = 0; ch < nc; ++ch) sum += first[ch * vp + k];
-        out(rows[wide_rows[w]], k) += static_cast<float>(sum);
+      for (std::size_t w = 0; w < nw; ++w) {
+        const double* first = partial.data() + w * nc * vp;
+        for (int k = 0; k < v; ++k) {
+          double sum = 0.0;
+          for (std::size_t ch = 0; ch < nc; ++ch) sum += first[ch * vp + k];
+          out(rows[wide[w]], k) += static_cast<float>(sum);
+        }
       }
     }
     for (int r = 0; r < nr; ++r) {
@@ -550,6 +556,7 @@ class ExactBackend : public JointKernelSum::Backend {
 
   static constexpr std::size_t kSumChunk = 2048;  // data points per parallel partial sum
   static constexpr std::size_t kLongList = 4 * kSumChunk;  // longer lists are summed by chunks
+  static constexpr std::size_t kPartialBytes = std::size_t{64} << 20;  // chunk sums of a batch
   Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> x_;
   Eigen::MatrixXf xc_;      // x_ column-major (cached backend only)
   Eigen::MatrixXf padded_;  // values_ with zero rows up to a multiple of kValueBlock (cached)
