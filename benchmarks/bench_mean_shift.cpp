@@ -272,6 +272,19 @@ int main(int argc, char** argv) {
                   "gkdtree wall %.2f s user+sys %.2f s (%d clusters); ARI between %.4f\n",
                   nn[i], e.wall, e.cpu, e.clusters, g.wall, g.cpu, g.clusters,
                   pcl_animseg::evaluation::adjustedRandIndex(e.labels, g.labels));
+      if (e.clusters <= 12 && g.clusters <= 12) {  // where the two disagree
+        std::vector<long> table(static_cast<std::size_t>(e.clusters) * g.clusters, 0);
+        for (std::size_t i = 0; i < e.labels.size(); ++i)
+          if (e.labels[i] >= 0 && g.labels[i] >= 0)
+            ++table[static_cast<std::size_t>(e.labels[i]) * g.clusters + g.labels[i]];
+        std::printf("  points by exact (rows) x gkdtree (columns) cluster:\n");
+        for (int a = 0; a < e.clusters; ++a) {
+          std::printf("   ");
+          for (int b = 0; b < g.clusters; ++b)
+            std::printf(" %7ld", table[static_cast<std::size_t>(a) * g.clusters + b]);
+          std::printf("\n");
+        }
+      }
     }
     const double expo = std::log(cpu[1] / cpu[0]) / std::log(nn[1] / nn[0]);
     const double est = cpu[1] * std::pow(n / nn[1], expo);
