@@ -28,6 +28,21 @@ void flannFindNeighbors(const FlannIndex& index, ResultSet& result, const float*
   if (n) result.copy(indices.data(), sqr_distances.data(), n, sorted);
 }
 
+/** \brief One thread's exact, unsorted radius searches in a FLANN index, its result buffers kept
+ * from one query to the next: `indices` / `sqr_distances` hold the last query's points. */
+struct FlannRadiusSearch {
+  std::vector<std::size_t> indices;
+  std::vector<float> sqr_distances;
+  flann::SearchParams params{flann::FLANN_CHECKS_UNLIMITED};
+  FlannRadiusSearch() { params.sorted = false; }
+  /** The points within squared distance `sqr_radius` of `query` (FLANN's L2 is squared). */
+  template <typename FlannIndex>
+  void operator()(const FlannIndex& index, const float* query, float sqr_radius) {
+    flann::RadiusResultSet<float> result(sqr_radius);
+    flannFindNeighbors(index, result, query, params, indices, sqr_distances, false);
+  }
+};
+
 /** \brief A kd-tree over the xyz of a cloud with the query interface of pcl::KdTreeFLANN (same
  * sorted results), minus its overhead, for the single-point queries that every stage here makes
  * inside its own OpenMP loops.

@@ -330,22 +330,18 @@ class ExactBackend : public JointKernelSum::Backend {
     long searches = 0;
 #pragma omp parallel reduction(+ : searches)
     {
-      std::vector<std::size_t> idx;
-      std::vector<float> dst;
+      FlannRadiusSearch search;
       std::vector<float> qb(d);
       Eigen::VectorXd acc(v);
-      flann::SearchParams sp(flann::FLANN_CHECKS_UNLIMITED);
-      sp.sorted = false;
 #pragma omp for schedule(dynamic, 16)
       for (int r = 0; r < nr; ++r) {
         for (int k = 0; k < d; ++k) qb[k] = q(rows[r], k);
         acc.setZero();
-        // FLANN's L2 is the squared distance, so the radius is squared too.
-        flann::RadiusResultSet<float> found(r2);
-        flannFindNeighbors(*index_, found, qb.data(), sp, idx, dst, false);
+        search(*index_, qb.data(), r2);
         ++searches;
-        for (std::size_t m = 0; m < idx.size(); ++m)
-          acc += std::exp(-0.5 * dst[m]) * values_.col(idx[m]).cast<double>();
+        for (std::size_t m = 0; m < search.indices.size(); ++m)
+          acc += std::exp(-0.5 * search.sqr_distances[m]) *
+                 values_.col(search.indices[m]).cast<double>();
         for (int c = 0; c < v; ++c) out(rows[r], c) += static_cast<float>(acc[c]);
       }
     }
@@ -388,10 +384,7 @@ class ExactBackend : public JointKernelSum::Backend {
     long searches = 0;
 #pragma omp parallel reduction(+ : searches)
     {
-      std::vector<std::size_t> idx;
-      std::vector<float> dst;
-      flann::SearchParams sp(flann::FLANN_CHECKS_UNLIMITED);
-      sp.sorted = false;
+      FlannRadiusSearch search;
 #pragma omp for schedule(dynamic, 1)
       for (int r = 0; r < nr; ++r) {
         float* qb = qr.data() + static_cast<std::size_t>(r) * d;
@@ -419,16 +412,15 @@ class ExactBackend : public JointKernelSum::Backend {
             for (int k = 0; k < d; ++k) anchor[k] += t * (qb[k] - c.last[k]);
           }
         }
-        flann::RadiusResultSet<float> found(wide);
-        flannFindNeighbors(*index_, found, anchor.data(), sp, idx, dst, false);
+        search(*index_, anchor.data(), wide);
         ++searches;
         c.anchor = anchor;
-        if (idx.size() * 4 > n) {
+        if (search.indices.size() * 4 > n) {
           c.scan = true;
           std::vector<std::uint32_t>().swap(c.list);
           continue;
         }
-        c.list.assign(idx.begin(), idx.end());
+        c.list.assign(search.indices.begin(), search.indices.end());
         std::sort(c.list.begin(), c.list.end());
       }
     }
@@ -952,18 +944,13 @@ void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain
     std::vector<std::vector<int>> near(ng);
 #pragma omp parallel
     {
-      std::vector<std::size_t> idx;
-      std::vector<float> dst;
-      flann::SearchParams sp(flann::FLANN_CHECKS_UNLIMITED);
-      sp.sorted = false;
+      FlannRadiusSearch search;
 #pragma omp for schedule(dynamic, 64)
       for (int g = 0; g < ng; ++g) {
         // FLANN keeps squared distances below the radius; a hair more, then the exact test below
         // (the same float expression as the old all-pairs scan) decides.
-        flann::RadiusResultSet<float> found(r2 * 1.001f);
-        flannFindNeighbors(index, found, reps.data() + static_cast<std::size_t>(g) * dim, sp, idx,
-                           dst, false);
-        for (std::size_t jj : idx) {
+        search(index, reps.data() + static_cast<std::size_t>(g) * dim, r2 * 1.001f);
+        for (std::size_t jj : search.indices) {
           const int j = static_cast<int>(jj);
           if (j != g && (reps.row(j) - reps.row(g)).squaredNorm() < r2) near[g].push_back(j);
         }
