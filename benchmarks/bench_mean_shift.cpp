@@ -3,7 +3,7 @@
 //
 //   bench_mean_shift [--points N] [--frames T] [--refine K] [--exact-every1 a] [--exact-every2 b]
 //                    [--full 0|1] [--features synthetic|pipeline] [--plan P] [--bandwidth W]
-//                    [--w4 W4] [--exact 0|1]
+//                    [--w4 W4] [--exact 0|1] [--min-leaf-points M]
 //
 // Runs MeanShiftSegmentation (paper method: every point iterated, so the cost is the kernel
 // sums) on one of two 30-D inputs:
@@ -17,6 +17,8 @@
 //    rule of Eq. 5 applies) and the 24-D signatures of Sect. 3.1. Real signatures vary slowly
 //    over a surface, so the data are dense: with the paper's bandwidth (w = 0.3) the filter's
 //    cells hold N/M ~ 760 points at 800k, the paper's regime (1024-8192).
+// --min-leaf-points M: the Gaussian kd-tree splits no cell of fewer than M points, so that N/M is
+// at least about M/2 (the band is 1024-8192); on the subsamples M / k.
 // Exact backend (--exact 0 skips it): too slow at 800k, so it runs on two per-frame subsamples and is extrapolated
 // with the fitted power law (its cost grows faster than N: the neighbours within 3 bandwidths
 // grow with the density). Prints wall, user and system CPU time (the machine is shared: CPU time
@@ -32,6 +34,7 @@
 
 #include <Eigen/Geometry>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -162,13 +165,14 @@ struct Timing {
 };
 
 Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, double bandwidth,
-                double w4) {
+                double w4, int min_leaf_points) {
   seg::MeanShiftParams p;
   p.method = seg::MeanShiftMethod::Paper;
   p.backend = backend;
   p.refine_iterations = refine;
   p.bandwidth = bandwidth;
   p.w4 = w4;
+  p.gkdtree.min_leaf_points = min_leaf_points;
   seg::MeanShiftSegmentation ms;
   ms.setInputSequence(s.seq);
   ms.setSignatures(s.sig);
@@ -188,7 +192,7 @@ Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, doub
 
 const char* const kOptions[] = {"--points",   "--frames", "--refine",   "--exact-every1",
                                  "--exact-every2", "--full", "--features", "--plan",
-                                 "--bandwidth", "--w4",     "--exact"};
+                                 "--bandwidth", "--w4",     "--exact", "--min-leaf-points"};
 
 /** Every argument is a known option followed by its value; anything else is an error. */
 void checkArguments(int argc, char** argv) {
@@ -198,7 +202,8 @@ void checkArguments(int argc, char** argv) {
     if (!known)
       throw std::runtime_error(std::string("unknown option '") + argv[i] +
                                "' (options: --points --frames --refine --exact-every1 "
-                               "--exact-every2 --full --features --plan --bandwidth --w4 --exact)");
+                               "--exact-every2 --full --features --plan --bandwidth --w4 --exact "
+                               "--min-leaf-points)");
     if (i + 1 >= argc) throw std::runtime_error(std::string(argv[i]) + " needs a value");
   }
 }
@@ -236,6 +241,8 @@ int main(int argc, char** argv) {
     const seg::MeanShiftParams defaults;
     const double bandwidth = argReal(argc, argv, "--bandwidth", defaults.bandwidth);
     const double w4 = argReal(argc, argv, "--w4", defaults.w4);
+    const int min_leaf = static_cast<int>(
+        argValue(argc, argv, "--min-leaf-points", defaults.gkdtree.min_leaf_points));
     if (features != "synthetic" && features != "pipeline")
       throw std::runtime_error("--features must be synthetic or pipeline");
     auto make = [&](int every) {
@@ -249,7 +256,7 @@ int main(int argc, char** argv) {
     if (run_full) {
       const Sample full = make(1);
       const Timing g =
-          runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4);
+          runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4, min_leaf);
       std::printf("gkdtree (refine %d): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
                   "MiB\n",
                   refine, g.wall, g.cpu, g.clusters, peakRssMiB());
@@ -263,9 +270,10 @@ int main(int argc, char** argv) {
     const int every[2] = {sub1, sub2};
     for (int i = 0; i < 2; ++i) {
       const Sample s = make(every[i]);
-      const Timing e = runStage(s, seg::MeanShiftBackend::Exact, 0, bandwidth, w4);
+      const Timing e = runStage(s, seg::MeanShiftBackend::Exact, 0, bandwidth, w4, 1);
       const Timing g =
-          runStage(s, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4);
+          runStage(s, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
+                   std::max(1, min_leaf / every[i]));  // the full run's cells, thinned
       nn[i] = static_cast<double>(s.seq->totalPoints());
       cpu[i] = e.cpu;
       std::printf("subsample %.0f points: exact wall %.2f s user+sys %.2f s (%d clusters); "

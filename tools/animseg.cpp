@@ -103,6 +103,7 @@ int main(int argc, char** argv) {
     ("patches", po::value<int>()->default_value(msd.patches),
      "motion method: patches of the over-segmentation (0: automatic)");
   tools::addMotionOptions(od, msd);
+  tools::addPaperOptions(od, msd);
   tools::addScaleSpaceOptions(od, defaults.multiscale);
   od.add_options()("signature-h",
                    po::value<double>()->default_value(defaults.multiscale.signature_h),
@@ -156,6 +157,7 @@ int main(int argc, char** argv) {
         ms.target_clusters = vm["parts"].as<int>();
         ms.patches = vm["patches"].as<int>();
         tools::readMotionOptions(vm, ms);
+        tools::readPaperOptions(vm, ms);
         ms.seed = vm["seed"].as<unsigned>();
         tools::readScaleSpaceOptions(vm, params.multiscale);
         params.multiscale.signature_h = vm["signature-h"].as<double>();

@@ -33,6 +33,7 @@ int main(int argc, char** argv) {
       "parts", po::value<int>()->default_value(0),
       "motion method: merge until exactly N parts (0: stop at the motion threshold)");
   pcl_animseg::tools::addMotionOptions(od, d);
+  pcl_animseg::tools::addPaperOptions(od, d);
   od.add_options()(
       "no-features", po::bool_switch(),
       "cluster on position and normal only (skip scale space, keypoints and signatures)")(
@@ -42,7 +43,8 @@ int main(int argc, char** argv) {
       "animseg_meanshift --input SEQ --output DIR [--bandwidth w] [--weights w1,w2,w3,w4] "
       "[--method motion|paper] [--backend exact|gkdtree] [--parts N] [--motion-threshold T] "
       "[--crease-cost C] [--border-smoothness S] [--dissolve-ratio R] [--joint-weight J] "
-      "[--sliver-fraction F] [--no-features] [--seed S]",
+      "[--sliver-fraction F] [--exact-steps K] [--cell-extent E] [--cell-min-points M] "
+      "[--no-features] [--seed S]",
       od, [&](const pcl_animseg::tools::ToolContext& ctx) {
         pcl_animseg::Progress progress(ctx.quiet, ctx.verbose);
         seg::MeanShiftParams params;
@@ -58,6 +60,7 @@ int main(int argc, char** argv) {
         params.target_clusters = ctx.vm["parts"].as<int>();
         if (params.target_clusters < 0) throw pcl_animseg::Error("--parts must be >= 0");
         pcl_animseg::tools::readMotionOptions(ctx.vm, params);
+        pcl_animseg::tools::readPaperOptions(ctx.vm, params);
         params.seed = ctx.vm["seed"].as<unsigned>();
         const std::string out_dir = ctx.vm["output"].as<std::string>();
         // Parameters are checked before the (slow) feature computation.

@@ -1,10 +1,12 @@
 #pragma once
-// The motion method's options shared by animseg and animseg_meanshift: one place for their names,
-// defaults, help and checks.
+// The motion method's and the paper method's options shared by animseg and animseg_meanshift: one
+// place for their names, defaults, help and checks.
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
 
 #include <boost/program_options.hpp>
+
+#include <cmath>
 
 namespace pcl_animseg {
 namespace tools {
@@ -51,6 +53,35 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
     throw Error("--joint-weight must be a number >= 0");
   if (!(p.sliver_fraction >= 0.0 && p.sliver_fraction < 1.0))
     throw Error("--sliver-fraction must be in [0, 1)");
+}
+
+/** Adds the paper method's Gaussian kd-tree knobs --exact-steps, --cell-extent and
+ * --cell-min-points with the defaults of `d`. */
+inline void addPaperOptions(boost::program_options::options_description& od,
+                            const segmentation::MeanShiftParams& d) {
+  namespace po = boost::program_options;
+  od.add_options()
+    ("exact-steps", po::value<int>()->default_value(d.refine_iterations),
+     "paper method, gkdtree backend: exact mean shift steps that finish the filter's iteration "
+     "(0: the filter alone)")
+    ("cell-extent", po::value<double>()->default_value(d.gkdtree.leaf_extent),
+     "paper method, gkdtree backend: longest side of a filter cell, in bandwidths (Adams et "
+     "al.'s eta; smaller: more cells, more accurate)")
+    ("cell-min-points", po::value<int>()->default_value(d.gkdtree.min_leaf_points),
+     "paper method, gkdtree backend: a filter cell of fewer points is not split (the sampling "
+     "factor N/M is then at least about half of it; the paper used 1024-8192)");
+}
+
+/** The paper options into `p`; throws Error (one line) for a value out of range. */
+inline void readPaperOptions(const boost::program_options::variables_map& vm,
+                             segmentation::MeanShiftParams& p) {
+  p.refine_iterations = vm["exact-steps"].as<int>();
+  const double extent = vm["cell-extent"].as<double>();
+  p.gkdtree.min_leaf_points = vm["cell-min-points"].as<int>();
+  if (p.refine_iterations < 0) throw Error("--exact-steps must be >= 0");
+  if (!(extent > 0.0) || !std::isfinite(extent)) throw Error("--cell-extent must be positive");
+  if (p.gkdtree.min_leaf_points < 1) throw Error("--cell-min-points must be >= 1");
+  p.gkdtree.leaf_extent = static_cast<float>(extent);
 }
 
 }  // namespace tools

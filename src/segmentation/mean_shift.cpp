@@ -68,6 +68,11 @@ void MeanShiftSegmentation::validate() const {
   if (p.w1 + p.w2 <= 0.0)
     throw Error("mean shift: at least one of w1 (normal) and w2 (position) must be positive");
   if (p.max_iterations < 1) throw Error("mean shift: max iterations must be at least 1");
+  if (p.refine_iterations < 0) throw Error("mean shift: exact refinement steps must be >= 0");
+  if (!(p.gkdtree.leaf_extent > 0.0f) || !std::isfinite(p.gkdtree.leaf_extent) ||
+      p.gkdtree.min_leaf_points < 1)
+    throw Error("mean shift: Gaussian kd-tree cell extent must be positive and its least points "
+                "per cell >= 1");
   if (!(p.merge_radius > 0.0)) throw Error("mean shift: merge radius must be positive");
   if (p.min_cluster_size < 0 || p.neighbours < 1 || p.patches < 0 || p.target_clusters < 0)
     throw Error("mean shift: cluster size, neighbours, patches and target must be >= 0 (k >= 1)");

@@ -177,6 +177,15 @@ TEST(MeanShift, BadInput) {
   p = seg::MeanShiftParams();
   p.border_smoothness = std::numeric_limits<double>::quiet_NaN();
   EXPECT_THROW(run(seq, p), pcl_animseg::Error);
+  p = seg::MeanShiftParams();
+  p.refine_iterations = -1;
+  EXPECT_THROW(run(seq, p), pcl_animseg::Error);
+  p = seg::MeanShiftParams();
+  p.gkdtree.leaf_extent = 0.0f;
+  EXPECT_THROW(run(seq, p), pcl_animseg::Error);
+  p = seg::MeanShiftParams();
+  p.gkdtree.min_leaf_points = 0;
+  EXPECT_THROW(run(seq, p), pcl_animseg::Error);
   EXPECT_THROW(run(std::make_shared<PointCloudSequence>(), seg::MeanShiftParams()),
                pcl_animseg::Error);
   seg::MeanShiftSegmentation ms;

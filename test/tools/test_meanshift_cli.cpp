@@ -54,6 +54,28 @@ TEST(MeanShiftCli, WritesLabelsPcdAndSegmentationInfo) {
   }
 }
 
+// The paper method's filter knobs reach the Gaussian kd-tree: one cell holding every point gives
+// one cluster, and without the exact steps the filter's ripples leave more clusters.
+TEST(MeanShiftCli, PaperOptionsReachTheFilter) {
+  TempDir tmp;
+  makeSequence(tmp.dir() / "in");
+  auto clusters = [&](const std::string& extra) {
+    const std::string out = tmp.str() + "/out";
+    fs::remove_all(out);
+    const RunResult r = run(tool("animseg_meanshift") + " --quiet --no-features --input " +
+                                tmp.str() + "/in --output " + out +
+                                " --method paper --bandwidth 0.1" + extra,
+                            tmp.dir());
+    EXPECT_EQ(r.code, 0) << extra << ": " << r.err;
+    pcl_animseg::segmentation::SegmentationResult info;
+    pcl_animseg::io::loadSegmentationInfo(out + "/segmentation.txt", info);
+    return info.num_clusters;
+  };
+  const int plain = clusters("");
+  EXPECT_EQ(clusters(" --cell-min-points 100000"), 1);
+  EXPECT_GT(clusters(" --exact-steps 0"), plain);
+}
+
 TEST(MeanShiftCli, BadInputIsOneErrorLine) {
   TempDir tmp;
   makeSequence(tmp.dir() / "in");
@@ -62,7 +84,8 @@ TEST(MeanShiftCli, BadInputIsOneErrorLine) {
   for (const std::string extra :
        {" --bandwidth 0", " --bandwidth -1", " --weights 1,2,3", " --weights 1,-1,1,1",
         " --method magic", " --backend magic", " --parts -2", " --motion-threshold 0",
-        " --crease-cost -1", " --border-smoothness -1", " --dissolve-ratio -1", " --joint-weight -1", " --sliver-fraction 1", " --no-such-option"}) {
+        " --crease-cost -1", " --border-smoothness -1", " --dissolve-ratio -1", " --joint-weight -1", " --sliver-fraction 1", " --exact-steps -1", " --cell-extent 0",
+        " --cell-min-points 0", " --no-such-option"}) {
     const RunResult r = run(base + extra, tmp.dir());
     EXPECT_EQ(r.code, 1) << extra;
     EXPECT_TRUE(isOneErrorLine(r.err)) << extra << ": " << r.err;
