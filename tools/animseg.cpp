@@ -47,7 +47,11 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   for (std::size_t t = 0; t < seq.size(); ++t) os << (t ? ", " : "") << seq.inputSize(t);
   os << "],\n  \"total_points\": " << seq.totalPoints() << ",\n";
   os << "  \"normals_estimated\": " << r.normals_estimated << ",\n";
-  os << "  \"keypoints\": " << r.keypoints << ",\n  \"parts_per_level\": [";
+  os << "  \"keypoints\": " << r.keypoints << ",\n";
+  // The Gaussian kd-tree's N/M (paper method, gkdtree backend); null when no filter ran.
+  os << "  \"sampling_factor\": "
+     << (r.sampling_factor > 0.0 ? num(r.sampling_factor) : std::string("null")) << ",\n";
+  os << "  \"parts_per_level\": [";
   for (std::size_t l = 0; l < r.parts_per_level.size(); ++l)
     os << (l ? ", " : "") << r.parts_per_level[l];
   os << "],\n  \"notes\": [";

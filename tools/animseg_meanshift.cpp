@@ -10,6 +10,7 @@
 
 #include "motion_options.h"
 
+#include <cmath>
 #include <string>
 
 namespace po = boost::program_options;
@@ -86,7 +87,11 @@ int main(int argc, char** argv) {
         seg::SegmentationResult result;
         ms.segment(result);
         progress.end(std::to_string(result.num_clusters) + " parts (" + seg::toString(params.method) +
-                     ", " + seg::toString(params.backend) + ", " + ms.deviceUsed() + ")");
+                     ", " + seg::toString(params.backend) + ", " + ms.deviceUsed() +
+                     (result.sampling_factor > 0.0
+                          ? ", filter N/M " + std::to_string(std::lround(result.sampling_factor))
+                          : std::string()) +
+                     ")");
 
         progress.begin("write", seq->size());
         pcl_animseg::io::saveSequenceLabels(out_dir, *seq, {result.labels});

@@ -105,6 +105,7 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
     detail::splatBlur(g->tree, nullptr, draw.ptr(), v, gp.blur_radius, g->sample_values);
     stats_.splat_blur_s += since(tb);
     stats_.num_samples += g->tree.m;
+    stats_.tree_points += static_cast<std::size_t>(ni);
     groups.push_back(std::move(g));
   };
   make(plain, false, 0);

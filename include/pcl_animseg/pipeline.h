@@ -54,6 +54,8 @@ struct PipelineResult {
   std::size_t normals_estimated = 0;
   std::vector<segmentation::LevelMotion> motions;  ///< every level's parts (empty when not asked for)
   std::vector<std::string> notes;   ///< fall-backs and warnings worth keeping in summary.json
+  /** The paper method's Gaussian kd-tree: points per filter cell (N/M); 0 when no filter ran. */
+  double sampling_factor = 0.0;
 };
 
 /** \brief Runs scale space, keypoints, signatures (paper method only), mean shift, refinement,

@@ -9,6 +9,7 @@
 #endif
 
 #include <algorithm>
+#include <cmath>
 #include <memory>
 #include <set>
 #include <utility>
@@ -125,8 +126,13 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     ms.setProgress(&progress);
     progress.begin("mean_shift");
     ms.segment(clusters);
-    progress.end(std::to_string(clusters.num_clusters) + " clusters");
+    progress.end(std::to_string(clusters.num_clusters) + " clusters" +
+                 (clusters.sampling_factor > 0.0
+                      ? " (filter N/M " + std::to_string(std::lround(clusters.sampling_factor)) +
+                            ")"
+                      : std::string()));
     r.device_used = ms.deviceUsed();
+    r.sampling_factor = clusters.sampling_factor;
     if (!ms.fallbackReason().empty()) {
       r.notes.push_back("the GPU failed, the CPU was used: " + ms.fallbackReason());
       progress.info("warning: the GPU failed, the CPU was used: " + ms.fallbackReason());

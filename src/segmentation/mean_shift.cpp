@@ -655,6 +655,16 @@ long JointKernelSum::searches() const {
   return s;
 }
 
+double JointKernelSum::samplingFactor() const {
+  std::size_t points = 0, cells = 0;
+  for (const auto& g : groups_)
+    if (const filters::GaussianKdTree* t = g->backend->tree()) {
+      points += t->numPoints();
+      cells += t->numSamples();
+    }
+  return cells ? static_cast<double>(points) / static_cast<double>(cells) : 0.0;
+}
+
 const filters::GaussianKdTree* JointKernelSum::cellTree() const {
   if (groups_.size() != 1 || groups_[0]->key_metric) return nullptr;
   return groups_[0]->backend->tree();
@@ -1430,6 +1440,10 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
       runPaper(space, graph, k, params_, d, flat, modes, num_clusters, sums, point_density,
                progress_);
       result.modes = modes;
+      result.sampling_factor = params_.backend != MeanShiftBackend::GaussianKdTree ? 0.0
+                               : d                                               ? d->samplingFactor()
+                               : sums ? sums->samplingFactor()
+                                      : 0.0;
     });
     timer.restart();
     guarded([&](MeanShiftDeviceBackend* d) {

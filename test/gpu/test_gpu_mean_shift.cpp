@@ -4,6 +4,7 @@
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/mean_shift.h>
+#include <pcl_animseg/gpu/mean_shift_backend.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
 #include <pcl_animseg/synth/articulated.h>
 
@@ -95,6 +96,14 @@ TEST(GpuMeanShift, AgreesWithCpuPaperMethod) {
                 ms.stats().not_converged, ms.stats().num_samples, ari);
     EXPECT_GE(ari, 0.99);
     EXPECT_EQ(static_cast<int>(reps.size()), result.num_clusters);
+    // The filter's N/M as the pipeline reports it (points per cell), from the device backend.
+    gpu::MeanShiftBackend backend;
+    Eigen::MatrixXf yb;
+    Eigen::VectorXf fb;
+    backend.seekModes(z, metric, metric, {}, mp, yb, fb);
+    std::printf("N/M: CPU %.2f, GPU %.2f\n", result.sampling_factor, backend.samplingFactor());
+    EXPECT_GT(result.sampling_factor, 1.0);
+    EXPECT_NEAR(backend.samplingFactor(), result.sampling_factor, 0.1 * result.sampling_factor);
     EXPECT_TRUE(y.allFinite());
     EXPECT_GT(density.minCoeff(), 0.0f);
   }

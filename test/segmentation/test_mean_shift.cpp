@@ -197,6 +197,24 @@ TEST(MeanShift, BadInput) {
   EXPECT_THROW(seg::meanShiftMethodFromString("nope"), pcl_animseg::Error);
 }
 
+// The Gaussian kd-tree's sampling factor N/M is reported, and a least cell size raises it; the
+// exact backend and the motion method run no filter.
+TEST(MeanShift, ReportsTheFiltersSamplingFactor) {
+  auto seq = twoBlobs(4, 5);
+  seg::MeanShiftParams p;
+  p.method = seg::MeanShiftMethod::Paper;
+  p.bandwidth = 0.2;
+  const double plain = run(seq, p).sampling_factor;
+  EXPECT_GT(plain, 1.0);
+  p.gkdtree.min_leaf_points = 400;
+  const seg::SegmentationResult big = run(seq, p);
+  EXPECT_GE(big.sampling_factor, 200.0);
+  EXPECT_GT(big.sampling_factor, plain);
+  p.backend = seg::MeanShiftBackend::Exact;
+  EXPECT_EQ(run(seq, p).sampling_factor, 0.0);
+  EXPECT_EQ(run(seq, threePartsByMotion()).sampling_factor, 0.0);
+}
+
 TEST(MeanShift, OneFrameAndIdenticalPoints) {
   // One frame: well defined (the motion method has nothing to track; patches merge freely).
   auto one = twoBlobs(1, 4);

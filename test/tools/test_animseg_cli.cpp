@@ -73,6 +73,10 @@ TEST(AnimsegCli, FeaturesOnlyForThePaperMethod) {
     const bool on_cpu = summary.find("\"device\": \"cpu\"") != std::string::npos;
     EXPECT_EQ(summary.find("\"device_peak_mib\": null") != std::string::npos, on_cpu) << summary;
     EXPECT_NE(summary.find("\"device_peak_mib\": "), std::string::npos) << summary;
+    // The Gaussian kd-tree's N/M: a number for the paper method (default backend), else null.
+    EXPECT_EQ(summary.find("\"sampling_factor\": null") != std::string::npos, method == "motion")
+        << summary;
+    EXPECT_NE(summary.find("\"sampling_factor\": "), std::string::npos) << summary;
   }
 }
 

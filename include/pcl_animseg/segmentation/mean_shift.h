@@ -172,6 +172,9 @@ class MeanShiftDeviceBackend {
    * (motion_device.h), owned by this backend; nullptr (the default): the motion method runs on
    * the CPU. */
   virtual MotionDevice* motionDevice() { return nullptr; }
+  /** \brief The sampling factor N/M of the last seekModes' filter trees (points per cell over
+   * all trees); 0 when unknown. */
+  virtual double samplingFactor() const { return 0.0; }
 };
 
 /** \brief Segments a whole sequence so that a label means the same part in every frame.

@@ -47,6 +47,9 @@ struct SegmentationResult {
    * point, cheapest first, down to one group per connected piece (empty for the paper's
    * method). Cost: rigid-motion residual of the union (mean over frames), in point spacings. */
   std::vector<ClusterMerge> merges;
+  /** Paper method, Gaussian kd-tree backend: the filter's sampling factor N/M, points per cell
+   * over its trees (Sect. 3.3; the paper used 1024-8192). 0 when no filter ran. */
+  double sampling_factor = 0.0;
 };
 
 }  // namespace segmentation

@@ -35,6 +35,7 @@ struct MeanShiftStats {
   int iterations = 0;
   int not_converged = 0;
   std::size_t num_samples = 0;  ///< samples (leaves) over all trees
+  std::size_t tree_points = 0;  ///< points over all trees (N/M = tree_points / num_samples)
   double upload_s = 0.0;
   double build_s = 0.0;         ///< kd-tree build(s)
   double splat_blur_s = 0.0;

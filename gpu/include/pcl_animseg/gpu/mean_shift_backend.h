@@ -44,6 +44,11 @@ class MeanShiftBackend : public segmentation::MeanShiftDeviceBackend {
                const std::vector<char>& query_key, Eigen::VectorXf& out) override;
   /** \brief The motion method's fits and residuals on this device (motion_tracking.h). */
   segmentation::MotionDevice* motionDevice() override { return &tracking_; }
+  double samplingFactor() const override {
+    return stats_.num_samples ? static_cast<double>(stats_.tree_points) /
+                                    static_cast<double>(stats_.num_samples)
+                              : 0.0;
+  }
   /** \brief Timings and memory of the last seekModes. */
   const MeanShiftStats& lastStats() const { return stats_; }
 
