@@ -105,7 +105,10 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
     detail::splatBlur(g->tree, nullptr, draw.ptr(), v, gp.blur_radius, g->sample_values);
     stats_.splat_blur_s += since(tb);
     stats_.num_samples += g->tree.m;
-    stats_.tree_points += static_cast<std::size_t>(ni);
+    if (applies == 0) {
+      stats_.plain_points = static_cast<std::size_t>(ni);
+      stats_.plain_samples = g->tree.m;
+    }
     groups.push_back(std::move(g));
   };
   make(plain, false, 0);

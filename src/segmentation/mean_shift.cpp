@@ -656,13 +656,10 @@ long JointKernelSum::searches() const {
 }
 
 double JointKernelSum::samplingFactor() const {
-  std::size_t points = 0, cells = 0;
   for (const auto& g : groups_)
-    if (const filters::GaussianKdTree* t = g->backend->tree()) {
-      points += t->numPoints();
-      cells += t->numSamples();
-    }
-  return cells ? static_cast<double>(points) / static_cast<double>(cells) : 0.0;
+    if (g->applies_to == 0)  // the tree over the non-keypoint points: (nearly) all of them
+      if (const filters::GaussianKdTree* t = g->backend->tree()) return t->samplingFactor();
+  return 0.0;
 }
 
 const filters::GaussianKdTree* JointKernelSum::cellTree() const {

@@ -71,7 +71,8 @@ class JointKernelSum {
   /** The Gaussian kd-tree over all points in the plain metric, in input order, when the sums
    * use one (Gaussian kd-tree backend, no keypoint pair rule); nullptr otherwise. */
   const filters::GaussianKdTree* cellTree() const;
-  /** Points per cell over the Gaussian kd-trees of the sums (N/M); 0 for the exact backend. */
+  /** Points per cell (N/M) of the Gaussian kd-tree over the non-keypoint points (the keypoints'
+   * own small trees of the pair rule left out); 0 for the exact backend or without such points. */
   double samplingFactor() const;
 
   struct Backend;

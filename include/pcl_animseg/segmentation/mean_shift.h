@@ -172,8 +172,8 @@ class MeanShiftDeviceBackend {
    * (motion_device.h), owned by this backend; nullptr (the default): the motion method runs on
    * the CPU. */
   virtual MotionDevice* motionDevice() { return nullptr; }
-  /** \brief The sampling factor N/M of the last seekModes' filter trees (points per cell over
-   * all trees); 0 when unknown. */
+  /** \brief The sampling factor N/M of the last seekModes' filter tree over the non-keypoint
+   * points (SegmentationResult::sampling_factor); 0 when unknown. */
   virtual double samplingFactor() const { return 0.0; }
 };
 

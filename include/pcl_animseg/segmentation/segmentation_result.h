@@ -48,7 +48,8 @@ struct SegmentationResult {
    * method). Cost: rigid-motion residual of the union (mean over frames), in point spacings. */
   std::vector<ClusterMerge> merges;
   /** Paper method, Gaussian kd-tree backend: the filter's sampling factor N/M, points per cell
-   * over its trees (Sect. 3.3; the paper used 1024-8192). 0 when no filter ran. */
+   * of its tree over the non-keypoint points (Sect. 3.3; the paper used 1024-8192; the pair
+   * rule's small keypoint trees are left out). 0 when no filter ran. */
   double sampling_factor = 0.0;
 };
 

@@ -35,7 +35,8 @@ struct MeanShiftStats {
   int iterations = 0;
   int not_converged = 0;
   std::size_t num_samples = 0;  ///< samples (leaves) over all trees
-  std::size_t tree_points = 0;  ///< points over all trees (N/M = tree_points / num_samples)
+  std::size_t plain_points = 0;   ///< points of the tree over the non-keypoint points
+  std::size_t plain_samples = 0;  ///< its samples (its N/M = plain_points / plain_samples)
   double upload_s = 0.0;
   double build_s = 0.0;         ///< kd-tree build(s)
   double splat_blur_s = 0.0;

@@ -45,9 +45,9 @@ class MeanShiftBackend : public segmentation::MeanShiftDeviceBackend {
   /** \brief The motion method's fits and residuals on this device (motion_tracking.h). */
   segmentation::MotionDevice* motionDevice() override { return &tracking_; }
   double samplingFactor() const override {
-    return stats_.num_samples ? static_cast<double>(stats_.tree_points) /
-                                    static_cast<double>(stats_.num_samples)
-                              : 0.0;
+    return stats_.plain_samples ? static_cast<double>(stats_.plain_points) /
+                                      static_cast<double>(stats_.plain_samples)
+                                : 0.0;
   }
   /** \brief Timings and memory of the last seekModes. */
   const MeanShiftStats& lastStats() const { return stats_; }
