@@ -291,32 +291,35 @@ class ExactBackend : public JointKernelSum::Backend {
    * axis-aligned cuts follow the data; on data so dense that the lists would hold more than a
    * quarter of the points (denseData) it builds no tree and every query scans all points. */
   ExactBackend(const Eigen::MatrixXf& x, const Eigen::MatrixXf& values, float cache_margin = 0.0f)
-      : values_(values.transpose()), values_count_(values.cols()), margin_(cache_margin) {
-    if (margin_ > 0.0f) {
-      const Eigen::Index vp = (values_.rows() + kValueBlock - 1) / kValueBlock * kValueBlock;
-      padded_ = Eigen::MatrixXf::Zero(vp, values_.cols());
-      padded_.topRows(values_.rows()) = values_;
-      values_.resize(0, 0);
+      : values_count_(values.cols()), margin_(cache_margin) {
+    if (margin_ <= 0.0f) {
+      values_ = values.transpose();
+      x_ = x;
+    } else {
+      const Eigen::Index vp = (values.cols() + kValueBlock - 1) / kValueBlock * kValueBlock;
+      padded_ = Eigen::MatrixXf::Zero(vp, values.rows());
+      padded_.topRows(values.cols()) = values.transpose();
       if (denseData(x)) {
         scan_all_ = true;  // no tree: every query scans every point
         xc_ = x;
         return;
       }
-    }
-    x_ = x;
-    if (margin_ > 0.0f && x.rows() > 1) {
-      const Eigen::RowVectorXd mean = x.cast<double>().colwise().mean();
-      Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(x.cols(), x.cols());
-      for (Eigen::Index i0 = 0; i0 < x.rows(); i0 += 65536) {
-        const Eigen::Index m = std::min<Eigen::Index>(65536, x.rows() - i0);
-        const Eigen::MatrixXd c = x.middleRows(i0, m).cast<double>().rowwise() - mean;
-        cov.noalias() += c.transpose() * c;
+      if (x.rows() > 1) {
+        const Eigen::RowVectorXd mean = x.cast<double>().colwise().mean();
+        Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(x.cols(), x.cols());
+        for (Eigen::Index i0 = 0; i0 < x.rows(); i0 += 65536) {
+          const Eigen::Index m = std::min<Eigen::Index>(65536, x.rows() - i0);
+          const Eigen::MatrixXd c = x.middleRows(i0, m).cast<double>().rowwise() - mean;
+          cov.noalias() += c.transpose() * c;
+        }
+        Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(cov);
+        rotation_ = eig.eigenvectors().rowwise().reverse().cast<float>();  // largest axis first
+        x_ = x * rotation_;
+      } else {
+        x_ = x;
       }
-      Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(cov);
-      rotation_ = eig.eigenvectors().rowwise().reverse().cast<float>();  // largest axis first
-      x_ = x * rotation_;
+      xc_ = x_;  // column-major: a coordinate of consecutive points is contiguous
     }
-    if (margin_ > 0.0f) xc_ = x_;  // column-major: a coordinate of consecutive points is contiguous
     index_ = std::make_unique<flann::KDTreeSingleIndex<flann::L2<float>>>(
         flann::Matrix<float>(x_.data(), x_.rows(), x_.cols()),
         flann::KDTreeSingleIndexParams(15));
@@ -328,7 +331,7 @@ class ExactBackend : public JointKernelSum::Backend {
       evaluateCached(q, rows, out);
       return;
     }
-    const int v = static_cast<int>(values_.rows());
+    const int v = static_cast<int>(values_count_);
     const int nr = static_cast<int>(rows.size());
     const int d = static_cast<int>(q.cols());
     const float r2 = 9.0f;
@@ -1437,10 +1440,8 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
       runPaper(space, graph, k, params_, d, flat, modes, num_clusters, sums, point_density,
                progress_);
       result.modes = modes;
-      result.sampling_factor = params_.backend != MeanShiftBackend::GaussianKdTree ? 0.0
-                               : d                                               ? d->samplingFactor()
-                               : sums ? sums->samplingFactor()
-                                      : 0.0;
+      // What ran: the device's filter, the CPU's (0 from the exact backend's sums), or none.
+      result.sampling_factor = d ? d->samplingFactor() : sums ? sums->samplingFactor() : 0.0;
     });
     timer.restart();
     guarded([&](MeanShiftDeviceBackend* d) {
