@@ -257,6 +257,45 @@ std::size_t scanTerms(const float* q, const float* xc, std::size_t n, int d, std
   return terms;
 }
 
+/** Terms of the listed points first..last-1 (indices into x, row-major with d coordinates a
+ * point) within squared distance r2 of q, in list order: their indices and exp(-d2/2). Eight
+ * points side by side, each distance summed over the coordinates in order, as one point at a
+ * time would; the rows of the points a few entries ahead are prefetched (the lists are scattered
+ * over the data, and waiting for memory was most of this loop's time). */
+ANIMSEG_AVX2_CLONE
+std::size_t listTerms(const float* q, const float* x, int d, const std::uint32_t* first,
+                      const std::uint32_t* last, float r2, std::uint32_t* index, double* weight) {
+  constexpr std::ptrdiff_t kAhead = 16;  // entries prefetched ahead
+  const std::size_t row = static_cast<std::size_t>(d);
+  const std::ptrdiff_t count = last - first;
+  std::size_t terms = 0;
+  for (std::ptrdiff_t m0 = 0; m0 < count; m0 += 8) {
+    const int w = static_cast<int>(std::min<std::ptrdiff_t>(8, count - m0));
+    for (std::ptrdiff_t a = m0 + kAhead; a < std::min(count, m0 + kAhead + 8); ++a) {
+      const char* xa = reinterpret_cast<const char*>(x + first[a] * row);
+      __builtin_prefetch(xa);
+      __builtin_prefetch(xa + 64);
+    }
+    const float* xj[8];
+    for (int j = 0; j < 8; ++j) xj[j] = x + first[m0 + std::min(j, w - 1)] * row;
+    Float8 acc = {};
+    for (int k = 0; k < d; ++k) {
+      const Float8 a = {xj[0][k], xj[1][k], xj[2][k], xj[3][k],
+                        xj[4][k], xj[5][k], xj[6][k], xj[7][k]};
+      const Float8 e = q[k] - a;
+      acc += e * e;
+    }
+    float t[8];
+    std::memcpy(t, &acc, sizeof t);
+    for (int j = 0; j < w; ++j)
+      if (t[j] < r2) {
+        index[terms] = first[m0 + j];
+        weight[terms++] = std::exp(-0.5 * t[j]);
+      }
+  }
+  return terms;
+}
+
 /** acc[c] += weight[e] * values[index[e] * stride + c] for the terms e in order, c < stride (a
  * multiple of kValueBlock): kValueBlock components at a time, kept in registers over the terms. */
 ANIMSEG_AVX2_CLONE
@@ -266,6 +305,11 @@ void addTerms(const float* values, int stride, const std::uint32_t* index, const
     Double4 a[kValueBlock / 4];
     std::memcpy(a, acc + c0, sizeof a);
     for (std::size_t e = 0; e < terms; ++e) {
+      if (c0 == 0 && e + 8 < terms) {  // the terms' rows are scattered: fetch ahead
+        const char* va = reinterpret_cast<const char*>(
+            values + static_cast<std::size_t>(index[e + 8]) * stride);
+        for (int b = 0; b < stride * 4; b += 64) __builtin_prefetch(va + b);
+      }
       const double w = weight[e];
       const float* ve = values + static_cast<std::size_t>(index[e]) * stride + c0;
       for (int b = 0; b < kValueBlock / 4; ++b) {
@@ -434,21 +478,6 @@ class ExactBackend : public JointKernelSum::Backend {
     }
     searches_ += searches;
     const int vp = static_cast<int>(padded_.rows());
-    // Terms of the listed points within 3 of qb, in list order.
-    auto listTerms = [&](const float* qb, const std::uint32_t* first, const std::uint32_t* last,
-                         std::uint32_t* index, double* weight) {
-      std::size_t terms = 0;
-      for (const std::uint32_t* m = first; m != last; ++m) {
-        const float* xj = x_.data() + static_cast<std::size_t>(*m) * d;
-        float dj = 0.0f;
-        for (int k = 0; k < d; ++k) dj += (qb[k] - xj[k]) * (qb[k] - xj[k]);
-        if (dj < r2) {
-          index[terms] = *m;
-          weight[terms++] = std::exp(-0.5 * dj);
-        }
-      }
-      return terms;
-    };
     // Rows that scan or have long lists go by chunks (below); the others sum their own lists,
     // one row per task.
     std::vector<int> wide_rows, narrow_rows;
@@ -467,8 +496,8 @@ class ExactBackend : public JointKernelSum::Backend {
         term_index.resize(list.size());
         term_weight.resize(list.size());
         const std::size_t terms =
-            listTerms(qr.data() + static_cast<std::size_t>(r) * d, list.data(),
-                      list.data() + list.size(), term_index.data(), term_weight.data());
+            listTerms(qr.data() + static_cast<std::size_t>(r) * d, x_.data(), d, list.data(),
+                      list.data() + list.size(), r2, term_index.data(), term_weight.data());
         std::fill(acc.begin(), acc.end(), 0.0);
         addTerms(padded_.data(), vp, term_index.data(), term_weight.data(), terms, acc.data());
         for (int k = 0; k < v; ++k) out(rows[r], k) += static_cast<float>(acc[k]);
@@ -509,7 +538,8 @@ class ExactBackend : public JointKernelSum::Backend {
                 c.scan || static_cast<std::size_t>(to - from) * 4 >= hi - lo
                     ? scanTerms(qb, xc_.data(), n, d, lo, hi, r2, term_index.data(),
                                 term_weight.data())
-                    : listTerms(qb, from, to, term_index.data(), term_weight.data());
+                    : listTerms(qb, x_.data(), d, from, to, r2, term_index.data(),
+                                term_weight.data());
             addTerms(padded_.data(), vp, term_index.data(), term_weight.data(), terms,
                      partial.data() + (w * nc + ch) * vp);
           }
