@@ -4,6 +4,9 @@
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/motion_tracking.h>
 
+#include <algorithm>
+#include <cstdio>
+#include <cstdlib>
 #include <string>
 
 #include "frame_packing.h"
@@ -47,11 +50,22 @@ void checkJob(int source, int n_sources, int motion, int n_motions, int frame, i
 }  // namespace
 
 MotionTracking::MotionTracking() = default;
-MotionTracking::~MotionTracking() = default;
+MotionTracking::~MotionTracking() {
+  if (frames_) detail::reportCalls(*frames_, "tracking");
+}
 
 std::string MotionTracking::name() const { return deviceLabel(); }
 
 namespace detail {
+void reportCalls(const FrameStore& store, const char* owner) {
+  if (!std::getenv("ANIMSEG_MS_TIMING")) return;
+  static const char* const kinds[4] = {"residuals", "point costs", "part fits", "rigid fits"};
+  for (int k = 0; k < 4; ++k)
+    if (store.stats[k].calls)
+      std::fprintf(stderr, "[gpu %s] %s: %ld calls, %ld jobs, %.3f s\n", owner, kinds[k],
+                   store.stats[k].calls, store.stats[k].jobs, store.stats[k].seconds);
+}
+
 
 std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& in,
                                                const std::string& what) {
@@ -93,7 +107,9 @@ std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames&
 }  // namespace detail
 
 void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
-  frames_ = detail::uploadDeviceFrames(in, "GPU tracking: frame");
+  auto next = detail::uploadDeviceFrames(in, "GPU tracking: frame");
+  if (frames_) std::copy(frames_->stats, frames_->stats + 4, next->stats);
+  frames_ = std::move(next);
 }
 
 void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,
@@ -169,6 +185,7 @@ void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vect
     checkJob(j.source, sources, j.motion, motions, j.frame, frames_->frames, what);
     list.push_back({j.source, j.motion, j.frame});
   }
+  const detail::CallTimer timer(*frames_, 0, list.size());
   detail::runResiduals(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, out);
 }
 
@@ -188,6 +205,7 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
       throw Error("GPU point costs: a job out of range");
     list.push_back({j.point, j.motion});
   }
+  const detail::CallTimer timer(*frames_, 1, list.size());
   detail::runPointCosts(*frames_, jobs.reference_frame, jobs.per_frame, jobs.points, jobs.motions,
                         list, out);
 }
@@ -204,6 +222,7 @@ void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector
     checkJob(j.source, sources, j.motion, motions, j.frame, frames_->frames, what);
     list.push_back({j.source, j.motion, j.frame, j.r0, j.max_dist});
   }
+  const detail::CallTimer timer(*frames_, 2, list.size());
   detail::runPartFits(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, jobs.iterations,
                       poses);
 }

@@ -3,6 +3,7 @@
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
 
+#include <algorithm>
 #include <string>
 
 #include "frame_packing.h"
@@ -19,12 +20,16 @@ struct RigidSources {
 }  // namespace detail
 
 RigidFits::RigidFits() = default;
-RigidFits::~RigidFits() = default;
+RigidFits::~RigidFits() {
+  if (surfaces_) detail::reportCalls(*surfaces_, "rigid fits");
+}
 
 std::string RigidFits::name() const { return deviceLabel(); }
 
 void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
-  surfaces_ = detail::uploadDeviceFrames(surfaces, "GPU rigid fits: surface");
+  auto next = detail::uploadDeviceFrames(surfaces, "GPU rigid fits: surface");
+  if (surfaces_) std::copy(surfaces_->stats, surfaces_->stats + 4, next->stats);
+  surfaces_ = std::move(next);
 }
 
 void RigidFits::setSources(const std::vector<const std::vector<double>*>& sources) {
@@ -67,6 +72,7 @@ void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
   p.transformation_epsilon = params.transformation_epsilon;
   p.relative_mse_epsilon = params.relative_mse_epsilon;
   p.max_turn = segmentation::rigidStepMaxTurn();
+  const detail::CallTimer timer(*surfaces_, 3, list.size());
   detail::runRigidFits(*surfaces_, sources_->points, list, p, poses, rms);
   fits_ += static_cast<long long>(jobs.size());
   ++batches_;

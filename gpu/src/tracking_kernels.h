@@ -4,6 +4,7 @@
 // Eigen or PCL here: this header is read by nvcc.
 #include <pcl_animseg/gpu/device_array.h>
 
+#include <chrono>
 #include <vector>
 
 namespace pcl_animseg {
@@ -51,7 +52,34 @@ struct FrameStore {
    * batch instead of four, each a synchronous round trip of some 10-25 us. */
   DeviceMemory job_in, job_out;
   std::vector<unsigned char> staging;
+  /** Calls by kind (residuals, point costs, part fits, rigid fits): count, jobs and wall
+   * seconds, printed on stderr when the store goes and ANIMSEG_MS_TIMING is set. */
+  struct CallStats {
+    long calls = 0, jobs = 0;
+    double seconds = 0.0;
+  };
+  CallStats stats[4];
 };
+
+// Adds a call's wall time to its kind's statistics when it returns.
+class CallTimer {
+ public:
+  CallTimer(FrameStore& store, int kind, std::size_t jobs)
+      : s_(store.stats[kind]), t0_(std::chrono::steady_clock::now()) {
+    ++s_.calls;
+    s_.jobs += static_cast<long>(jobs);
+  }
+  ~CallTimer() {
+    s_.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0_).count();
+  }
+
+ private:
+  FrameStore::CallStats& s_;
+  std::chrono::steady_clock::time_point t0_;
+};
+
+/** Prints a store's call statistics (see FrameStore::stats) under ANIMSEG_MS_TIMING. */
+void reportCalls(const FrameStore& store, const char* owner);
 
 void uploadFrames(const FrameArrays& in, FrameStore& store);
 

@@ -270,6 +270,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees(frames);
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < static_cast<int>(frames); ++t) trees[t].setInputCloud(sequence_->frame(t));
+  timer.lap("trees");
   double mean_spacing = 0.0;
   for (double s : spacing) mean_spacing += s / static_cast<double>(frames);
 
@@ -295,7 +296,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (int l = 0; l < num_labels; ++l)
         for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
   }
-  timer.lap("trees and motions");
+  timer.lap("motions");
   motions_ = parts;
   // Motion residual of point j of frame t under part l's rigid motion: the point is carried to
   // every other frame and scored by its distance to that frame's surface (point-to-plane, blind to

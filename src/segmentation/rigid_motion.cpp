@@ -9,6 +9,8 @@
 #include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
+#include "mean_shift_internal.h"
+
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -765,7 +767,9 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
   const std::vector<double> spacing = meanSpacings(*sequence_);
   std::vector<std::vector<std::size_t>> frame0_points(nl);
   for (std::size_t l = 0; l < nl; ++l) frame0_points[l] = frame0Counts(levels(l), np[l]);
+  detail::StageTimer timer("rigid motion");
   std::vector<std::vector<PartMotion>> parts = computeParts(sets, np, fit, spacing, frame0_points);
+  timer.lap("chained parts");
   std::vector<LevelMotion> out(nl);
   for (std::size_t l = 0; l < nl; ++l) {
     out[l].level = static_cast<int>(l);
@@ -778,6 +782,7 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
     if (merged[l].empty()) continue;
     fitFromChildren(*sequence_, params_, spacing, levels(l - 1), levels(l), out[l - 1].parts,
                     merged[l], frame0_points[l], out[l].parts, device_);
+    timer.lap("merged parts of a level");
   }
   return out;
 }
@@ -818,19 +823,25 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     jobs.erase(std::remove_if(jobs.begin(), jobs.end(), first), jobs.end());
   }
   {
+    detail::StageTimer timer("rigid motion");
     std::vector<std::unique_ptr<ChainedPart>> chained;
     for (const auto& [s, part] : seeded)
       chained.push_back(std::make_unique<ChainedPart>(*sequence_, p, *sets[s], part, spacing,
                                                       frame0_points[s][part], &init_[part],
                                                       out[s][part]));
+    timer.lap("seeded: targets");
     fitChainedParts(chained, sequence_->size(), device_, p, true);
+    timer.lap("seeded: fits");
   }
   if (device_) {  // the chains side by side, one frame position of all of them per batch
+    detail::StageTimer timer("rigid motion");
     std::vector<std::unique_ptr<ChainedPart>> chained;
     for (const auto& [s, part] : jobs)
       chained.push_back(std::make_unique<ChainedPart>(
           *sequence_, p, *sets[s], part, spacing, frame0_points[s][part], nullptr, out[s][part]));
+    timer.lap("chains: targets");
     fitChainedParts(chained, sequence_->size(), device_, p, false);
+    timer.lap("chains: fits");
     return out;
   }
 #pragma omp parallel for schedule(dynamic)
