@@ -413,47 +413,70 @@ __global__ void partFitJobsWide(Dev d, const double* __restrict__ points,
           GroupOfBlock<kWideThreads>{static_cast<int>(threadIdx.x), rows, slot});
 }
 
-// One point cost per thread (motion_tracking.cpp's pointCost): the point's surface errors under
-// its motion's pose in every frame but the reference, added in frame order; with per_frame the
-// errors themselves, `frames` per job (0 for the reference frame).
-__global__ void pointCostJobs(Dev d, int frames, int ref, bool per_frame,
-                              const double* __restrict__ points, const double* __restrict__ motions,
-                              const PointCostJob* __restrict__ jobs, int n, double* out) {
-  const int j = blockIdx.x * blockDim.x + threadIdx.x;
-  if (j >= n) return;
+// Point costs (motion_tracking.cpp's pointCost), one (job, frame) per thread, frame-major
+// (thread t * n + j: a warp searches one frame's tree for neighbouring jobs): the point's surface
+// error under its motion's pose in frame t, 0 in the reference frame, into errors[t * n + j]. A
+// thread per job searching every frame in turn left the GPU nearly idle on a merge's batch of a
+// few thousand jobs.
+__global__ void pointErrorJobs(Dev d, int frames, int ref, const double* __restrict__ points,
+                               const double* __restrict__ motions,
+                               const PointCostJob* __restrict__ jobs, int n,
+                               double* __restrict__ errors) {
+  const long long i = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= static_cast<long long>(n) * frames) return;
+  const int t = static_cast<int>(i / n), j = static_cast<int>(i % n);
+  if (t == ref) {
+    errors[i] = 0.0;
+    return;
+  }
   const PointCostJob job = jobs[j];
   const double* p = points + 6LL * job.point;
-  double* each = per_frame ? out + static_cast<long long>(j) * frames : nullptr;
-  double sum = 0.0;
-  for (int t = 0; t < frames; ++t) {
-    if (t == ref) {
-      if (each) each[t] = 0.0;
-      continue;
-    }
-    const Rigid m =
-        icp_step::load(motions + (static_cast<long long>(job.motion) * frames + t) * kPoseDoubles);
-    double y[3], nr[3];
-    icp_step::apply(m, p, y);
-    icp_step::rotate(m, p + 3, nr);
-    const double e = surfaceErrorAt(d, t, y, nr);
-    if (each) each[t] = e;
-    sum += e;
+  const Rigid m =
+      icp_step::load(motions + (static_cast<long long>(job.motion) * frames + t) * kPoseDoubles);
+  double y[3], nr[3];
+  icp_step::apply(m, p, y);
+  icp_step::rotate(m, p + 3, nr);
+  errors[i] = surfaceErrorAt(d, t, y, nr);
+}
+
+// A job's errors (pointErrorJobs) as the CPU gives them: with per_frame each frame's error, job
+// by job (`frames` per job); otherwise their sum over the frames but the reference, added in frame
+// order.
+__global__ void pointCostSums(const double* __restrict__ errors, int frames, int ref,
+                              bool per_frame, int n, double* __restrict__ out) {
+  const int j = blockIdx.x * blockDim.x + threadIdx.x;
+  if (j >= n) return;
+  if (per_frame) {
+    for (int t = 0; t < frames; ++t)
+      out[static_cast<long long>(j) * frames + t] = errors[static_cast<long long>(t) * n + j];
+    return;
   }
-  if (!each) out[j] = sum;
+  double sum = 0.0;
+  for (int t = 0; t < frames; ++t)
+    if (t != ref) sum += errors[static_cast<long long>(t) * n + j];
+  out[j] = sum;
 }
 
 // The rigid motions' ICP (rigid_motion.cpp: icpPass, fitness, alignPasses), one block per fit:
-// thread j adds the values of its range of the source (icp_step::rangeBegin) in point order, then
-// thread q adds column q of the ranges' sums in range order, the CPU's order.
+// thread j < kRigidThreads adds the values of its range of the source (icp_step::rangeBegin) in
+// point order, then thread q adds column q of the ranges' sums in range order, the CPU's order.
+// The nearest-point searches, most of an iteration's time, are made first by all
+// kRigidSearchThreads threads of the block, kRigidChunk points at a time, into shared memory;
+// the range threads then add the chunk's matches of their ranges in order (the same sums: a
+// thread per range searching its points in turn waited for memory most of the time).
 constexpr int kRigidThreads = icp_step::kSumRanges;
+constexpr int kRigidSearchThreads = 2 * kRigidThreads;
+constexpr int kRigidChunk = 1024;
 constexpr int kRigidCols = icp_step::kTerms + 2;  // the terms, the squared distances, the count
 struct RigidShared {
   double part[kRigidThreads][kRigidCols];
   double total[kRigidCols];
+  int match[kRigidChunk];
+  float d2[kRigidChunk];
 };
 
-// Column q < cols of the threads' partial sums added in range order, into sh.total (every
-// thread's part[] written before; every thread reads the totals after).
+// Column q < cols of the range threads' partial sums added in range order, into sh.total (every
+// range thread's part[] written before; every thread reads the totals after).
 __device__ void rangeTotals(RigidShared& sh, int cols) {
   __syncthreads();
   const int q = threadIdx.x;
@@ -465,12 +488,29 @@ __device__ void rangeTotals(RigidShared& sh, int cols) {
   __syncthreads();
 }
 
+// The nearest surface point (within bound2) of every point c0..c1-1 of the source under T, by
+// all threads of the block, into sh.match / sh.d2 (index - c0); synchronised after.
+__device__ void rigidMatches(const Dev& d, int root, const double* src, const Rigid& T, int c0,
+                             int c1, float bound2, RigidShared& sh) {
+  for (int i = c0 + static_cast<int>(threadIdx.x); i < c1; i += blockDim.x) {
+    double y[3];
+    icp_step::apply(T, src + 3 * i, y);
+    float d2 = 0.0f;
+    sh.match[i - c0] = nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
+                               static_cast<float>(y[2]), bound2, d2);
+    sh.d2[i - c0] = d2;
+  }
+  __syncthreads();
+}
+
 __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rigid T,
                            double max_dist, int iterations, bool plane, double spacing,
                            const RigidParams& p, RigidShared& sh) {
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double max_move = p.transformation_epsilon * spacing;
-  const int j = threadIdx.x, b = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n);
+  const int j = threadIdx.x;
+  const bool ranger = j < kRigidThreads;
+  const int b = ranger ? icp_step::rangeBegin(j, n) : 0, e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
   double prev_mse = -1.0;
   for (int it = 0; it < iterations; ++it) {
     double part[kRigidCols];
@@ -480,28 +520,33 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rig
       icp_step::apply(T, src + 3 * i, y);
       for (int k = 0; k < 3; ++k) part[k] += y[k];
     }
-    for (int k = 0; k < 3; ++k) sh.part[j][k] = part[k];
+    if (ranger)
+      for (int k = 0; k < 3; ++k) sh.part[j][k] = part[k];
     rangeTotals(sh, 3);
     double c[3];
     for (int k = 0; k < 3; ++k) c[k] = sh.total[k] / static_cast<double>(n > 0 ? n : 1);
     __syncthreads();  // the totals are read before they are written again
     for (int q = 0; q < kRigidCols; ++q) part[q] = 0.0;
-    for (int i = b; i < e; ++i) {
-      double y[3];
-      icp_step::apply(T, src + 3 * i, y);
-      float d2 = 0.0f;
-      const int k = nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
-                            static_cast<float>(y[2]), max_d2, d2);
-      if (k < 0) continue;
-      const float4 a = d.pts[k], nb = d.nrm[k];
-      const double tp[3] = {a.x, a.y, a.z}, tn[3] = {nb.x, nb.y, nb.z};
-      double terms[icp_step::kTerms];
-      icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
-      for (int q = 0; q < icp_step::kTerms; ++q) part[q] += terms[q];
-      part[icp_step::kTerms] += d2;
-      part[icp_step::kTerms + 1] += 1.0;
+    for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
+      const int c1 = min(n, c0 + kRigidChunk);
+      rigidMatches(d, root, src, T, c0, c1, max_d2, sh);
+      for (int i = max(b, c0); i < min(e, c1); ++i) {
+        const int k = sh.match[i - c0];
+        if (k < 0) continue;
+        double y[3];
+        icp_step::apply(T, src + 3 * i, y);
+        const float4 a = d.pts[k], nb = d.nrm[k];
+        const double tp[3] = {a.x, a.y, a.z}, tn[3] = {nb.x, nb.y, nb.z};
+        double terms[icp_step::kTerms];
+        icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
+        for (int q = 0; q < icp_step::kTerms; ++q) part[q] += terms[q];
+        part[icp_step::kTerms] += sh.d2[i - c0];
+        part[icp_step::kTerms + 1] += 1.0;
+      }
+      __syncthreads();  // the chunk's matches are read before the next chunk's are written
     }
-    for (int q = 0; q < kRigidCols; ++q) sh.part[j][q] = part[q];
+    if (ranger)
+      for (int q = 0; q < kRigidCols; ++q) sh.part[j][q] = part[q];
     rangeTotals(sh, kRigidCols);
     double sums[kRigidCols];
     for (int q = 0; q < kRigidCols; ++q) sums[q] = sh.total[q];
@@ -517,20 +562,25 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rig
 __device__ double rigidFitness(const Dev& d, int root, const double* src, int n, const Rigid& T,
                                RigidShared& sh) {
   if (n == 0) return CUDART_NAN;
-  const int j = threadIdx.x, b = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n);
+  const int j = threadIdx.x;
+  const bool ranger = j < kRigidThreads;
+  const int b = ranger ? icp_step::rangeBegin(j, n) : 0, e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
   double sum = 0.0, missing = 0.0;
-  for (int i = b; i < e; ++i) {
-    double y[3];
-    icp_step::apply(T, src + 3 * i, y);
-    float d2 = 0.0f;
-    if (nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
-                static_cast<float>(y[2]), CUDART_INF_F, d2) < 0)
-      missing += 1.0;
-    else
-      sum += d2;
+  for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
+    const int c1 = min(n, c0 + kRigidChunk);
+    rigidMatches(d, root, src, T, c0, c1, CUDART_INF_F, sh);
+    for (int i = max(b, c0); i < min(e, c1); ++i) {
+      if (sh.match[i - c0] < 0)
+        missing += 1.0;
+      else
+        sum += sh.d2[i - c0];
+    }
+    __syncthreads();
   }
-  sh.part[j][0] = sum;
-  sh.part[j][1] = missing;
+  if (ranger) {
+    sh.part[j][0] = sum;
+    sh.part[j][1] = missing;
+  }
   rangeTotals(sh, 2);
   const double total = sh.total[0], lost = sh.total[1];
   __syncthreads();
@@ -538,7 +588,7 @@ __device__ double rigidFitness(const Dev& d, int root, const double* src, int n,
   return sqrt(total / static_cast<double>(n));
 }
 
-__global__ void __launch_bounds__(kRigidThreads)
+__global__ void __launch_bounds__(kRigidSearchThreads)
     rigidFitJobs(Dev d, const double* __restrict__ sources, const RigidJob* __restrict__ jobs,
                  RigidParams p, double* poses, double* rms_out) {
   __shared__ RigidShared sh;
@@ -650,7 +700,7 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   const Dev d = frameView(surfaces);
   const int n = static_cast<int>(jobs.size());
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
-  rigidFitJobs<<<n, kRigidThreads>>>(d, sources.ptr(),
+  rigidFitJobs<<<n, kRigidSearchThreads>>>(d, sources.ptr(),
                                      static_cast<const RigidJob*>(surfaces.job_in.rawPtr()),
                                      params, out, out + static_cast<std::size_t>(n) * kPoseDoubles);
   cudaCheckLaunch();
@@ -770,17 +820,25 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
 void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vector<double>& points,
                    const std::vector<double>& motions, const std::vector<PointCostJob>& jobs,
                    std::vector<double>& out) {
-  out.assign(jobs.size() * (per_frame ? static_cast<std::size_t>(frames.frames) : 1), 0.0);
+  const std::size_t T = static_cast<std::size_t>(frames.frames);
+  out.assign(jobs.size() * (per_frame ? T : 1), 0.0);
   if (jobs.empty()) return;
-  const auto in = putBatch(frames, points, nullptr, motions, jobs, out.size() * sizeof(double));
+  // job_out: every (job, frame)'s error, then the results.
+  const std::size_t errors = jobs.size() * T;
+  const auto in = putBatch(frames, points, nullptr, motions, jobs,
+                           (errors + out.size()) * sizeof(double));
   const Dev d = frameView(frames);
   const int n = static_cast<int>(jobs.size());
+  auto* err = static_cast<double*>(frames.job_out.rawPtr());
+  double* res = err + errors;
   constexpr int kThreads = 128;
-  pointCostJobs<<<(n + kThreads - 1) / kThreads, kThreads>>>(
-      d, frames.frames, ref, per_frame, in.points, in.motions, in.list, n,
-      static_cast<double*>(frames.job_out.rawPtr()));
+  pointErrorJobs<<<static_cast<int>((errors + kThreads - 1) / kThreads), kThreads>>>(
+      d, frames.frames, ref, in.points, in.motions, in.list, n, err);
   cudaCheckLaunch();
-  frames.job_out.downloadBytes(out.data(), out.size() * sizeof(double));
+  pointCostSums<<<(n + kThreads - 1) / kThreads, kThreads>>>(err, frames.frames, ref, per_frame, n,
+                                                            res);
+  cudaCheckLaunch();
+  cudaSafeCall(cudaMemcpy(out.data(), res, out.size() * sizeof(double), cudaMemcpyDeviceToHost));
 }
 
 }  // namespace detail
