@@ -11,7 +11,6 @@
 #include <algorithm>
 #include <cmath>
 #include <memory>
-#include <set>
 #include <utility>
 
 namespace pcl_animseg {
@@ -34,12 +33,18 @@ void validate(const PipelineParams& p) {
 
 namespace {
 
+// The number of distinct labels >= 0 (a flag per label: a std::set took 0.06-0.08 s for the
+// levels of 800k points).
 int countLabels(const std::vector<std::vector<int>>& labels) {
-  std::set<int> s;
+  std::vector<char> seen;
+  int n = 0;
   for (const auto& f : labels)
-    for (int l : f)
-      if (l >= 0) s.insert(l);
-  return static_cast<int>(s.size());
+    for (int l : f) {
+      if (l < 0) continue;
+      if (static_cast<std::size_t>(l) >= seen.size()) seen.resize(static_cast<std::size_t>(l) + 1, 0);
+      if (!seen[l]) seen[l] = 1, ++n;
+    }
+  return n;
 }
 
 std::string keypointDetail(const SequenceFeatures& f) {
@@ -198,7 +203,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   hierarchy.setParams(hp);
   segmentation::HierarchyResult levels;
   hierarchy.compute(refined, levels);
-  r.levels = levels.labels;
+  r.levels = std::move(levels.labels);
   for (const auto& l : r.levels) r.parts_per_level.push_back(countLabels(l));
   progress.end(std::to_string(r.levels.size()) + " levels");
 
