@@ -66,7 +66,6 @@ void reportCalls(const FrameStore& store, const char* owner) {
                    store.stats[k].calls, store.stats[k].jobs, store.stats[k].seconds);
 }
 
-
 std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& in,
                                                const std::string& what) {
   FrameArrays a;

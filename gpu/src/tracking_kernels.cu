@@ -510,7 +510,8 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rig
   const double max_move = p.transformation_epsilon * spacing;
   const int j = threadIdx.x;
   const bool ranger = j < kRigidThreads;
-  const int b = ranger ? icp_step::rangeBegin(j, n) : 0, e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
+  const int b = ranger ? icp_step::rangeBegin(j, n) : 0,
+            e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
   double prev_mse = -1.0;
   for (int it = 0; it < iterations; ++it) {
     double part[kRigidCols];
@@ -564,7 +565,8 @@ __device__ double rigidFitness(const Dev& d, int root, const double* src, int n,
   if (n == 0) return CUDART_NAN;
   const int j = threadIdx.x;
   const bool ranger = j < kRigidThreads;
-  const int b = ranger ? icp_step::rangeBegin(j, n) : 0, e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
+  const int b = ranger ? icp_step::rangeBegin(j, n) : 0,
+            e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
   double sum = 0.0, missing = 0.0;
   for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
     const int c1 = min(n, c0 + kRigidChunk);
@@ -700,9 +702,9 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   const Dev d = frameView(surfaces);
   const int n = static_cast<int>(jobs.size());
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
-  rigidFitJobs<<<n, kRigidSearchThreads>>>(d, sources.ptr(),
-                                     static_cast<const RigidJob*>(surfaces.job_in.rawPtr()),
-                                     params, out, out + static_cast<std::size_t>(n) * kPoseDoubles);
+  rigidFitJobs<<<n, kRigidSearchThreads>>>(
+      d, sources.ptr(), static_cast<const RigidJob*>(surfaces.job_in.rawPtr()), params, out,
+      out + static_cast<std::size_t>(n) * kPoseDoubles);
   cudaCheckLaunch();
   std::vector<double> all(jobs.size() * (kPoseDoubles + 1));
   surfaces.job_out.downloadBytes(all.data(), all.size() * sizeof(double));
@@ -825,8 +827,8 @@ void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vecto
   if (jobs.empty()) return;
   // job_out: every (job, frame)'s error, then the results.
   const std::size_t errors = jobs.size() * T;
-  const auto in = putBatch(frames, points, nullptr, motions, jobs,
-                           (errors + out.size()) * sizeof(double));
+  const auto in =
+      putBatch(frames, points, nullptr, motions, jobs, (errors + out.size()) * sizeof(double));
   const Dev d = frameView(frames);
   const int n = static_cast<int>(jobs.size());
   auto* err = static_cast<double*>(frames.job_out.rawPtr());
@@ -836,7 +838,7 @@ void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vecto
       d, frames.frames, ref, in.points, in.motions, in.list, n, err);
   cudaCheckLaunch();
   pointCostSums<<<(n + kThreads - 1) / kThreads, kThreads>>>(err, frames.frames, ref, per_frame, n,
-                                                            res);
+                                                             res);
   cudaCheckLaunch();
   cudaSafeCall(cudaMemcpy(out.data(), res, out.size() * sizeof(double), cudaMemcpyDeviceToHost));
 }

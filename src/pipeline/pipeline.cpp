@@ -41,7 +41,8 @@ int countLabels(const std::vector<std::vector<int>>& labels) {
   for (const auto& f : labels)
     for (int l : f) {
       if (l < 0) continue;
-      if (static_cast<std::size_t>(l) >= seen.size()) seen.resize(static_cast<std::size_t>(l) + 1, 0);
+      if (static_cast<std::size_t>(l) >= seen.size())
+        seen.resize(static_cast<std::size_t>(l) + 1, 0);
       if (!seen[l]) seen[l] = 1, ++n;
     }
   return n;

@@ -306,8 +306,8 @@ void addTerms(const float* values, int stride, const std::uint32_t* index, const
     std::memcpy(a, acc + c0, sizeof a);
     for (std::size_t e = 0; e < terms; ++e) {
       if (c0 == 0 && e + 8 < terms) {  // the terms' rows are scattered: fetch ahead
-        const char* va = reinterpret_cast<const char*>(
-            values + static_cast<std::size_t>(index[e + 8]) * stride);
+        const char* va =
+            reinterpret_cast<const char*>(values + static_cast<std::size_t>(index[e + 8]) * stride);
         for (int b = 0; b < stride * 4; b += 64) __builtin_prefetch(va + b);
       }
       const double w = weight[e];
@@ -534,12 +534,11 @@ class ExactBackend : public JointKernelSum::Backend {
             // All the chunk's points where most of them are on the list: the list holds every
             // point within 3 of the query, so the points within 3 are the same terms in the
             // same order as the list's.
-            const std::size_t terms =
-                c.scan || static_cast<std::size_t>(to - from) * 4 >= hi - lo
-                    ? scanTerms(qb, xc_.data(), n, d, lo, hi, r2, term_index.data(),
-                                term_weight.data())
-                    : listTerms(qb, x_.data(), d, from, to, r2, term_index.data(),
-                                term_weight.data());
+            const std::size_t terms = c.scan || static_cast<std::size_t>(to - from) * 4 >= hi - lo
+                                          ? scanTerms(qb, xc_.data(), n, d, lo, hi, r2,
+                                                      term_index.data(), term_weight.data())
+                                          : listTerms(qb, x_.data(), d, from, to, r2,
+                                                      term_index.data(), term_weight.data());
             addTerms(padded_.data(), vp, term_index.data(), term_weight.data(), terms,
                      partial.data() + (w * nc + ch) * vp);
           }

@@ -9,8 +9,6 @@
 #include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
-#include "mean_shift_internal.h"
-
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 #include <algorithm>
@@ -21,6 +19,8 @@
 #include <memory>
 #include <sstream>
 #include <tuple>
+
+#include "mean_shift_internal.h"
 
 namespace pcl_animseg {
 namespace segmentation {
