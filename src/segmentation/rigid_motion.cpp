@@ -516,8 +516,11 @@ std::vector<std::vector<ChainedPart::Link>> fitOnDevice(const std::vector<Chaine
   return fitChainsBatched(
       static_cast<int>(act.size()), frames, 0, act.front()->first(),
       [&](int c, int t, int, const std::vector<Link>* fits) { return act[c]->starts(t, fits); },
-      [&](int c, int t, const Link& x) { return act[c]->score(t, x); }, fitBatch, ChainedPart::same,
-      speculate, speculate ? 6 : 0);
+      [&](const std::vector<ChainScore<Link>>& items) {
+        auto score = [&](int c, int t, const Link& x) { return act[c]->score(t, x); };
+        return scoreEach(items, score);
+      },
+      fitBatch, ChainedPart::same, speculate, speculate ? 6 : 0);
 }
 
 // The motions of several parts (fitChained each), their frames side by side (fitChains).

@@ -1,10 +1,11 @@
 // fitAlongChain: frames fitted in parallel must give what the serial chain gives, whichever start
 // wins (chained or not, ties included), for a reference frame first, last or in the middle.
-#include <pcl_animseg/segmentation/chained_fit.h>
-
 #include <gtest/gtest.h>
 #include <omp.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/segmentation/chained_fit.h>
 
+#include <algorithm>
 #include <cmath>
 #include <random>
 #include <vector>
@@ -159,6 +160,43 @@ TEST(ChainedFit, SeveralChainsAtOnceEqualEachChainAlone) {
           EXPECT_EQ(all[c][t], alone[t])
               << "chain " << c << " ref " << ref << " frame " << t << " rounds " << rounds;
       }
+    }
+    // fitChainsBatched with the scores and the fits in batches, as a device takes them (each
+    // batch scored back to front, to check that the scores are matched to their starts): the
+    // serial chains' fits, with and without speculation.
+    for (bool speculate : {true, false}) {
+      int score_batches = 0;
+      std::size_t largest = 0;
+      auto scoreBatch = [&](const std::vector<seg::ChainScore<double>>& items) {
+        ++score_batches;
+        largest = std::max(largest, items.size());
+        std::vector<double> out(items.size());
+        for (std::size_t i = items.size(); i-- > 0;)
+          out[i] = toys[items[i].chain].score(items[i].frame, items[i].pose);
+        return out;
+      };
+      auto fitBatch = [&](const std::vector<seg::ChainFit<double>>& jobs) {
+        std::vector<double> out;
+        for (const auto& j : jobs) out.push_back(toys[j.chain].fitFrom(j.frame, j.start, j.score));
+        return out;
+      };
+      const std::vector<std::vector<double>> all = seg::fitChainsBatched(
+          chains, T, ref, 0.0, starts, scoreBatch, fitBatch, same, speculate, 6);
+      ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
+      for (int c = 0; c < chains; ++c)
+        EXPECT_EQ(all[c], toys[c].run(ref, false)) << "chain " << c << " speculate " << speculate;
+      // Speculation scores every frame's unchained starts in one batch.
+      if (speculate) {
+        EXPECT_GE(largest, static_cast<std::size_t>(2 * chains * (T - 1)));
+      }
+      EXPECT_GT(score_batches, 0);
+      EXPECT_THROW(seg::fitChainsBatched(
+                       chains, T, ref, 0.0, starts,
+                       [](const std::vector<seg::ChainScore<double>>&) {
+                         return std::vector<double>(1, 0.0);
+                       },
+                       fitBatch, same, speculate, 6),
+                   pcl_animseg::Error);
     }
   }
   omp_set_num_threads(before);

@@ -1,9 +1,11 @@
 #pragma once
 /** \file chained_fit.h Per-frame fits chained along a sequence, with the frames in parallel. */
 #include <omp.h>
+#include <pcl_animseg/error.h>
 
 #include <cstddef>
 #include <limits>
+#include <string>
 #include <vector>
 
 namespace pcl_animseg {
@@ -38,11 +40,31 @@ std::vector<Pose> fitEach(const std::vector<ChainFit<Pose>>& jobs, FitFrom& fitF
   return out;
 }
 
-// The steps of fitAlongChains with the fits in batches (defined below).
-template <class Pose, class Starts, class Score, class FitBatch, class Same>
+/** \brief A start that fitChainsBatched asks to be scored: `pose` in frame `frame` of chain
+ * `chain`. */
+template <class Pose>
+struct ChainScore {
+  int chain = 0, frame = 0;
+  Pose pose;
+};
+
+/** \brief score(c, t, pose) over a batch of ChainScore items, on the CPU, side by side (in the
+ * caller's thread inside a parallel region). */
+template <class Pose, class Score>
+std::vector<double> scoreEach(const std::vector<ChainScore<Pose>>& items, Score& score) {
+  std::vector<double> out(items.size());
+  const long n = static_cast<long>(items.size());
+#pragma omp parallel for schedule(dynamic, 4) if (n > 1 && !omp_in_parallel())
+  for (long j = 0; j < n; ++j) out[j] = score(items[j].chain, items[j].frame, items[j].pose);
+  return out;
+}
+
+// The steps of fitAlongChains with the fits and the scores in batches (defined below).
+template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same>
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
-                                                Starts starts, Score score, FitBatch fitBatch,
-                                                Same same, bool speculate, int extra_rounds);
+                                                Starts starts, ScoreBatch scoreBatch,
+                                                FitBatch fitBatch, Same same, bool speculate,
+                                                int extra_rounds);
 
 // The parallel steps of fitAlongChain, for several chains at once (defined below).
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
@@ -116,22 +138,26 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
                                               Starts starts, Score score, FitFrom fitFrom,
                                               Same same, int extra_rounds) {
   return fitChainsBatched(
-      chains, T, ref, identity, starts, score,
+      chains, T, ref, identity, starts,
+      [&](const std::vector<ChainScore<Pose>>& items) { return scoreEach(items, score); },
       [&](const std::vector<ChainFit<Pose>>& jobs) { return fitEach(jobs, fitFrom); }, same, true,
       extra_rounds);
 }
 
 /** \brief fitAlongChains (`speculate`: its steps 1, 2, 2b and 3) or the chains frame after frame
  * (not `speculate`: step 3 alone, each frame from the best of all its starts, as the serial
- * fitAlongChain), with every fit asked for in batches: `fitBatch(jobs)` returns, for each
- * ChainFit, fitFrom(chain, frame, start, score), in the jobs' order. Step 3 walks the chains
+ * fitAlongChain), with every fit and every score asked for in batches: `fitBatch(jobs)` returns,
+ * for each ChainFit, fitFrom(chain, frame, start, score), and `scoreBatch(items)`, for each
+ * ChainScore, score(chain, frame, pose), both in their input's order. Step 3 walks the chains
  * side by side, one frame position at a time, so that a position of all the chains is one
- * batch. For a device that fits many frames at once (the CUDA module's rigid fits); on the CPU
- * fitEach is the batch. The same fits as fitAlongChains and the serial chains. */
-template <class Pose, class Starts, class Score, class FitBatch, class Same>
+ * batch. For a device that fits and scores many frames at once (the CUDA module); on the CPU
+ * fitEach and scoreEach are the batches. The same fits as fitAlongChains and the serial
+ * chains. */
+template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same>
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
-                                                Starts starts, Score score, FitBatch fitBatch,
-                                                Same same, bool speculate, int extra_rounds) {
+                                                Starts starts, ScoreBatch scoreBatch,
+                                                FitBatch fitBatch, Same same, bool speculate,
+                                                int extra_rounds) {
   const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
   // Default: 6 more rounds on 4 threads or more (each costs fits that step 3 might not need;
   // on 2 threads step 3's chains side by side keep both busy).
@@ -148,18 +174,50 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
   constexpr double kLost = std::numeric_limits<double>::infinity();
   std::vector<std::vector<double>> spec_r(C, std::vector<double>(F, kNone));
   std::vector<std::vector<std::size_t>> spec_k(C, std::vector<std::size_t>(F, 0));
-  auto winner = [&](int c, int t, const std::vector<ChainStart<Pose>>& s, double& r0) {
+  // Which of a frame's starts it scores here (the others are spec's).
+  auto scoredHere = [&](const ChainStart<Pose>& x) { return x.chained || !speculate; };
+  // `scored`: the scores of the starts scoredHere, in their order.
+  auto winner = [&](int c, int t, const std::vector<ChainStart<Pose>>& s, const double* scored,
+                    double& r0) {
     std::size_t best = 0, unchained = 0;
     r0 = kNone;
     for (std::size_t k = 0; k < s.size(); ++k) {
       double r;
-      if (s[k].chained || !speculate)
-        r = score(c, t, s[k].pose);
+      if (scoredHere(s[k]))
+        r = *scored++;
       else
         r = unchained++ == spec_k[c][t] ? spec_r[c][t] : kLost;
       if (r < r0) r0 = r, best = k;
     }
     return best;
+  };
+  // The starts of every (chain, frame) of `todo` (side by side) and the scores of those listed
+  // by `keep` (one batch): at[j] is where todo[j]'s scores begin in `scores`.
+  using Starts_ = std::vector<ChainStart<Pose>>;
+  auto startsAndScores = [&](const std::vector<std::pair<int, int>>& todo,
+                             const std::vector<std::vector<Pose>>* from, auto keep,
+                             std::vector<Starts_>& s, std::vector<std::size_t>& at,
+                             std::vector<double>& scores) {
+    const long n = static_cast<long>(todo.size());
+    s.assign(todo.size(), Starts_());
+#pragma omp parallel for schedule(dynamic, 4) if (n > 1 && !omp_in_parallel())
+    for (long j = 0; j < n; ++j) {
+      const auto [c, t] = todo[j];
+      s[j] = starts(c, t, t > ref ? +1 : -1, from ? &(*from)[c] : nullptr);
+    }
+    std::vector<ChainScore<Pose>> items;
+    at.assign(todo.size() + 1, 0);
+    for (std::size_t j = 0; j < todo.size(); ++j) {
+      at[j] = items.size();
+      for (const ChainStart<Pose>& x : s[j])
+        if (keep(x)) items.push_back({todo[j].first, todo[j].second, x.pose});
+    }
+    at[todo.size()] = items.size();
+    scores.clear();
+    if (!items.empty()) scores = scoreBatch(items);
+    if (scores.size() != items.size())
+      throw Error("chained fit: a score batch returned " + std::to_string(scores.size()) +
+                  " scores for " + std::to_string(items.size()));
   };
   // The jobs of the slots marked in `marked`, fitted in one batch, each result to out[c][t].
   auto fitMarked = [&](const std::vector<Job>& job, const std::vector<char>& marked,
@@ -178,17 +236,18 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
   auto fitGivenAll = [&](const std::vector<std::pair<int, int>>& todo,
                          const std::vector<std::vector<Pose>>& from,
                          std::vector<std::vector<Pose>>& out) {
-    const long n = static_cast<long>(todo.size());
+    std::vector<Starts_> s;
+    std::vector<std::size_t> at;
+    std::vector<double> scores;
+    startsAndScores(todo, &from, scoredHere, s, at, scores);
     std::vector<Job> job(todo.size());
     std::vector<char> fitted(todo.size(), 0);
-#pragma omp parallel for schedule(dynamic, 1) if (n > 1 && !omp_in_parallel())
-    for (long j = 0; j < n; ++j) {
+    for (std::size_t j = 0; j < todo.size(); ++j) {
       const auto [c, t] = todo[j];
-      const auto s = starts(c, t, t > ref ? +1 : -1, &from[c]);
       double r0;
-      const std::size_t best = winner(c, t, s, r0);
-      if (s[best].chained || !speculate) {
-        job[j] = {c, t, s[best].pose, r0};
+      const std::size_t best = winner(c, t, s[j], scores.data() + at[j], r0);
+      if (scoredHere(s[j][best])) {
+        job[j] = {c, t, s[j][best].pose, r0};
         fitted[j] = 1;
       } else {
         out[c][t] = spec[c][t];
@@ -208,28 +267,31 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
   std::vector<std::vector<Pose>> guess(C, frames_of), before;
   if (speculate) {
     // Step 1: every frame from the best of its unchained starts.
-    const long jobs_n = static_cast<long>(C) * F;
-    std::vector<Job> job(static_cast<std::size_t>(jobs_n));
-    std::vector<char> fitted(job.size(), 0);
-#pragma omp parallel for schedule(dynamic, 1) if (!omp_in_parallel())
-    for (long j = 0; j < jobs_n; ++j) {
-      const int c = static_cast<int>(j / F), t = static_cast<int>(j % F);
-      if (t == ref) continue;
-      const auto s = starts(c, t, t > ref ? +1 : -1, nullptr);
-      if (s.empty()) continue;
-      for (std::size_t k = 0; k < s.size(); ++k) {
-        const double r = score(c, t, s[k].pose);
-        if (r < spec_r[c][t]) spec_r[c][t] = r, spec_k[c][t] = k;
-      }
-      job[j] = {c, t, s[spec_k[c][t]].pose, spec_r[c][t]};
-      fitted[j] = 1;
-    }
-    fitMarked(job, fitted, spec);
-    // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
     std::vector<std::pair<int, int>> all;
     for (int c = 0; c < C; ++c)
       for (int t = 0; t < F; ++t)
         if (t != ref) all.push_back({c, t});
+    {
+      std::vector<Starts_> s;
+      std::vector<std::size_t> at;
+      std::vector<double> scores;
+      startsAndScores(
+          all, nullptr, [](const ChainStart<Pose>&) { return true; }, s, at, scores);
+      std::vector<Job> job(all.size());
+      std::vector<char> fitted(all.size(), 0);
+      for (std::size_t j = 0; j < all.size(); ++j) {
+        if (s[j].empty()) continue;
+        const auto [c, t] = all[j];
+        for (std::size_t k = 0; k < s[j].size(); ++k) {
+          const double r = scores[at[j] + k];
+          if (r < spec_r[c][t]) spec_r[c][t] = r, spec_k[c][t] = k;
+        }
+        job[j] = {c, t, s[j][spec_k[c][t]].pose, spec_r[c][t]};
+        fitted[j] = 1;
+      }
+      fitMarked(job, fitted, spec);
+    }
+    // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
     fitGivenAll(all, spec, guess);
     // More rounds on many threads (a Jacobi iteration of the chain): round r fits again, from
     // round r-1's fits of the frames before, every frame whose inputs changed in round r-1; the
