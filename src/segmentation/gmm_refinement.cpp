@@ -107,9 +107,10 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
   const int k = p.boundary_k;
   const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * spacing, 2));
   // The surface graph: each point's k nearest within boundary_max_distance, edge cost in
-  // spacings (length plus the fold penalty).
+  // spacings (length plus the fold penalty). An edge's fold (an acos and two norms) is computed
+  // when the search first crosses it (foldOf): most edges lie outside the band and never are.
   std::vector<int> adj(static_cast<std::size_t>(n) * k, -1);
-  std::vector<float> len(static_cast<std::size_t>(n) * k, 0.0f), fold(adj.size(), 0.0f);
+  std::vector<float> len(static_cast<std::size_t>(n) * k, 0.0f), fold(adj.size(), -1.0f);
   std::vector<int> idx;
   std::vector<float> d2;
   std::vector<char> border(n, 0);
@@ -122,8 +123,6 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
       const std::size_t slot = static_cast<std::size_t>(j) * k + e++;
       adj[slot] = idx[q];
       len[slot] = static_cast<float>(std::sqrt(d2[q]) / spacing);
-      fold[slot] = static_cast<float>(
-          std::max(0.0, detail::foldDegrees(cloud[j], cloud[idx[q]]) - p.fold_snap_dead_zone_deg));
       if (lab[idx[q]] != lab[j]) border[j] = 1;
     }
   }
@@ -136,10 +135,21 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
   if (border_points->empty()) return 0;
   pcl_animseg::KdTree<pcl::PointNormal> border_tree;
   border_tree.setInputCloud(border_points);
+  // Only distances up to two bands matter (below: a part's core starts at half its farthest
+  // point's distance, capped at the band), so the searches are bounded a little beyond that;
+  // `far` marks the parts with a point beyond it, whose cap is the band.
+  int labels_here = 0;
+  for (int j = 0; j < n; ++j) labels_here = std::max(labels_here, lab[j] + 1);
+  std::vector<char> far(labels_here, 0);
+  const double bound = 2.0 * p.fold_snap_band * spacing;
+  const float bound2 = static_cast<float>(1.0201 * bound * bound);
   for (int j = 0; j < n; ++j) {
     if (lab[j] < 0) continue;
-    border_tree.nearestKSearch(cloud[j], 1, idx, d2);
-    if (!idx.empty()) to_border[j] = static_cast<float>(std::sqrt(d2[0]) / spacing);
+    float nd2;
+    if (border_tree.nearest(cloud[j].x, cloud[j].y, cloud[j].z, bound2, nd2) >= 0)
+      to_border[j] = static_cast<float>(std::sqrt(nd2) / spacing);
+    else
+      far[lab[j]] = 1;
   }
   // 2. Every band point's three nearest parts, reached from the points just beyond the band; a
   // path costs its length plus fold_snap_penalty per degree of inward folding, and each point
@@ -155,13 +165,12 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
   std::vector<unsigned char> settled(n, 0);
   // A part thinner than two bands (a fingertip of few points) would have no core: its core
   // starts halfway to its farthest point from a border instead.
-  int labels_here = 0;
-  for (int j = 0; j < n; ++j) labels_here = std::max(labels_here, lab[j] + 1);
   std::vector<float> reach_of(labels_here, 0.0f);
   for (int j = 0; j < n; ++j)
     if (lab[j] >= 0 && std::isfinite(to_border[j]))
       reach_of[lab[j]] = std::max(reach_of[lab[j]], to_border[j]);
-  for (float& r : reach_of) r = std::min(band, 0.5f * r);
+  for (int l = 0; l < labels_here; ++l)
+    reach_of[l] = far[l] ? band : std::min(band, 0.5f * reach_of[l]);
   auto inBand = [&](int j) { return lab[j] >= 0 && to_border[j] <= reach_of[lab[j]]; };
   for (int j = 0; j < n; ++j) {
     if (lab[j] < 0 || inBand(j)) continue;
@@ -174,6 +183,12 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
       }
     }
   }
+  auto foldOf = [&](int u, std::size_t slot) {
+    if (fold[slot] < 0.0f)
+      fold[slot] = static_cast<float>(std::max(
+          0.0, detail::foldDegrees(cloud[u], cloud[adj[slot]]) - p.fold_snap_dead_zone_deg));
+    return fold[slot];
+  };
   const float per_degree = static_cast<float>(p.fold_snap_penalty);
   while (!paths.empty()) {
     const auto [d, u, part, folded] = paths.top();
@@ -188,8 +203,10 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
       const std::size_t slot = static_cast<std::size_t>(u) * k + e;
       const int v = adj[slot];
       if (v < 0) break;
-      if (inBand(v) && settled[v] < kKeep)
-        paths.emplace(d + len[slot] + per_degree * fold[slot], v, part, folded + fold[slot]);
+      if (inBand(v) && settled[v] < kKeep) {
+        const float f = foldOf(u, slot);
+        paths.emplace(d + len[slot] + per_degree * f, v, part, folded + f);
+      }
     }
   }
   // 3. A point moves when its own part reaches it only across a fold at least
