@@ -1661,14 +1661,23 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       for (std::size_t j = 0; j < jobs.size(); ++j) out[j] = motionAt(&poses[12 * j]);
       return out;
     };
-    // The starts' scores on the device too: residual batches, the same values as residual().
-    // Even a handful: scoring those on the cores instead (under 64) was slower (mean-shift stage
-    // 1.11 s against 1.06 s at 800k, median of six).
+    // The starts' scores on the device too: residual batches, the same values as residual(),
+    // over the sources the fits packed (the same layout). Even a handful: scoring those on the
+    // cores instead (under 64) was slower (mean-shift stage 1.11 s against 1.06 s at 800k, median
+    // of six).
+    ResidualJobs scores;
+    scores.points = batch.points;
+    scores.source_begin = batch.source_begin;
     auto scoreBatch = [&](const std::vector<ChainScore<Pose>>& items) {
-      ResidualBatch rb(frames, params.device);
-      for (int c = 0; c < C; ++c) rb.addSource(src[c]);
-      for (const ChainScore<Pose>& x : items) rb.add(x.chain, rb.addMotion(x.pose), x.frame);
-      return rb.run();
+      scores.motions.clear();
+      scores.jobs.clear();
+      for (std::size_t j = 0; j < items.size(); ++j) {
+        appendMotion(items[j].pose, scores.motions);
+        scores.jobs.push_back({items[j].chain, static_cast<int>(j), items[j].frame});
+      }
+      std::vector<double> out;
+      params.device->residuals(scores, out);
+      return out;
     };
     return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts, scoreBatch, fitBatch, same,
                             true, 6);
