@@ -13,9 +13,11 @@ namespace gpu {
 namespace detail {
 
 /** Packs and uploads `frames`; throws Error (naming items as `what` + index) on a frame without
- * a tree or with a normal count that does not match, and on a CUDA failure. */
+ * a tree or with a normal count that does not match, and on a CUDA failure. The new store goes
+ * on with the call statistics of `previous` (the store it replaces; null: none). */
 std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& frames,
-                                               const std::string& what);
+                                               const std::string& what,
+                                               const FrameStore* previous);
 
 }  // namespace detail
 }  // namespace gpu

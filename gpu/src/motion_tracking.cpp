@@ -67,7 +67,8 @@ void reportCalls(const FrameStore& store, const char* owner) {
 }
 
 std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& in,
-                                               const std::string& what) {
+                                               const std::string& what,
+                                               const FrameStore* previous) {
   FrameArrays a;
   a.frames = static_cast<int>(in.frames.size());
   a.normal_cos = in.normal_cos;
@@ -100,15 +101,14 @@ std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames&
   }
   auto store = std::make_unique<FrameStore>();
   uploadFrames(a, *store);
+  if (previous) std::copy(previous->stats, previous->stats + 4, store->stats);
   return store;
 }
 
 }  // namespace detail
 
 void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
-  auto next = detail::uploadDeviceFrames(in, "GPU tracking: frame");
-  if (frames_) std::copy(frames_->stats, frames_->stats + 4, next->stats);
-  frames_ = std::move(next);
+  frames_ = detail::uploadDeviceFrames(in, "GPU tracking: frame", frames_.get());
 }
 
 void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,

@@ -3,7 +3,6 @@
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
 
-#include <algorithm>
 #include <string>
 
 #include "frame_packing.h"
@@ -27,9 +26,7 @@ RigidFits::~RigidFits() {
 std::string RigidFits::name() const { return deviceLabel(); }
 
 void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
-  auto next = detail::uploadDeviceFrames(surfaces, "GPU rigid fits: surface");
-  if (surfaces_) std::copy(surfaces_->stats, surfaces_->stats + 4, next->stats);
-  surfaces_ = std::move(next);
+  surfaces_ = detail::uploadDeviceFrames(surfaces, "GPU rigid fits: surface", surfaces_.get());
 }
 
 void RigidFits::setSources(const std::vector<const std::vector<double>*>& sources) {
