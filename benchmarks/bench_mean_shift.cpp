@@ -199,11 +199,12 @@ void checkArguments(int argc, char** argv) {
   for (int i = 1; i < argc; i += 2) {
     bool known = false;
     for (const char* o : kOptions) known = known || std::strcmp(argv[i], o) == 0;
-    if (!known)
-      throw std::runtime_error(std::string("unknown option '") + argv[i] +
-                               "' (options: --points --frames --refine --exact-every1 "
-                               "--exact-every2 --full --features --plan --bandwidth --w4 --exact "
-                               "--min-leaf-points)");
+    if (!known) {
+      std::string list;
+      for (const char* o : kOptions) list += std::string(list.empty() ? "" : " ") + o;
+      throw std::runtime_error(std::string("unknown option '") + argv[i] + "' (options: " + list +
+                               ")");
+    }
     if (i + 1 >= argc) throw std::runtime_error(std::string(argv[i]) + " needs a value");
   }
 }
