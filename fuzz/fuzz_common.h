@@ -16,21 +16,25 @@
 
 namespace fuzz {
 
-/** A private directory, created once per process and removed at exit. */
+/** A private directory, created once per process and removed at exit. The path lives on the heap
+ *  and is never destroyed: a function-local static path would be destroyed before the atexit
+ *  handler registered during its own construction runs (exit runs them in reverse order), and the
+ *  handler would then remove nothing. */
 inline const std::filesystem::path& workDir() {
-  static const std::filesystem::path dir = [] {
+  static const std::filesystem::path* const dir = [] {
     std::string tmpl = (std::filesystem::temp_directory_path() / "animseg_fuzz_XXXXXX").string();
     if (!mkdtemp(tmpl.data())) {
       std::perror("mkdtemp");
       std::abort();
     }
+    auto* path = new std::filesystem::path(tmpl);
     std::atexit([] {
       std::error_code ec;
       std::filesystem::remove_all(workDir(), ec);
     });
-    return std::filesystem::path(tmpl);
+    return path;
   }();
-  return dir;
+  return *dir;
 }
 
 /** Writes `data` to workDir()/name and returns the path. */
