@@ -12,9 +12,16 @@ namespace pcl_animseg {
 namespace gpu {
 namespace detail {
 
-/** Packs and uploads `frames`; throws Error (naming items as `what` + index) on a frame without
- * a tree or with a normal count that does not match, and on a CUDA failure. The new store goes
- * on with the call statistics of `previous` (the store it replaces; null: none). */
+/** Packs `frames` for upload (host work only, no CUDA call); throws Error (naming items as
+ * `what` + index) on a frame without a tree or with a normal count that does not match. */
+FrameArrays packDeviceFrames(const segmentation::DeviceFrames& frames, const std::string& what);
+
+/** Uploads packed frames; throws Error on a CUDA failure. The new store goes on with the call
+ * statistics of `previous` (the store it replaces; null: none). */
+std::unique_ptr<FrameStore> uploadPackedFrames(const FrameArrays& packed,
+                                               const FrameStore* previous);
+
+/** packDeviceFrames, then uploadPackedFrames. */
 std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& frames,
                                                const std::string& what,
                                                const FrameStore* previous);

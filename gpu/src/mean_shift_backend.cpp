@@ -16,6 +16,7 @@ void MeanShiftBackend::seekModes(const Eigen::MatrixXf& z, const Eigen::RowVecto
                                  const std::vector<char>& keypoint,
                                  const segmentation::MeanShiftParams& params, Eigen::MatrixXf& y,
                                  Eigen::VectorXf& density) {
+  requireGpu();
   MeanShift ms;
   MeanShiftParams p;
   p.gkdtree = params.gkdtree;
@@ -32,6 +33,7 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
                                const segmentation::MeanShiftParams& params,
                                const Eigen::MatrixXf& queries, const std::vector<char>& query_key,
                                Eigen::VectorXf& out) {
+  requireGpu();
   const Eigen::Index n = z.rows(), q = queries.rows();
   if (queries.cols() != z.cols()) throw Error("GPU density: queries and data differ in dimension");
   if (!keypoint.empty() && keypoint.size() != static_cast<std::size_t>(n))
@@ -70,9 +72,8 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
   add(key, qkey, metric_key, false);
 }
 
-std::shared_ptr<segmentation::MeanShiftDeviceBackend> makeMeanShiftBackend() {
-  std::string why;
-  if (!gpuAvailable(&why)) throw Error("no usable GPU: " + why);
+std::shared_ptr<segmentation::MeanShiftDeviceBackend> makeMeanShiftBackend(bool check_now) {
+  if (check_now) requireGpu();
   return std::make_shared<MeanShiftBackend>();
 }
 

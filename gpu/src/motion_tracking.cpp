@@ -66,9 +66,7 @@ void reportCalls(const FrameStore& store, const char* owner) {
                    store.stats[k].calls, store.stats[k].jobs, store.stats[k].seconds);
 }
 
-std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& in,
-                                               const std::string& what,
-                                               const FrameStore* previous) {
+FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::string& what) {
   FrameArrays a;
   a.frames = static_cast<int>(in.frames.size());
   a.normal_cos = in.normal_cos;
@@ -99,22 +97,46 @@ std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames&
     a.spacing.push_back(f.spacing);
     a.unoriented.push_back(f.unoriented ? 1 : 0);
   }
+  return a;
+}
+
+std::unique_ptr<FrameStore> uploadPackedFrames(const FrameArrays& packed,
+                                               const FrameStore* previous) {
   auto store = std::make_unique<FrameStore>();
-  uploadFrames(a, *store);
+  uploadFrames(packed, *store);
   if (previous) std::copy(previous->stats, previous->stats + 4, store->stats);
   return store;
+}
+
+std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& in,
+                                               const std::string& what,
+                                               const FrameStore* previous) {
+  return uploadPackedFrames(packDeviceFrames(in, what), previous);
 }
 
 }  // namespace detail
 
 void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
-  frames_ = detail::uploadDeviceFrames(in, "GPU tracking: frame", frames_.get());
+  // Packed now, uploaded at the first call that needs them: the CPU work between (the motion
+  // method's samples and global poses, 0.1-0.2 s at 800k) overlaps the GPU's start when a probe
+  // runs on another thread (pipeline.h, DeviceWarmUp).
+  pending_ =
+      std::make_unique<detail::FrameArrays>(detail::packDeviceFrames(in, "GPU tracking: frame"));
+}
+
+detail::FrameStore* MotionTracking::store() {
+  if (pending_) {
+    requireGpu();
+    frames_ = detail::uploadPackedFrames(*pending_, frames_.get());
+    pending_.reset();
+  }
+  return frames_.get();
 }
 
 void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,
                                   std::vector<std::vector<Eigen::Isometry3d>>& poses,
                                   std::vector<std::vector<double>>& residual) {
-  if (!frames_) throw Error("GPU tracking: no frames were set");
+  if (!store()) throw Error("GPU tracking: no frames were set");
   const int T = frames_->frames, S = problem.samples;
   const std::size_t uS = static_cast<std::size_t>(S), uT = static_cast<std::size_t>(T);
   if (S < 0 || problem.source_p.size() != uS || problem.source_n.size() != uS ||
@@ -175,7 +197,7 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
 
 void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) {
   const std::string what = "GPU residuals";
-  if (!frames_) throw Error(what + ": no frames were set");
+  if (!store()) throw Error(what + ": no frames were set");
   int sources = 0, motions = 0;
   countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
   std::vector<detail::ResidualJob> list;
@@ -189,7 +211,7 @@ void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vect
 }
 
 void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) {
-  if (!frames_) throw Error("GPU point costs: no frames were set");
+  if (!store()) throw Error("GPU point costs: no frames were set");
   const int T = frames_->frames;
   const int points = static_cast<int>(jobs.points.size() / 6);
   const std::size_t per_motion = static_cast<std::size_t>(T) * detail::kPoseDoubles;
@@ -211,7 +233,7 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
 
 void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) {
   const std::string what = "GPU part fits";
-  if (!frames_) throw Error(what + ": no frames were set");
+  if (!store()) throw Error(what + ": no frames were set");
   int sources = 0, motions = 0;
   countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
   if (jobs.iterations < 0) throw Error(what + ": negative iterations");

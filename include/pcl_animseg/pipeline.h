@@ -9,6 +9,7 @@
 
 #include <map>
 #include <string>
+#include <thread>
 #include <vector>
 
 namespace pcl_animseg {
@@ -63,6 +64,29 @@ struct PipelineResult {
  * Stage times are recorded in `progress` under the names of DESIGN.md's summary.json. */
 PipelineResult runPipeline(const PointCloudSequence& sequence, const PipelineParams& params,
                            Progress& progress);
+
+/** \brief Starts the GPU's check (the CUDA driver's and context's start: 0.2-0.35 s on the H100
+ * machine) on a thread of its own, so that it runs while the caller loads the sequence and while
+ * runPipeline does its first CPU work, instead of before them. runPipeline then waits for it only
+ * where the GPU is first needed, and the results are the same. Does nothing for device "cpu" or in
+ * a build without the CUDA module. Keep it alive until runPipeline returns: its destructor waits
+ * for the check to finish.
+ *
+ * \code
+ * pcl_animseg::DeviceWarmUp warm_up(params.device);
+ * const auto seq = pcl_animseg::io::loadSequence(dir);
+ * const auto result = pcl_animseg::runPipeline(seq, params, progress);
+ * \endcode */
+class DeviceWarmUp {
+ public:
+  explicit DeviceWarmUp(const std::string& device);
+  ~DeviceWarmUp();
+  DeviceWarmUp(const DeviceWarmUp&) = delete;
+  DeviceWarmUp& operator=(const DeviceWarmUp&) = delete;
+
+ private:
+  std::thread thread_;
+};
 
 /** \brief Checks parameters (bandwidth > 0, weights >= 0, known device, levels >= 0). */
 void validate(const PipelineParams& params);

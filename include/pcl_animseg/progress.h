@@ -30,6 +30,12 @@ class Progress {
   void update(std::size_t done);
   /** \brief End the innermost open stage; its time is recorded under its (prefixed) name. */
   double end(const std::string& detail = "");
+  /** \brief How many stages are open (sub-stages included). */
+  std::size_t depth() const { return open_.size(); }
+  /** \brief Closes the stages opened beyond `depth` without recording their times: work thrown
+   * away (a device stage that failed and runs again on the CPU), so that the stage run again is
+   * recorded under its own name, not as a sub-stage of the abandoned one. */
+  void abandon(std::size_t depth);
   /** \brief A line of information (not printed when quiet). */
   void info(const std::string& message) const;
   /** \brief A line only shown with --verbose. */

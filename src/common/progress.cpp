@@ -89,6 +89,17 @@ double Progress::end(const std::string& detail) {
   return secs;
 }
 
+void Progress::abandon(std::size_t depth) {
+  while (open_.size() > depth) {
+    const Stage s = open_.back();
+    open_.pop_back();
+    if (!quiet_) {
+      if (tty_ && s.total > 0 && s.last_shown >= 0) std::cerr << "\n";
+      std::cerr << "[" << s.name << "] abandoned" << std::endl;
+    }
+  }
+}
+
 void Progress::info(const std::string& message) const {
   if (!quiet_) std::cerr << message << std::endl;
 }

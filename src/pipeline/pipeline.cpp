@@ -56,6 +56,18 @@ std::string keypointDetail(const SequenceFeatures& f) {
 
 }  // namespace
 
+DeviceWarmUp::DeviceWarmUp(const std::string& device) {
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+  if (device != "cpu") thread_ = std::thread([] { gpu::gpuAvailable(); });
+#else
+  (void)device;
+#endif
+}
+
+DeviceWarmUp::~DeviceWarmUp() {
+  if (thread_.joinable()) thread_.join();
+}
+
 PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& params,
                            Progress& progress) {
   validate(params);
@@ -102,6 +114,8 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   segmentation::MeanShiftParams msp = params.mean_shift;
   if (motion_method) msp.record_densities = false;
   segmentation::SegmentationResult clusters;
+  bool gpu_check_pending = false;  // the GPU's check ran on a DeviceWarmUp's thread
+  (void)gpu_check_pending;
   {
     segmentation::MeanShiftSegmentation ms;
     ms.setInputSequence(shared);
@@ -110,9 +124,13 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       // gpu: the GPU or an error; auto: the GPU when one works, else a logged fall-back to the CPU.
       std::string why;
 #ifdef PCL_ANIMSEG_HAVE_CUDA
-      if (gpu::gpuAvailable(&why)) {
+      // A check still running (DeviceWarmUp) is not waited for here: the backend waits where the
+      // GPU is first needed, and a GPU found missing then is reported below as if found here.
+      gpu_check_pending = gpu::probeState() == gpu::ProbeState::Running;
+      if (gpu_check_pending || gpu::gpuAvailable(&why)) {
         gpu::resetPeakDeviceBytes();  // the run's peak, reported in summary.json
-        ms.setDeviceBackend(gpu::makeMeanShiftBackend(), /*cpu_fallback=*/params.device == "auto");
+        ms.setDeviceBackend(gpu::makeMeanShiftBackend(/*check_now=*/false),
+                            /*cpu_fallback=*/params.device == "auto");
         why.clear();
       }
 #else
@@ -131,7 +149,18 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     }
     ms.setProgress(&progress);
     progress.begin("mean_shift");
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+    try {
+      ms.segment(clusters);
+    } catch (const Error&) {
+      std::string why;
+      if (gpu_check_pending && !gpu::gpuAvailable(&why))
+        throw Error("--device gpu: no usable GPU: " + why);
+      throw;
+    }
+#else
     ms.segment(clusters);
+#endif
     progress.end(std::to_string(clusters.num_clusters) + " clusters" +
                  (clusters.sampling_factor > 0.0
                       ? " (filter N/M " + std::to_string(std::lround(clusters.sampling_factor)) +
@@ -139,7 +168,18 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
                       : std::string()));
     r.device_used = ms.deviceUsed();
     r.sampling_factor = clusters.sampling_factor;
-    if (!ms.fallbackReason().empty()) {
+    // A GPU found missing by a check that ran beside the stage: said as if found before it.
+    std::string no_gpu;
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+    if (gpu_check_pending && !ms.fallbackReason().empty() && !gpu::gpuAvailable(&no_gpu))
+      no_gpu = no_gpu.empty() ? "no usable GPU" : no_gpu;
+    else
+      no_gpu.clear();
+#endif
+    if (!no_gpu.empty()) {
+      r.notes.push_back("device auto: the CPU was used: " + no_gpu);
+      progress.debug("device auto: the CPU is used: " + no_gpu);
+    } else if (!ms.fallbackReason().empty()) {
       r.notes.push_back("the GPU failed, the CPU was used: " + ms.fallbackReason());
       progress.info("warning: the GPU failed, the CPU was used: " + ms.fallbackReason());
     }

@@ -1443,11 +1443,14 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
   // the CPU (never a silent wrong result: the reason is kept for the caller to log).
   auto guarded = [&](const std::function<void(MeanShiftDeviceBackend*)>& work) {
     if (!device) return work(nullptr);
+    // The failed try's open progress stages are closed before the CPU runs them again.
+    const std::size_t depth = progress_ ? progress_->depth() : 0;
     try {
       work(device);
       device_used_ = device->name();
     } catch (const Error& e) {
       if (!cpu_fallback_) throw;
+      if (progress_) progress_->abandon(depth);
       fallback_reason_ = e.what();
       device = nullptr;
       device_used_ = "cpu";

@@ -4,12 +4,14 @@
 // stage with its error or, with the fall-back on, leaves the CPU's result.
 #include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
 #include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/task_graph.h>
 
+#include <algorithm>
 #include <cmath>
 #include <memory>
 #include <string>
@@ -342,11 +344,23 @@ TEST(MotionDevice, AFailingDeviceStopsTheStageOrFallsBackToTheCpu) {
   lenient.setInputSequence(seq);
   lenient.setParams(params);
   lenient.setDeviceBackend(backend, /*cpu_fallback=*/true);
+  // The failed try's progress stages (the tracking's, begun before the device failed) are
+  // closed: the CPU's run is recorded under the caller's stage, and that stage ends as itself.
+  pcl_animseg::Progress progress(true, false);
+  lenient.setProgress(&progress);
+  progress.begin("mean_shift");
   seg::SegmentationResult got;
   lenient.segment(got);
+  EXPECT_EQ(progress.depth(), 1u);
+  progress.end();
   EXPECT_EQ(lenient.deviceUsed(), "cpu");
   EXPECT_NE(lenient.fallbackReason().find("out of device memory"), std::string::npos);
   EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
+  std::vector<std::string> names;
+  for (const auto& t : progress.timings()) names.push_back(t.first);
+  EXPECT_NE(std::find(names.begin(), names.end(), "mean_shift"), names.end());
+  EXPECT_NE(std::find(names.begin(), names.end(), "mean_shift/tracking samples"), names.end());
+  for (const auto& n : names) EXPECT_EQ(n.find("tracking samples/"), std::string::npos) << n;
 }
 
 TEST(TaskWaves, EachTaskInTheWaveAfterItsLongestChain) {

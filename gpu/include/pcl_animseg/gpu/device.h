@@ -12,6 +12,15 @@ namespace gpu {
  * user can act on; `--device auto` logs it and falls back to the CPU. Never throws. */
 bool gpuAvailable(std::string* why = nullptr);
 
+/** \brief Where gpuAvailable()'s one probe stands. A call made while another thread probes waits
+ * for that probe; probeState() never waits. */
+enum class ProbeState { NotStarted, Running, Done };
+ProbeState probeState();
+
+/** \brief Throws Error("no usable GPU: <why>") unless gpuAvailable() (waits for a probe under
+ * way on another thread). */
+void requireGpu();
+
 /** \brief The current device. */
 struct DeviceInfo {
   int id = -1;

@@ -58,8 +58,10 @@ class MeanShiftBackend : public segmentation::MeanShiftDeviceBackend {
 };
 
 /** \brief A MeanShiftBackend; throws Error when no usable GPU is present (check gpuAvailable
- * first to fall back quietly). */
-std::shared_ptr<segmentation::MeanShiftDeviceBackend> makeMeanShiftBackend();
+ * first to fall back quietly). With check_now false the GPU is checked by the backend's first
+ * call that needs it instead (requireGpu: the same Error, thrown from the segmenter), so that a
+ * probe running on another thread need not be waited for here. */
+std::shared_ptr<segmentation::MeanShiftDeviceBackend> makeMeanShiftBackend(bool check_now = true);
 
 }  // namespace gpu
 }  // namespace pcl_animseg

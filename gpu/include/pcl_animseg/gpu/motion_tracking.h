@@ -24,6 +24,7 @@ namespace gpu {
 
 namespace detail {
 struct FrameStore;
+struct FrameArrays;
 }
 
 /** \brief segmentation::MotionDevice on the current CUDA device. */
@@ -32,7 +33,9 @@ class MotionTracking : public segmentation::MotionDevice {
   MotionTracking();
   ~MotionTracking() override;
   std::string name() const override;
-  /** \brief Throws Error on a CUDA failure or frames without a tree. */
+  /** \brief Throws Error on frames without a tree. The frames are packed here and uploaded by
+   * the first call that needs them (which throws Error on a CUDA failure or when no usable GPU
+   * is present, see requireGpu). */
   void setFrames(const segmentation::DeviceFrames& frames) override;
   /** \brief Throws Error on a CUDA failure, no frames set, or a problem whose arrays do not
    * match. */
@@ -48,6 +51,10 @@ class MotionTracking : public segmentation::MotionDevice {
   int lastWaves() const { return waves_; }
 
  private:
+  /** The frames on the device, after uploading the pending ones (null: none were set). */
+  detail::FrameStore* store();
+
+  std::unique_ptr<detail::FrameArrays> pending_;  ///< set, not uploaded yet
   std::unique_ptr<detail::FrameStore> frames_;
   double device_seconds_ = 0.0;
   int waves_ = 0;
