@@ -1191,7 +1191,9 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
                                           const std::vector<int>& label, int nc,
                                           const std::vector<std::vector<Pose>>& init,
                                           const std::vector<int>& sample_part,
-                                          std::size_t max_points, double joint_weight) {
+                                          std::size_t max_points, double joint_weight,
+                                          MotionDevice* device) {
+  detail::StageTimer timer;
   const int T = static_cast<int>(frames.size());
   const int ref = tr.reference_frame;
   const Cloud& rc = *frames[ref].cloud;
@@ -1232,20 +1234,28 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     connectedComponents(adj, by_size, group);
     const double r2 =
         kContactSpacings * kContactSpacings * frames[ref].spacing * frames[ref].spacing;
-    std::vector<int> idx;
-    std::vector<float> d2;
-    std::vector<std::pair<int, int>> across;
-    for (int i = 0; i < n0; ++i) {
-      if (label[i] < 0) continue;
-      frames[ref].tree.nearestKSearch(rc[i], kContactNeighbours, idx, d2);
-      const Eigen::Vector3d ni(rc[i].normal_x, rc[i].normal_y, rc[i].normal_z);
-      for (std::size_t k = 0; k < idx.size(); ++k) {
-        const int j = idx[k];
-        if (d2[k] > r2 || label[j] < 0 || group[label[j]] == group[label[i]]) continue;
-        const Eigen::Vector3d nj(rc[j].normal_x, rc[j].normal_y, rc[j].normal_z);
-        if (ni.dot(nj) > kFacingCos) across.push_back({i, j});
+    // Each point's contacts found in parallel, then taken in point order as before.
+    std::vector<std::vector<int>> across_of(n0);
+#pragma omp parallel
+    {
+      std::vector<int> idx;
+      std::vector<float> d2;
+#pragma omp for schedule(dynamic, 256)
+      for (int i = 0; i < n0; ++i) {
+        if (label[i] < 0) continue;
+        frames[ref].tree.nearestKSearch(rc[i], kContactNeighbours, idx, d2);
+        const Eigen::Vector3d ni(rc[i].normal_x, rc[i].normal_y, rc[i].normal_z);
+        for (std::size_t k = 0; k < idx.size(); ++k) {
+          const int j = idx[k];
+          if (d2[k] > r2 || label[j] < 0 || group[label[j]] == group[label[i]]) continue;
+          const Eigen::Vector3d nj(rc[j].normal_x, rc[j].normal_y, rc[j].normal_z);
+          if (ni.dot(nj) > kFacingCos) across_of[i].push_back(j);
+        }
       }
     }
+    std::vector<std::pair<int, int>> across;
+    for (int i = 0; i < n0; ++i)
+      for (int j : across_of[i]) across.push_back({i, j});
     for (const auto& [i, j] : across) {
       adj[label[i]].insert(label[j]);
       adj[label[j]].insert(label[i]);
@@ -1292,12 +1302,12 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   std::vector<long> priority;
   frameTaskGraph(frame_order, dir_of, adj, [&](int, int c) { return level[c]; }, successors,
                  priority);
-  auto solve = [&](int task) {
+  timer.lap("part motions: adjacency");
+  // Task `task`'s starts: the initial motion, the previous frame's, a constant-velocity guess,
+  // the samples' rigid fit, and each solved neighbour's motion since the previous frame.
+  auto startsOf = [&](int task) {
     const int t = frame_order[task / nc], c = task % nc;
-    if (pts[c].empty()) return;
     const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
-    // The starts: the initial motion, the previous frame's, a constant-velocity guess, the
-    // samples' rigid fit, and each solved neighbour's motion since the previous frame.
     std::vector<Pose> st{init[c][t], motion[c][tp]};
     if (tpp >= 0) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
     const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
@@ -1313,29 +1323,141 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     }
     for (int h : adj[c])
       if (level[h] < level[c]) st.push_back(motion[h][t] * motion[h][tp].inverse() * motion[c][tp]);
-    // Residual plus the joint term: joint_weight per spacing that a joint opens beyond kJointGap
-    // spacings from where the solved neighbour put it.
-    auto scoreOf = [&](const Pose& P) {
-      double pen = 0.0;
-      for (const auto& [h, j] : joints[c])
-        pen += std::max(0.0, (P * j - motion[h][t] * j).norm() / frames[t].spacing - kJointGap);
-      return residual(src[c], P, frames[t]) + joint_weight * pen;
-    };
+    return st;
+  };
+  // A pose's score from its residual: plus joint_weight per spacing that a joint opens beyond
+  // kJointGap spacings from where the solved neighbour put it.
+  auto scoreWith = [&](int c, int t, const Pose& P, double res) {
+    double pen = 0.0;
+    for (const auto& [h, j] : joints[c])
+      pen += std::max(0.0, (P * j - motion[h][t] * j).norm() / frames[t].spacing - kJointGap);
+    return res + joint_weight * pen;
+  };
+  // The starts ranked by score (stable: the first of equal scores first).
+  auto ranked = [](const std::vector<double>& scores) {
     std::vector<std::pair<double, int>> score;
-    for (std::size_t k = 0; k < st.size(); ++k)
-      score.push_back({scoreOf(st[k]), static_cast<int>(k)});
+    for (std::size_t k = 0; k < scores.size(); ++k)
+      score.push_back({scores[k], static_cast<int>(k)});
     std::stable_sort(score.begin(), score.end());
+    return score;
+  };
+  constexpr int kRefined = 2;    // ICP from the two best starts: from all would triple the cost
+  constexpr int kIterations = 10;
+  auto solve = [&](int task) {
+    const int t = frame_order[task / nc], c = task % nc;
+    if (pts[c].empty()) return;
+    const std::vector<Pose> st = startsOf(task);
+    std::vector<double> scores(st.size());
+    for (std::size_t k = 0; k < st.size(); ++k)
+      scores[k] = scoreWith(c, t, st[k], residual(src[c], st[k], frames[t]));
+    const auto score = ranked(scores);
     // The best start, replaced by an ICP refinement of one of the two best that fits better (in
     // rank order).
     double best = score[0].first;
     motion[c][t] = st[score[0].second];
-    for (std::size_t k = 0; k < std::min<std::size_t>(2, score.size()); ++k) {
-      const Pose refined = icp(src[c], st[score[k].second], frames[t], 10, 4.0 * frames[t].spacing);
-      const double r = scoreOf(refined);
+    for (std::size_t k = 0; k < std::min<std::size_t>(kRefined, score.size()); ++k) {
+      const Pose refined =
+          icp(src[c], st[score[k].second], frames[t], kIterations, 4.0 * frames[t].spacing);
+      const double r = scoreWith(c, t, refined, residual(src[c], refined, frames[t]));
       if (r < best) best = r, motion[c][t] = refined;
     }
   };
-  runTaskGraph(successors, priority, solve, [](int) {});
+  if (!device || omp_in_parallel()) {  // a device serves one caller at a time
+    runTaskGraph(successors, priority, solve, [](int) {});
+    timer.lap("part motions: fits");
+    return motion;
+  }
+  // On the device: the tasks wave after wave (each after the tasks it depends on), each wave's
+  // start scores, ICPs and refined scores as three batches, with the same arithmetic as
+  // residual() and icp() (motion_device.h): the same motions as the task graph on the cores,
+  // whose 16 threads waited on the frames' chain of small fits (0.23 s of critical path at
+  // 800k).
+  ResidualJobs scoring;
+  for (int c = 0; c < nc; ++c) {
+    appendPoints(src[c].p, src[c].n, scoring.points);
+    scoring.source_begin.push_back(static_cast<int>(scoring.points.size() / 6));
+  }
+  PartFitJobs fitting;
+  fitting.iterations = kIterations;
+  fitting.points = scoring.points;
+  fitting.source_begin = scoring.source_begin;
+  auto residualsOf = [&](const std::vector<ResidualJobs::Job>& jobs,
+                         const std::vector<Pose>& poses) {
+    scoring.jobs = jobs;
+    scoring.motions.clear();
+    for (const Pose& P : poses) appendMotion(P, scoring.motions);
+    std::vector<double> out;
+    device->residuals(scoring, out);
+    if (out.size() != jobs.size())
+      throw Error("motion method: the device returned " + std::to_string(out.size()) +
+                  " residuals for " + std::to_string(jobs.size()));
+    return out;
+  };
+  for (const std::vector<int>& wave_tasks : taskWaves(successors)) {
+    std::vector<int> wave;
+    for (int task : wave_tasks)
+      if (!pts[task % nc].empty()) wave.push_back(task);
+    const int W = static_cast<int>(wave.size());
+    if (W == 0) continue;
+    std::vector<std::vector<Pose>> st(W);
+#pragma omp parallel for schedule(dynamic, 1) if (W > 1)
+    for (int w = 0; w < W; ++w) st[w] = startsOf(wave[w]);
+    std::vector<ResidualJobs::Job> jobs;
+    std::vector<Pose> poses;
+    for (int w = 0; w < W; ++w) {
+      const int t = frame_order[wave[w] / nc], c = wave[w] % nc;
+      for (const Pose& P : st[w]) {
+        jobs.push_back({c, static_cast<int>(poses.size()), t});
+        poses.push_back(P);
+      }
+    }
+    const std::vector<double> start_res = residualsOf(jobs, poses);
+    // Each task's two best starts, refined by ICP on the device (r0 infinite: the ICP's
+    // result is kept whatever its residual, as icp() returns it).
+    std::vector<std::vector<std::pair<double, int>>> score(W);
+    fitting.jobs.clear();
+    fitting.motions.clear();
+    std::vector<std::pair<int, int>> fit_of;  // (task in the wave, start)
+    for (int w = 0, at = 0; w < W; ++w) {
+      const int t = frame_order[wave[w] / nc], c = wave[w] % nc;
+      std::vector<double> scores(st[w].size());
+      for (std::size_t k = 0; k < st[w].size(); ++k, ++at)
+        scores[k] = scoreWith(c, t, st[w][k], start_res[at]);
+      score[w] = ranked(scores);
+      for (std::size_t k = 0; k < std::min<std::size_t>(kRefined, score[w].size()); ++k) {
+        appendMotion(st[w][score[w][k].second], fitting.motions);
+        fitting.jobs.push_back({c, static_cast<int>(fit_of.size()), t,
+                                std::numeric_limits<double>::infinity(),
+                                4.0 * frames[t].spacing});
+        fit_of.push_back({w, score[w][k].second});
+      }
+    }
+    std::vector<double> fitted;
+    device->partFits(fitting, fitted);
+    if (fitted.size() != 12 * fit_of.size())
+      throw Error("motion method: the device returned " + std::to_string(fitted.size() / 12) +
+                  " part fits for " + std::to_string(fit_of.size()));
+    std::vector<Pose> refined(fit_of.size());
+    jobs.clear();
+    for (std::size_t f = 0; f < fit_of.size(); ++f) {
+      refined[f] = motionAt(&fitted[12 * f]);
+      const int task = wave[fit_of[f].first];
+      jobs.push_back({task % nc, static_cast<int>(f), frame_order[task / nc]});
+    }
+    const std::vector<double> refined_res = residualsOf(jobs, refined);
+    // As solve(): the best start, replaced by a refinement that scores lower, in rank order.
+    for (std::size_t f = 0, w0 = 0; w0 < static_cast<std::size_t>(W); ++w0) {
+      const int w = static_cast<int>(w0);
+      const int t = frame_order[wave[w] / nc], c = wave[w] % nc;
+      double best = score[w][0].first;
+      motion[c][t] = st[w][score[w][0].second];
+      for (; f < fit_of.size() && fit_of[f].first == w; ++f) {
+        const double r = scoreWith(c, t, refined[f], refined_res[f]);
+        if (r < best) best = r, motion[c][t] = refined[f];
+      }
+    }
+  }
+  timer.lap("part motions: fits (device)");
   return motion;
 }
 
@@ -2348,7 +2470,8 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   // Part motions, tracked along the sequence as an articulated body, each refined by ICP of up
   // to 400 of its reference points.
   const std::vector<std::vector<Pose>> motion =
-      trackParts(frames, tr, label, nc, tc.poses, tc.group, 400, params.joint_weight);
+      trackParts(frames, tr, label, nc, tc.poses, tc.group, 400, params.joint_weight,
+                 params.device);
   timer.lap("labels: part motions");
   // The part motions are final now: the borders between parts are placed once more, by the
   // graph cut (motion fit plus a short border, cut where the surface folds inwards) or, with
