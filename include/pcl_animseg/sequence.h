@@ -81,6 +81,13 @@ class PointCloudSequence {
  * units of it so that results do not change when a frame is scaled or resampled. */
 double meanSpacing(const PointCloudSequence::Cloud& cloud, std::size_t max_samples = 2000);
 
+template <typename PointT>
+class KdTree;
+/** \brief meanSpacing with a kd-tree over `cloud` that the caller has built anyway (the same
+ * value, without building another). */
+double meanSpacing(const PointCloudSequence::Cloud& cloud, const KdTree<pcl::PointNormal>& tree,
+                   std::size_t max_samples = 2000);
+
 /** \brief meanSpacing of every frame of a sequence, the frames in parallel. A frame that has no
  * spacing (fewer than 2 points, all points coinciding) throws pcl_animseg::Error naming the
  * frame. */

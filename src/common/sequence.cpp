@@ -81,6 +81,12 @@ double meanSpacing(const PointCloudSequence::Cloud& cloud, std::size_t max_sampl
   PointCloudSequence::Cloud::Ptr copy(new PointCloudSequence::Cloud(cloud));
   pcl_animseg::KdTree<pcl::PointNormal> tree;
   tree.setInputCloud(copy);
+  return meanSpacing(cloud, tree, max_samples);
+}
+
+double meanSpacing(const PointCloudSequence::Cloud& cloud, const KdTree<pcl::PointNormal>& tree,
+                   std::size_t max_samples) {
+  if (cloud.size() < 2) throw Error("cannot measure point spacing of fewer than 2 points");
   const std::size_t n = cloud.size();
   const std::size_t step = std::max<std::size_t>(1, n / std::max<std::size_t>(1, max_samples));
   std::vector<int> idx(2);

@@ -213,6 +213,14 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     stage(nullptr);
   };
 
+  // The frames' mean spacings, measured once (in the first stage that needs them) for the
+  // refinement and the rigid motions, which measured them twice each.
+  std::vector<double> spacings;
+  auto frameSpacings = [&]() {
+    if (spacings.empty()) spacings = meanSpacings(seq);
+    return spacings;
+  };
+
   // 3. Boundary refinement (Sect. 4), built over all frames jointly.
   segmentation::SegmentationResult refined;
   std::vector<segmentation::PartMotion> refinement_motions;
@@ -223,6 +231,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     segmentation::RefinementParams rp = params.refinement;
     rp.seed = msp.seed;
     gmm.setParams(rp);
+    gmm.setSpacings(frameSpacings());
     onDevice("refinement", [&](segmentation::RigidFitDevice* device) {
       gmm.setRigidFitDevice(device);
       gmm.refine(clusters, refined);
@@ -256,6 +265,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     segmentation::RigidMotionEstimation rme;
     rme.setInputSequence(&seq);
     rme.setParams(params.rigid_motion);
+    rme.setSpacings(frameSpacings());
     // Level 0's parts are the refinement's input parts with refined borders: their motions,
     // which the refinement fitted, start each frame's fit, and the frames run in parallel.
     rme.setInitialMotions(std::move(refinement_motions));

@@ -701,8 +701,15 @@ int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>&
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
                                                        int num_parts) const {
   const int np = checkedPartCount(labels, num_parts);
-  return computeParts({&labels}, {np}, {{}}, meanSpacings(*sequence_), {frame0Counts(labels, np)})
-      .front();
+  return computeParts({&labels}, {np}, {{}}, frameSpacings(), {frame0Counts(labels, np)}).front();
+}
+
+std::vector<double> RigidMotionEstimation::frameSpacings() const {
+  if (spacings_.empty()) return meanSpacings(*sequence_);
+  if (spacings_.size() != sequence_->size())
+    throw Error("rigid motion: " + std::to_string(spacings_.size()) + " spacings for " +
+                std::to_string(sequence_->size()) + " frames");
+  return spacings_;
 }
 
 std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
@@ -767,7 +774,7 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
       if (fit[l][b]) merged[l].push_back(b), fit[l][b] = 0;
   }
   // Computed once, for the chained fits and the fits from children alike.
-  const std::vector<double> spacing = meanSpacings(*sequence_);
+  const std::vector<double> spacing = frameSpacings();
   std::vector<std::vector<std::size_t>> frame0_points(nl);
   for (std::size_t l = 0; l < nl; ++l) frame0_points[l] = frame0Counts(levels(l), np[l]);
   detail::StageTimer timer("rigid motion");

@@ -1,7 +1,7 @@
-#include <pcl_animseg/error.h>
-#include <pcl_animseg/sequence.h>
-
 #include <gtest/gtest.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/kdtree.h>
+#include <pcl_animseg/sequence.h>
 
 using pcl_animseg::PointCloudSequence;
 
@@ -65,6 +65,15 @@ TEST(PointCloudSequence, MeanSpacingsOfEveryFrameAndTheFrameThatHasNone) {
   ASSERT_EQ(s.size(), 9u);
   for (int t = 0; t < 9; ++t) EXPECT_EQ(s[t], pcl_animseg::meanSpacing(*seq.frame(t))) << t;
   EXPECT_NEAR(s[4], 0.5, 1e-6);
+  // From a tree the caller built: the same values.
+  for (int t = 0; t < 9; ++t) {
+    pcl_animseg::KdTree<pcl::PointNormal> tree;
+    tree.setInputCloud(seq.frame(t));
+    EXPECT_EQ(pcl_animseg::meanSpacing(*seq.frame(t), tree), s[t]) << t;
+    EXPECT_EQ(pcl_animseg::meanSpacing(*seq.frame(t), tree, 7),
+              pcl_animseg::meanSpacing(*seq.frame(t), 7))
+        << t;
+  }
   PointCloudSequence::Cloud::Ptr same(new PointCloudSequence::Cloud);
   same->resize(5);
   for (auto& p : *same) p.x = p.y = p.z = 1.f;

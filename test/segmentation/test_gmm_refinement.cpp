@@ -251,6 +251,33 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   EXPECT_LE(dev.batches, 4);   // one batch per frame position
 }
 
+// Spacings given by the caller (the pipeline measures them once) are the ones measured: the
+// same result; spacings of another frame count are an error, and others than measured are used.
+TEST(GMMRefinement, SpacingsGivenAreUsed) {
+  const auto chain = animseg_test::makeTubeChain({1.0, 1.0, 0.8}, {1.0, 0.7}, 5, 6000, 2.0, 4);
+  SegmentationResult in;
+  in.labels = chain.shifted;
+  in.num_clusters = 3;
+  GMMBoundaryRefinement measured;
+  measured.setInputSequence(&chain.sequence);
+  SegmentationResult expected;
+  measured.refine(in, expected);
+  GMMBoundaryRefinement given;
+  given.setInputSequence(&chain.sequence);
+  given.setSpacings(pcl_animseg::meanSpacings(chain.sequence));
+  SegmentationResult got;
+  given.refine(in, got);
+  EXPECT_EQ(got.labels, expected.labels);
+  given.setSpacings(std::vector<double>(chain.sequence.size() + 1, 0.01));
+  EXPECT_THROW(given.refine(in, got), pcl_animseg::Error);
+  // Bands ten times narrower: fewer points can move.
+  std::vector<double> narrow = pcl_animseg::meanSpacings(chain.sequence);
+  for (double& s : narrow) s *= 0.1;
+  given.setSpacings(narrow);
+  given.refine(in, got);
+  EXPECT_NE(got.labels, expected.labels);
+}
+
 // The motion check over a few frames spread evenly (motion_frames) instead of all of them: on a
 // sequence of 12 frames, 4 give nearly the same labels and still cut the boundary error; a cap at
 // or above the frame count changes nothing.

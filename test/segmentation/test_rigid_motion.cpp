@@ -323,6 +323,23 @@ TEST(RigidMotion, InitialMotionsStartEachFrame) {
   expectSameMotion(est.compute(chain.truth)[1], chained[1], "part 1 after clearing");
 }
 
+// Spacings given (measured once by the pipeline) give the motions of spacings measured here; a
+// count other than the frame count is an error.
+TEST(RigidMotion, SpacingsGivenAreTheMeasuredOnes) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 4000, false, 5);
+  RigidMotionEstimation est;
+  est.setInputSequence(&chain.sequence);
+  const std::vector<PartMotion> measured = est.compute(chain.truth);
+  est.setSpacings(pcl_animseg::meanSpacings(chain.sequence));
+  const std::vector<PartMotion> given = est.compute(chain.truth);
+  ASSERT_EQ(given.size(), measured.size());
+  for (std::size_t p = 0; p < given.size(); ++p)
+    expectSameMotion(given[p], measured[p], "part " + std::to_string(p));
+  est.setSpacings(std::vector<double>(2, 0.01));
+  EXPECT_THROW(est.compute(chain.truth), pcl_animseg::Error);
+  EXPECT_THROW(est.computeLevels({chain.truth}), pcl_animseg::Error);
+}
+
 // The fits through a device (in batches: the seeded parts' frames side by side, the chains one
 // frame position of all parts at a time, a nested level's merged parts all at once) give the
 // CPU's motions bit for bit, from what the device was given alone; a device's failure is thrown.

@@ -152,6 +152,11 @@ class GMMBoundaryRefinement {
   /** \brief Where the ICP fits of the input parts' motions run (RigidMotionEstimation::setDevice;
    * not owned): the same results; nullptr (the default) for the CPU. */
   void setRigidFitDevice(RigidFitDevice* device) { device_ = device; }
+  /** \brief The frames' mean point spacings as meanSpacings() measures them, when the caller
+   * has them already (the pipeline measures once for the refinement and the rigid motions): they
+   * are not measured again. Empty (the default): measured from the refinement's own kd-trees.
+   * refine() throws Error when their count is not the frame count. */
+  void setSpacings(std::vector<double> spacings) { spacings_ = std::move(spacings); }
 
   /** \brief Output is the input with refined labels (num_clusters, modes, densities and saddles
    * copied unchanged). Throws pcl_animseg::Error for labels that do not match the sequence or
@@ -172,6 +177,7 @@ class GMMBoundaryRefinement {
   RefinementStats stats_;
   std::vector<PartMotion> motions_;
   RigidFitDevice* device_ = nullptr;
+  std::vector<double> spacings_;
 };
 
 }  // namespace segmentation

@@ -127,6 +127,10 @@ class RigidMotionEstimation {
    * thrown. */
   void setDevice(RigidFitDevice* device) { device_ = device; }
   RigidFitDevice* getDevice() const { return device_; }
+  /** \brief The frames' mean point spacings as meanSpacings() measures them, when the caller
+   * has them already: they are not measured again. Empty (the default): measured. compute() and
+   * computeLevels() throw Error when their count is not the frame count. */
+  void setSpacings(std::vector<double> spacings) { spacings_ = std::move(spacings); }
   const RigidMotionParams& getParams() const { return params_; }
 
   /** \brief Starts for the fits of the first labelling's parts (compute()'s labels, or level 0 of
@@ -178,8 +182,12 @@ class RigidMotionEstimation {
 
   const PointCloudSequence* sequence_ = nullptr;
   RigidMotionParams params_;
+  /** The spacings given (setSpacings), checked against the frame count, or measured. */
+  std::vector<double> frameSpacings() const;
+
   std::vector<PartMotion> init_;
   RigidFitDevice* device_ = nullptr;
+  std::vector<double> spacings_;
 };
 
 /** \brief Writes transforms.json (atomically):
