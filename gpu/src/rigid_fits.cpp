@@ -75,5 +75,51 @@ void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
   ++batches_;
 }
 
+bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
+                    const std::vector<float>& queries, const std::vector<int>& tree_of,
+                    std::vector<int>& rows, std::vector<int>& count) {
+  if (k < 2 || k > detail::kMaxKnn) return false;
+  if (queries.size() != 3 * tree_of.size())
+    throw Error("GPU k-NN: three coordinates per query expected");
+  const int n_trees = static_cast<int>(trees.size());
+  for (int t : tree_of)
+    if (t < 0 || t >= n_trees) throw Error("GPU k-NN: a query's tree out of range");
+  detail::KnnTrees packed;
+  // Each tree's first node and point, then the trees packed side by side.
+  std::vector<int> node0(n_trees + 1, 0), point0(n_trees + 1, 0);
+  for (int t = 0; t < n_trees; ++t) {
+    if (!trees[t]) throw Error("GPU k-NN: a tree is missing");
+    node0[t + 1] = node0[t] + static_cast<int>(trees[t]->nodes().size());
+    point0[t + 1] = point0[t] + static_cast<int>(trees[t]->size());
+  }
+  packed.nodes.resize(node0[n_trees]);
+  packed.root.resize(n_trees);
+  packed.size.resize(n_trees);
+  packed.points.resize(4 * static_cast<std::size_t>(point0[n_trees]));
+  packed.rows.resize(point0[n_trees]);
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < n_trees; ++t) {
+    const FlatKdTree3& tree = *trees[t];
+    const std::vector<FlatKdTree3::Node>& nodes = tree.nodes();
+    for (std::size_t i = 0; i < nodes.size(); ++i) {
+      const FlatKdTree3::Node& n = nodes[i];
+      const int off = n.dim >= 0 ? node0[t] : point0[t];
+      packed.nodes[node0[t] + i] = detail::TrackNode{n.split, n.dim, n.a + off, n.b + off};
+    }
+    packed.root[t] = nodes.empty() ? -1 : node0[t];
+    packed.size[t] = static_cast<int>(tree.size());
+    const std::vector<float>& xyz = tree.leafPoints();
+    float* out = &packed.points[4 * static_cast<std::size_t>(point0[t])];
+    for (std::size_t i = 0; i < tree.size(); ++i) {
+      out[4 * i] = xyz[3 * i], out[4 * i + 1] = xyz[3 * i + 1], out[4 * i + 2] = xyz[3 * i + 2];
+      out[4 * i + 3] = 0.0f;
+    }
+    std::copy(tree.leafRows().begin(), tree.leafRows().end(), packed.rows.begin() + point0[t]);
+  }
+  requireGpu();
+  detail::runKnn(packed, k, queries, tree_of, rows, count);
+  return true;
+}
+
 }  // namespace gpu
 }  // namespace pcl_animseg

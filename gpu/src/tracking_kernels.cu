@@ -712,6 +712,94 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   std::copy(all.begin() + poses.size(), all.end(), rms.begin());
 }
 
+// FlatKdTree3::knn (flat_kdtree.h): its walk (visit) with its sorted heap of (d2, row) pairs,
+// a query per thread; distances in the CPU's float order, without contraction.
+__global__ void knnKernel(const TrackNode* nodes, const float4* pts, const int* rows,
+                          const int* root, const int* size, const float* queries,
+                          const int* tree_of, long long n, int k, int* out_rows, int* out_count) {
+  const long long q = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (q >= n) return;
+  const int t = tree_of[q];
+  const int kk = min(k, size[t]);
+  float hd[kMaxKnn];
+  int hr[kMaxKnn];
+  int filled = 0;
+  const float qx = queries[3 * q], qy = queries[3 * q + 1], qz = queries[3 * q + 2];
+  if (root[t] >= 0 && kk > 0 && isfinite(qx) && isfinite(qy) && isfinite(qz)) {
+    struct Entry {
+      int node;
+      float min_d2;
+    };
+    Entry stack[kMaxDepth];
+    int top = 0;
+    stack[top++] = {root[t], 0.0f};
+    auto worst = [&]() { return filled < kk ? CUDART_INF_F : hd[kk - 1]; };
+    while (top > 0) {
+      const Entry e = stack[--top];
+      if (!(e.min_d2 < worst())) continue;
+      int nidx = e.node;
+      TrackNode nd = nodes[nidx];
+      while (nd.dim >= 0) {
+        const float qv = nd.dim == 0 ? qx : (nd.dim == 1 ? qy : qz);
+        const float diff = __fsub_rn(qv, nd.split);
+        const float far_d2 = fmaxf(e.min_d2, __fmul_rn(diff, diff));
+        if (far_d2 < worst() && top < kMaxDepth) stack[top++] = {diff < 0.0f ? nd.b : nd.a, far_d2};
+        nidx = diff < 0.0f ? nd.a : nd.b;
+        nd = nodes[nidx];
+      }
+      for (int i = nd.a; i < nd.b; ++i) {
+        const float4 p = pts[i];
+        const float d0 = __fsub_rn(qx, p.x), d1 = __fsub_rn(qy, p.y), dz = __fsub_rn(qz, p.z);
+        const float d =
+            __fadd_rn(__fadd_rn(__fmul_rn(d0, d0), __fmul_rn(d1, d1)), __fmul_rn(dz, dz));
+        if (!(d < worst())) continue;
+        const int row = rows[i];
+        // heap.insert(upper_bound(...)) after dropping the last when full, as on the CPU.
+        if (filled == kk) {
+          if (!(d < hd[kk - 1] || (d == hd[kk - 1] && row < hr[kk - 1]))) continue;
+          --filled;
+        }
+        int at = filled;
+        while (at > 0 && (d < hd[at - 1] || (d == hd[at - 1] && row < hr[at - 1]))) {
+          hd[at] = hd[at - 1];
+          hr[at] = hr[at - 1];
+          --at;
+        }
+        hd[at] = d;
+        hr[at] = row;
+        ++filled;
+      }
+    }
+  }
+  for (int i = 0; i < k; ++i) out_rows[q * k + i] = i < filled ? hr[i] : -1;
+  out_count[q] = filled;
+}
+
+void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
+            const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count) {
+  const long long n = static_cast<long long>(tree_of.size());
+  rows.resize(static_cast<std::size_t>(n) * k);
+  count.resize(static_cast<std::size_t>(n));
+  if (n == 0) return;
+  DeviceArray<TrackNode> nodes(trees.nodes.data(), trees.nodes.size());
+  DeviceArray<float> points(trees.points.data(), trees.points.size());
+  DeviceArray<int> point_rows(trees.rows.data(), trees.rows.size());
+  DeviceArray<int> root(trees.root.data(), trees.root.size());
+  DeviceArray<int> size(trees.size.data(), trees.size.size());
+  DeviceArray<float> q(queries.data(), queries.size());
+  DeviceArray<int> of(tree_of.data(), tree_of.size());
+  DeviceArray<int> out_rows(rows.size());
+  DeviceArray<int> out_count(count.size());
+  const int threads = 128;
+  const long long blocks = (n + threads - 1) / threads;
+  knnKernel<<<static_cast<unsigned>(blocks), threads>>>(
+      nodes.ptr(), reinterpret_cast<const float4*>(points.ptr()), point_rows.ptr(), root.ptr(),
+      size.ptr(), q.ptr(), of.ptr(), n, k, out_rows.ptr(), out_count.ptr());
+  cudaCheckLaunch();
+  out_rows.download(rows);
+  out_count.download(count);
+}
+
 void uploadFrames(const FrameArrays& in, FrameStore& store) {
   store.frames = in.frames;
   store.normal_cos = in.normal_cos;

@@ -163,6 +163,25 @@ struct RigidParams {
   double max_turn;
 };
 
+/** Trees for k-NN queries (FlatKdTree3's nodes, points and input rows, every tree after the
+ * other, indices made global). */
+struct KnnTrees {
+  std::vector<TrackNode> nodes;
+  std::vector<int> root;      // per tree: root node, -1 when empty
+  std::vector<int> size;      // per tree: points
+  std::vector<float> points;  // 4 per point (x, y, z, 0), leaf order
+  std::vector<int> rows;      // per point: its row in its own tree
+};
+
+/** The largest k that runKnn takes. */
+constexpr int kMaxKnn = 32;
+
+/** FlatKdTree3::knn (flat_kdtree.h) of every query (x, y, z in `queries`) against tree
+ * tree_of[q]: the same rows in the same order; k slots per query in `rows` (-1 past count[q]).
+ * 2 <= k <= kMaxKnn. */
+void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
+            const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
+
 /** segmentation::fitRigidJob for every job, one block each: poses (12 doubles per job) and rms.
  * `surfaces`: the parts' trees as frames (their spacing and orientation unused); `sources`:
  * the packed sources on the device. */

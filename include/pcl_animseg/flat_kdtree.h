@@ -176,6 +176,10 @@ class FlatKdTree3 {
     return static_cast<int>(rows.size());
   }
 
+  /** \brief The squared distance as every query computes it ((dx² + dy²) + dz² in float): for
+   * callers that get rows without distances (a device's k-NN) and need the same values. */
+  static float distance2(const float q[3], const float* p) { return dist2(q, p); }
+
   /** \brief A node of the tree, for code that walks it elsewhere (a device copy): node 0 is the
    * root; an inner node's points with coordinate `dim` below `split` lie under `a`, above it
    * under `b` (equal: either side). */

@@ -9,6 +9,7 @@
 #include <cmath>
 #include <limits>
 #include <map>
+#include <memory>
 #include <queue>
 #include <tuple>
 #include <unordered_map>
@@ -84,9 +85,49 @@ class NeighbourLists {
       std::copy(d2.begin(), d2.end(), d2_.begin() + j * k);
     }
   }
-  bool empty() const { return count_.empty(); }
+  /** The device's k-NN of every frame's labelled points (one call for all frames): rows of
+   * the frames' flat trees, k slots per query. */
+  struct DeviceLists {
+    int k = 0;
+    std::vector<int> rows, count;
+  };
+  /** The same lists as a view into `lists`, whose queries `first`, `first` + 1, ... are this
+   * frame's labelled points in point order, rows of `tree`'s flat tree. */
+  void view(std::shared_ptr<const DeviceLists> lists, std::size_t first, const Cloud& cloud,
+            const pcl_animseg::KdTree<pcl::PointNormal>& tree, const std::vector<int>& lab) {
+    lists_ = std::move(lists);
+    cloud_ = &cloud;
+    tree_ = &tree;
+    k_ = lists_->k;
+    first_ = first;
+    slot_.clear();
+    if (std::find_if(lab.begin(), lab.end(), [](int l) { return l < 0; }) != lab.end()) {
+      slot_.assign(lab.size(), -1);
+      long q = static_cast<long>(first);
+      for (std::size_t j = 0; j < lab.size(); ++j)
+        if (lab[j] >= 0) slot_[j] = q++;
+    }
+  }
+  bool empty() const { return count_.empty() && !lists_; }
   /** The lists of point j (a labelled point) into idx and d2, as nearestKSearch gives them. */
   void get(std::size_t j, std::vector<int>& idx, std::vector<float>& d2) const {
+    if (lists_) {
+      const std::size_t q = slot_.empty() ? first_ + j : static_cast<std::size_t>(slot_[j]);
+      const int c = lists_->count[q];
+      const int* r = &lists_->rows[q * k_];
+      idx.resize(c);
+      d2.resize(c);
+      // The distances as the tree's search computes them (the same floats).
+      const auto& x = (*cloud_)[j];
+      const float qx[3] = {x.x, x.y, x.z};
+      for (int i = 0; i < c; ++i) {
+        idx[i] = tree_->cloudIndex(r[i]);
+        const auto& y = (*cloud_)[idx[i]];
+        const float py[3] = {y.x, y.y, y.z};
+        d2[i] = FlatKdTree3::distance2(qx, py);
+      }
+      return;
+    }
     idx.assign(idx_.begin() + j * k_, idx_.begin() + j * k_ + count_[j]);
     d2.assign(d2_.begin() + j * k_, d2_.begin() + j * k_ + count_[j]);
   }
@@ -95,6 +136,11 @@ class NeighbourLists {
   int k_ = 0;
   std::vector<int> idx_, count_;
   std::vector<float> d2_;
+  std::shared_ptr<const DeviceLists> lists_;
+  const Cloud* cloud_ = nullptr;
+  const pcl_animseg::KdTree<pcl::PointNormal>* tree_ = nullptr;
+  std::size_t first_ = 0;
+  std::vector<long> slot_;  ///< per point its query, when some points are unlabelled
 };
 
 // The fold snap of one frame (RefinementParams::fold_snap_*); returns the points it moved.
@@ -383,6 +429,42 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   std::vector<NeighbourLists> knn(frames);  // built by the first boundary scan
   const double candidate_reach = p.narrow_band + p.boundary_max_distance + 1.0;
   const bool restrict_scan = p.outer_band >= candidate_reach;
+
+  // With a device that offers it, every frame's lists in one k-NN call (the same lists; on the
+  // cores they were a fifth of the refinement's CPU time at 800k), which the frames' lists view.
+  if (device_ && p.max_iterations > 0) {
+    const int k = p.boundary_k + 1;
+    std::vector<const FlatKdTree3*> flat(frames);
+    std::vector<std::size_t> first(frames + 1, 0);  // each frame's first query
+    for (std::size_t t = 0; t < frames; ++t) {
+      flat[t] = &trees[t].flatTree();
+      first[t + 1] =
+          first[t] + static_cast<std::size_t>(std::count_if(labels[t].begin(), labels[t].end(),
+                                                            [](int l) { return l >= 0; }));
+    }
+    std::vector<float> queries(3 * first[frames]);
+    std::vector<int> tree_of(first[frames]);
+#pragma omp parallel for schedule(dynamic)
+    for (int t = 0; t < static_cast<int>(frames); ++t) {
+      const Cloud& cloud = *sequence_->frame(t);
+      std::size_t q = first[t];
+      for (std::size_t j = 0; j < cloud.size(); ++j) {
+        if (labels[t][j] < 0) continue;
+        queries[3 * q] = cloud[j].x, queries[3 * q + 1] = cloud[j].y,
+                    queries[3 * q + 2] = cloud[j].z;
+        tree_of[q++] = t;
+      }
+    }
+    auto lists = std::make_shared<NeighbourLists::DeviceLists>();
+    lists->k = k;
+    if (device_->knn(flat, k, queries, tree_of, lists->rows, lists->count)) {
+      if (lists->count.size() != tree_of.size() || lists->rows.size() != tree_of.size() * k)
+        throw Error("refinement: the device's k-NN lists do not match their queries");
+      for (std::size_t t = 0; t < frames; ++t)
+        knn[t].view(lists, first[t], *sequence_->frame(t), trees[t], labels[t]);
+    }
+    timer.lap("neighbour lists (device)");
+  }
 
   for (int iter = 0; iter < p.max_iterations; ++iter) {
     // 1. Boundary points and bands, frame by frame (labels are joint, so pair ids agree).

@@ -42,6 +42,27 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
                                              rms[j]);
     }
   }
+  // The k-NN from copies of the trees (as a GPU uploads them), with FlatKdTree3::knn.
+  bool knn(const std::vector<const pcl_animseg::FlatKdTree3*>& t, int k,
+           const std::vector<float>& queries, const std::vector<int>& tree_of,
+           std::vector<int>& rows, std::vector<int>& count) override {
+    if (!offer_knn) return false;
+    ++knn_calls;
+    std::vector<pcl_animseg::FlatKdTree3> copies;
+    for (const auto* x : t) copies.push_back(*x);
+    const std::size_t n = tree_of.size();
+    rows.assign(n * k, -1);
+    count.assign(n, 0);
+    std::vector<int> r;
+    std::vector<float> d;
+    for (std::size_t q = 0; q < n; ++q) {
+      count[q] = copies.at(tree_of[q]).knn(&queries[3 * q], k, r, d);
+      std::copy(r.begin(), r.end(), rows.begin() + q * k);
+    }
+    return true;
+  }
+  bool offer_knn = true;
+  int knn_calls = 0;
   std::vector<pcl_animseg::FlatKdTree3> trees;
   std::vector<std::vector<float>> normals;
   std::vector<std::vector<double>> sources;

@@ -249,6 +249,14 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
     }
   EXPECT_GE(dev.fits, 3 * 4);  // every part in every frame but the first
   EXPECT_LE(dev.batches, 4);   // one batch per frame position
+  EXPECT_EQ(dev.knn_calls, 1);  // every frame's neighbour lists in one call
+  // A device without the k-NN: the lists on the CPU, the same result.
+  animseg_test::CpuRigidDevice fits_only;
+  fits_only.offer_knn = false;
+  on_device.setRigidFitDevice(&fits_only);
+  on_device.refine(in, got);
+  EXPECT_EQ(got.labels, expected.labels);
+  EXPECT_EQ(fits_only.knn_calls, 0);
 }
 
 // Spacings given by the caller (the pipeline measures them once) are the ones measured: the

@@ -91,6 +91,17 @@ class RigidFitDevice {
   /** \brief Every job's fit (12 doubles each in `poses`) and its RMS nearest-point distance. */
   virtual void fit(const std::vector<RigidFitJob>& jobs, const RigidMotionParams& params,
                    std::vector<double>& poses, std::vector<double>& rms) = 0;
+  /** \brief FlatKdTree3::knn of many queries at once (the same rows in the same order):
+   * query q (x, y, z at queries[3q]) against `*trees[tree_of[q]]`, its k (>= 2) nearest rows
+   * into rows[k q ..], how many in count[q]. The squared distances are the caller's to compute
+   * (FlatKdTree3::distance2: the same values), which halves what comes back. Returns false when
+   * the device does not offer it (the default; the caller searches on the CPU). */
+  virtual bool knn(const std::vector<const FlatKdTree3*>& trees, int k,
+                   const std::vector<float>& queries, const std::vector<int>& tree_of,
+                   std::vector<int>& rows, std::vector<int>& count) {
+    (void)trees, (void)k, (void)queries, (void)tree_of, (void)rows, (void)count;
+    return false;
+  }
 };
 
 /** \brief The CPU's fit of one job, which a RigidFitDevice reproduces: the source (x, y, z per

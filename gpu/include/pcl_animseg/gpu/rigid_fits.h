@@ -40,6 +40,12 @@ class RigidFits : public segmentation::RigidFitDevice {
   void fit(const std::vector<segmentation::RigidFitJob>& jobs,
            const segmentation::RigidMotionParams& params, std::vector<double>& poses,
            std::vector<double>& rms) override;
+  /** \brief FlatKdTree3::knn of every query on the device, a query per thread (the same rows
+   * in the same order). Returns false for k < 2 or k > 32 (the caller searches on the CPU);
+   * throws Error on a CUDA failure or a query's tree out of range. */
+  bool knn(const std::vector<const FlatKdTree3*>& trees, int k, const std::vector<float>& queries,
+           const std::vector<int>& tree_of, std::vector<int>& rows,
+           std::vector<int>& count) override;
   /** \brief Fits and kernel launches since construction. */
   long long fits() const { return fits_; }
   long long batches() const { return batches_; }

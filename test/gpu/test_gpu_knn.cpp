@@ -1,0 +1,84 @@
+// gpu::RigidFits::knn against FlatKdTree3::knn: the same rows, squared distances and order for
+// every query, on a grid (many points at exactly equal distances: the ties decide the order and
+// which points make the last slots) and on scattered points, with trees smaller than k. Skips
+// when no usable GPU is present.
+#include <gtest/gtest.h>
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/flat_kdtree.h>
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/rigid_fits.h>
+
+#include <random>
+#include <string>
+#include <vector>
+
+namespace gpu = pcl_animseg::gpu;
+
+namespace {
+
+pcl_animseg::FlatKdTree3 treeOf(const std::vector<float>& xyz) {
+  pcl_animseg::FlatKdTree3 t;
+  t.build(xyz.data(), xyz.size() / 3);
+  return t;
+}
+
+}  // namespace
+
+TEST(GpuKnn, SameListsAsTheCpuTree) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  std::vector<float> grid, scattered, tiny{0.f, 0.f, 0.f, 1.f, 0.f, 0.f, 0.f, 2.f, 0.f};
+  for (int x = 0; x < 30; ++x)
+    for (int y = 0; y < 30; ++y)
+      for (int z = 0; z < 4; ++z) grid.insert(grid.end(), {0.1f * x, 0.1f * y, 0.1f * z});
+  for (int i = 0; i < 20000; ++i) scattered.insert(scattered.end(), {u(rng), u(rng), u(rng)});
+  const std::vector<pcl_animseg::FlatKdTree3> trees{treeOf(grid), treeOf(scattered), treeOf(tiny)};
+  const std::vector<const pcl_animseg::FlatKdTree3*> ptrs{&trees[0], &trees[1], &trees[2]};
+  const std::vector<const std::vector<float>*> tree_points{&grid, &scattered, &tiny};
+  // Queries: every grid point (ties everywhere), random points, and points of the tiny tree.
+  std::vector<float> queries;
+  std::vector<int> tree_of;
+  for (std::size_t i = 0; i < grid.size(); i += 3) {
+    queries.insert(queries.end(), {grid[i], grid[i + 1], grid[i + 2]});
+    tree_of.push_back(0);
+  }
+  for (int i = 0; i < 5000; ++i) {
+    queries.insert(queries.end(), {u(rng), u(rng), u(rng)});
+    tree_of.push_back(i % 2 ? 1 : 0);
+  }
+  for (int i = 0; i < 10; ++i) {
+    queries.insert(queries.end(), {u(rng), u(rng), 0.0f});
+    tree_of.push_back(2);
+  }
+  gpu::RigidFits device;
+  for (int k : {2, 9, 16}) {
+    std::vector<int> rows, count;
+    ASSERT_TRUE(device.knn(ptrs, k, queries, tree_of, rows, count));
+    ASSERT_EQ(count.size(), tree_of.size());
+    int differ = 0;
+    std::vector<int> r;
+    std::vector<float> d;
+    for (std::size_t q = 0; q < tree_of.size(); ++q) {
+      const int n = trees[tree_of[q]].knn(&queries[3 * q], k, r, d);
+      bool same = count[q] == n;
+      // The distances the caller computes (FlatKdTree3::distance2 of the query and the row's
+      // point) are the tree's.
+      const auto& pts = tree_points[tree_of[q]];
+      for (int i = 0; same && i < n; ++i)
+        same = rows[q * k + i] == r[i] &&
+               pcl_animseg::FlatKdTree3::distance2(&queries[3 * q], &(*pts)[3 * r[i]]) == d[i];
+      differ += !same;
+    }
+    EXPECT_EQ(differ, 0) << "k " << k << ": " << differ << " of " << tree_of.size()
+                         << " lists differ";
+  }
+  // k outside 2..32: not offered, the caller searches on the CPU.
+  std::vector<int> rows, count;
+  EXPECT_FALSE(device.knn(ptrs, 1, queries, tree_of, rows, count));
+  EXPECT_FALSE(device.knn(ptrs, 33, queries, tree_of, rows, count));
+  std::vector<int> bad = tree_of;
+  bad[0] = 3;
+  EXPECT_THROW(device.knn(ptrs, 9, queries, bad, rows, count), pcl_animseg::Error);
+}
