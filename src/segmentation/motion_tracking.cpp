@@ -1034,13 +1034,16 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
   const int n = static_cast<int>(rc.size());
   const int T = static_cast<int>(frames.size());
   if (T < 2 || n == 0) return 0;
+  detail::StageTimer timer;
   // Candidates: the parts within `hops` edges.
   std::vector<std::vector<int>> cand(n);
   for (int i = 0; i < n; ++i)
     if (label[i] >= 0 && !motion[label[i]].empty()) cand[i] = {label[i]};
   for (int h = 0; h < hops; ++h) {
-    std::vector<std::vector<int>> next(cand);
+    std::vector<std::vector<int>> next(n);
+#pragma omp parallel for schedule(dynamic, 256)
     for (int i = 0; i < n; ++i) {
+      next[i] = cand[i];
       if (cand[i].empty()) continue;
       for (int j : surface[i])
         for (int l : cand[j]) next[i].push_back(l);
@@ -1049,6 +1052,7 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
     }
     cand.swap(next);
   }
+  timer.lap("part borders: candidates");
   // Unary costs of the candidates.
   std::vector<std::vector<double>> unary(n);
   const double inv_frames = 1.0 / (T - 1);
@@ -1072,8 +1076,10 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
     const auto it = std::lower_bound(cand[i].begin(), cand[i].end(), l);
     return unary[i][it - cand[i].begin()];
   };
+  timer.lap("part borders: unary costs");
   // Edge weights (each undirected edge once, i < j).
   std::vector<std::vector<std::pair<int, double>>> edges(n);
+#pragma omp parallel for schedule(dynamic, 256)
   for (int i = 0; i < n; ++i)
     for (int j : surface[i]) {
       if (j <= i) continue;
@@ -1092,22 +1098,40 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
   std::sort(labels_present.begin(), labels_present.end());
   labels_present.erase(std::unique(labels_present.begin(), labels_present.end()),
                        labels_present.end());
+  timer.lap("part borders: edges");
   const std::vector<int> before(label);
+  // The points that may take each label (in point order), and the edges stored at a lower end:
+  // an expansion visits only the points that may take alpha and the edges that touch them.
+  std::vector<std::vector<int>> may_take(labels_present.empty() ? 0 : labels_present.back() + 1);
+  for (int i = 0; i < n; ++i)
+    if (cand[i].size() >= 2)
+      for (int l : cand[i]) may_take[l].push_back(i);
+  std::vector<std::vector<int>> lower_ends(n);  // for each point, the i < it of its edges
+  for (int i = 0; i < n; ++i)
+    for (const auto& e : edges[i]) lower_ends[e.first].push_back(i);
   std::vector<int> node(n, -1);
+  std::vector<int> touched;
   for (int cycle = 0; cycle < 3; ++cycle) {
     bool any_change = false;
     for (int alpha : labels_present) {
       // Nodes: points that may take alpha and do not hold it.
       std::vector<int> members;
-      for (int i = 0; i < n; ++i) {
-        node[i] = -1;
-        if (cand[i].size() >= 2 && label[i] != alpha &&
-            std::binary_search(cand[i].begin(), cand[i].end(), alpha)) {
+      for (int i : may_take[alpha]) {
+        if (label[i] != alpha) {
           node[i] = static_cast<int>(members.size());
           members.push_back(i);
         }
       }
       if (members.empty()) continue;
+      // The points whose edges (stored at their lower end) touch a member, in point order: the
+      // edges visited in the same order as a scan over all points, which skips the others.
+      touched.clear();
+      for (int i : members) {
+        touched.push_back(i);
+        for (int lo : lower_ends[i]) touched.push_back(lo);
+      }
+      std::sort(touched.begin(), touched.end());
+      touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
       const int m = static_cast<int>(members.size());
       std::vector<double> e0(m), e1(m);
       for (int k = 0; k < m; ++k) {
@@ -1116,7 +1140,7 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
       }
       pcl::segmentation::grabcut::BoykovKolmogorov graph(m);
       graph.addNodes(m);
-      for (int i = 0; i < n; ++i)
+      for (int i : touched)
         for (const auto& [j, w] : edges[i]) {
           const int ni = node[i], nj = node[j];
           if (ni < 0 && nj < 0) continue;
@@ -1145,9 +1169,11 @@ int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& sur
       graph.solve();
       for (int k = 0; k < m; ++k)
         if (graph.inSinkTree(k)) label[members[k]] = alpha, any_change = true;
+      for (int i : members) node[i] = -1;
     }
     if (!any_change) break;
   }
+  timer.lap("part borders: expansions");
   int changed = 0;
   for (int i = 0; i < n; ++i) changed += label[i] != before[i];
   return changed;
