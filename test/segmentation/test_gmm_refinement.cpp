@@ -222,23 +222,37 @@ TEST(GMMRefinement, RejectsInconsistentInput) {
   EXPECT_EQ(out.labels, in.labels);
 }
 
+namespace {
+
+// Three tubes, 5 frames, the borders shifted: the input of the device and spacing tests.
+struct ShiftedChain {
+  animseg_test::TubeChain chain =
+      animseg_test::makeTubeChain({1.0, 1.0, 0.8}, {1.0, 0.7}, 5, 6000, 2.0, 4);
+  SegmentationResult in;
+  ShiftedChain() {
+    in.labels = chain.shifted;
+    in.num_clusters = 3;
+  }
+  SegmentationResult refinedBy(GMMBoundaryRefinement& r) const {
+    r.setInputSequence(&chain.sequence);
+    SegmentationResult out;
+    r.refine(in, out);
+    return out;
+  }
+};
+
+}  // namespace
+
 // The input parts' motions through a device (in batches, one frame position of all parts at a
 // time): the same labels and motions as on the CPU, bit for bit.
 TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
-  const auto chain = animseg_test::makeTubeChain({1.0, 1.0, 0.8}, {1.0, 0.7}, 5, 6000, 2.0, 4);
-  SegmentationResult in;
-  in.labels = chain.shifted;
-  in.num_clusters = 3;
+  const ShiftedChain c;
   GMMBoundaryRefinement cpu;
-  cpu.setInputSequence(&chain.sequence);
-  SegmentationResult expected;
-  cpu.refine(in, expected);
+  const SegmentationResult expected = c.refinedBy(cpu);
   animseg_test::CpuRigidDevice dev;
   GMMBoundaryRefinement on_device;
-  on_device.setInputSequence(&chain.sequence);
   on_device.setRigidFitDevice(&dev);
-  SegmentationResult got;
-  on_device.refine(in, got);
+  SegmentationResult got = c.refinedBy(on_device);
   EXPECT_EQ(got.labels, expected.labels);
   ASSERT_EQ(on_device.getMotions().size(), cpu.getMotions().size());
   for (std::size_t p = 0; p < cpu.getMotions().size(); ++p)
@@ -254,7 +268,7 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   animseg_test::CpuRigidDevice fits_only;
   fits_only.offer_knn = false;
   on_device.setRigidFitDevice(&fits_only);
-  on_device.refine(in, got);
+  got = c.refinedBy(on_device);
   EXPECT_EQ(got.labels, expected.labels);
   EXPECT_EQ(fits_only.knn_calls, 0);
 }
@@ -262,28 +276,19 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
 // Spacings given by the caller (the pipeline measures them once) are the ones measured: the
 // same result; spacings of another frame count are an error, and others than measured are used.
 TEST(GMMRefinement, SpacingsGivenAreUsed) {
-  const auto chain = animseg_test::makeTubeChain({1.0, 1.0, 0.8}, {1.0, 0.7}, 5, 6000, 2.0, 4);
-  SegmentationResult in;
-  in.labels = chain.shifted;
-  in.num_clusters = 3;
+  const ShiftedChain c;
   GMMBoundaryRefinement measured;
-  measured.setInputSequence(&chain.sequence);
-  SegmentationResult expected;
-  measured.refine(in, expected);
+  const SegmentationResult expected = c.refinedBy(measured);
   GMMBoundaryRefinement given;
-  given.setInputSequence(&chain.sequence);
-  given.setSpacings(pcl_animseg::meanSpacings(chain.sequence));
-  SegmentationResult got;
-  given.refine(in, got);
-  EXPECT_EQ(got.labels, expected.labels);
-  given.setSpacings(std::vector<double>(chain.sequence.size() + 1, 0.01));
-  EXPECT_THROW(given.refine(in, got), pcl_animseg::Error);
+  given.setSpacings(pcl_animseg::meanSpacings(c.chain.sequence));
+  EXPECT_EQ(c.refinedBy(given).labels, expected.labels);
+  given.setSpacings(std::vector<double>(c.chain.sequence.size() + 1, 0.01));
+  EXPECT_THROW(c.refinedBy(given), pcl_animseg::Error);
   // Bands ten times narrower: fewer points can move.
-  std::vector<double> narrow = pcl_animseg::meanSpacings(chain.sequence);
+  std::vector<double> narrow = pcl_animseg::meanSpacings(c.chain.sequence);
   for (double& s : narrow) s *= 0.1;
   given.setSpacings(narrow);
-  given.refine(in, got);
-  EXPECT_NE(got.labels, expected.labels);
+  EXPECT_NE(c.refinedBy(given).labels, expected.labels);
 }
 
 // The motion check over a few frames spread evenly (motion_frames) instead of all of them: on a
