@@ -114,8 +114,9 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   segmentation::MeanShiftParams msp = params.mean_shift;
   if (motion_method) msp.record_densities = false;
   segmentation::SegmentationResult clusters;
+#ifdef PCL_ANIMSEG_HAVE_CUDA
   bool gpu_check_pending = false;  // the GPU's check ran on a DeviceWarmUp's thread
-  (void)gpu_check_pending;
+#endif
   {
     segmentation::MeanShiftSegmentation ms;
     ms.setInputSequence(shared);
@@ -171,12 +172,12 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     // A GPU found missing by a check that ran beside the stage: said as if found before it.
     std::string no_gpu;
 #ifdef PCL_ANIMSEG_HAVE_CUDA
-    if (gpu_check_pending && !ms.fallbackReason().empty() && !gpu::gpuAvailable(&no_gpu))
-      no_gpu = no_gpu.empty() ? "no usable GPU" : no_gpu;
-    else
-      no_gpu.clear();
+    const bool found_late =
+        gpu_check_pending && !ms.fallbackReason().empty() && !gpu::gpuAvailable(&no_gpu);
+#else
+    const bool found_late = false;
 #endif
-    if (!no_gpu.empty()) {
+    if (found_late) {
       r.notes.push_back("device auto: the CPU was used: " + no_gpu);
       progress.debug("device auto: the CPU is used: " + no_gpu);
     } else if (!ms.fallbackReason().empty()) {
