@@ -659,22 +659,33 @@ template <class Job>
 BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
                         const std::vector<int>* source_begin, const std::vector<double>& motions,
                         const std::vector<Job>& jobs, std::size_t out_bytes) {
-  std::vector<unsigned char>& st = frames.staging;
+  // Each part at the next 16-byte boundary.
   std::size_t used = 0;
-  // Appends one part at the next 16-byte boundary; returns where it starts.
-  auto add = [&](const void* data, std::size_t bytes) {
+  auto place = [&](std::size_t bytes) {
     const std::size_t at = (used + 15) & ~static_cast<std::size_t>(15);
-    if (st.size() < at + bytes) st.resize(at + bytes);
-    if (bytes) std::memcpy(st.data() + at, data, bytes);
     used = at + bytes;
     return at;
   };
-  const std::size_t at_points = add(points.data(), points.size() * sizeof(double));
-  const std::size_t at_begin =
-      source_begin ? add(source_begin->data(), source_begin->size() * sizeof(int)) : 0;
-  const std::size_t at_motions = add(motions.data(), motions.size() * sizeof(double));
-  const std::size_t at_jobs = add(jobs.data(), jobs.size() * sizeof(Job));
-  put(frames.job_in, st.data(), used);
+  const std::size_t points_bytes = points.size() * sizeof(double);
+  const std::size_t begin_bytes = source_begin ? source_begin->size() * sizeof(int) : 0;
+  const std::size_t motions_bytes = motions.size() * sizeof(double);
+  const std::size_t jobs_bytes = jobs.size() * sizeof(Job);
+  const std::size_t at_points = place(points_bytes);
+  const std::size_t at_begin = source_begin ? place(begin_bytes) : 0;
+  const std::size_t at_motions = place(motions_bytes);
+  const std::size_t at_jobs = place(jobs_bytes);
+  unsigned char* st = frames.staging.reserve(used);
+  auto copy = [&](std::size_t at, const void* data, std::size_t bytes) {
+    if (bytes) std::memcpy(st + at, data, bytes);
+  };
+  copy(at_points, points.data(), points_bytes);
+  if (source_begin) copy(at_begin, source_begin->data(), begin_bytes);
+  copy(at_motions, motions.data(), motions_bytes);
+  copy(at_jobs, jobs.data(), jobs_bytes);
+  grow(frames.job_in, used);
+  // Asynchronous from pinned memory: the kernels that follow on the same stream wait for it, and
+  // the staging is not written again before the batch's results are back (getResults).
+  cudaSafeCall(cudaMemcpyAsync(frames.job_in.rawPtr(), st, used, cudaMemcpyHostToDevice, 0));
   grow(frames.job_out, out_bytes);
   const auto* base = static_cast<const unsigned char*>(frames.job_in.rawPtr());
   BatchView<Job> v;
@@ -683,6 +694,16 @@ BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
   v.motions = reinterpret_cast<const double*>(base + at_motions);
   v.list = reinterpret_cast<const Job*>(base + at_jobs);
   return v;
+}
+
+// A batch's results: `bytes` from `device` into `host` through the pinned results buffer, after
+// everything queued (waits once; reports a kernel fault).
+void getResults(FrameStore& frames, const void* device, void* host, std::size_t bytes) {
+  if (!bytes) return;
+  unsigned char* r = frames.results.reserve(bytes);
+  cudaSafeCall(cudaMemcpyAsync(r, device, bytes, cudaMemcpyDeviceToHost, 0));
+  cudaSafeCall(cudaStreamSynchronize(0));
+  std::memcpy(host, r, bytes);
 }
 
 int blocksFor(long long warps) {
@@ -800,6 +821,22 @@ void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
   out_count.download(count);
 }
 
+PinnedHost::~PinnedHost() {
+  if (ptr_) cudaFreeHost(ptr_);
+}
+
+unsigned char* PinnedHost::reserve(std::size_t bytes) {
+  if (bytes > bytes_ || !ptr_) {
+    if (ptr_) cudaFreeHost(ptr_);
+    ptr_ = nullptr;
+    bytes_ = 0;
+    const std::size_t want = std::max<std::size_t>(bytes + bytes / 2, 4096);
+    cudaSafeCall(cudaHostAlloc(&ptr_, want, cudaHostAllocDefault));
+    bytes_ = want;
+  }
+  return static_cast<unsigned char*>(ptr_);
+}
+
 void uploadFrames(const FrameArrays& in, FrameStore& store) {
   store.frames = in.frames;
   store.normal_cos = in.normal_cos;
@@ -880,8 +917,7 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
       d, in.points, in.begin, in.motions, in.list, static_cast<int>(n),
       static_cast<double*>(frames.job_out.rawPtr()));
   cudaCheckLaunch();
-  // Synchronises, and reports a kernel fault.
-  frames.job_out.downloadBytes(out.data(), out.size() * sizeof(double));
+  getResults(frames, frames.job_out.rawPtr(), out.data(), out.size() * sizeof(double));
 }
 
 void runPartFits(FrameStore& frames, const std::vector<double>& points,
@@ -904,7 +940,7 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
     partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, in.points, in.begin, in.motions,
                                                            in.list, static_cast<int>(n), out);
   cudaCheckLaunch();
-  frames.job_out.downloadBytes(poses.data(), poses.size() * sizeof(double));
+  getResults(frames, frames.job_out.rawPtr(), poses.data(), poses.size() * sizeof(double));
 }
 
 void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vector<double>& points,
@@ -928,7 +964,7 @@ void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vecto
   pointCostSums<<<(n + kThreads - 1) / kThreads, kThreads>>>(err, frames.frames, ref, per_frame, n,
                                                              res);
   cudaCheckLaunch();
-  cudaSafeCall(cudaMemcpy(out.data(), res, out.size() * sizeof(double), cudaMemcpyDeviceToHost));
+  getResults(frames, res, out.data(), out.size() * sizeof(double));
 }
 
 }  // namespace detail

@@ -36,6 +36,23 @@ struct FrameArrays {
   std::vector<int> unoriented;  // per frame
 };
 
+/** Page-locked host memory (cudaHostAlloc), grown as needed and kept: a batch's inputs go up
+ * from it and its results come back through it, so that the copies run without the driver's
+ * own staging and a batch waits once, at its end. */
+class PinnedHost {
+ public:
+  PinnedHost() = default;
+  ~PinnedHost();
+  PinnedHost(const PinnedHost&) = delete;
+  PinnedHost& operator=(const PinnedHost&) = delete;
+  /** At least `bytes` (what it held is not kept when it grows); throws Error on a CUDA failure. */
+  unsigned char* reserve(std::size_t bytes);
+
+ private:
+  void* ptr_ = nullptr;
+  std::size_t bytes_ = 0;
+};
+
 /** The frames on the device (setFrames), kept for the calls that follow. */
 struct FrameStore {
   int frames = 0;
@@ -51,7 +68,7 @@ struct FrameStore {
    * (points, source ranges, motions, jobs) go up as one block through `staging`: one copy per
    * batch instead of four, each a synchronous round trip of some 10-25 us. */
   DeviceMemory job_in, job_out;
-  std::vector<unsigned char> staging;
+  PinnedHost staging, results;
   /** Calls by kind (residuals, point costs, part fits, rigid fits): count, jobs and wall
    * seconds, printed on stderr when the store goes and ANIMSEG_MS_TIMING is set. */
   struct CallStats {
