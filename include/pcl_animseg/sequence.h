@@ -5,6 +5,7 @@
 #include <pcl/point_types.h>
 
 #include <cstddef>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -92,6 +93,13 @@ double meanSpacing(const PointCloudSequence::Cloud& cloud, const KdTree<pcl::Poi
  * spacing (fewer than 2 points, all points coinciding) throws pcl_animseg::Error naming the
  * frame. */
 std::vector<double> meanSpacings(const PointCloudSequence& seq, std::size_t max_samples = 2000);
+
+/** \brief meanSpacings with each frame's kd-tree given by the caller (`tree_of(t)`: over frame
+ * t), which it has built anyway: the same values and errors, without building others. */
+std::vector<double> meanSpacings(
+    const PointCloudSequence& seq,
+    const std::function<const KdTree<pcl::PointNormal>&(std::size_t)>& tree_of,
+    std::size_t max_samples = 2000);
 
 /** \brief Length of the axis-aligned bounding-box diagonal. */
 double boundingBoxDiagonal(const PointCloudSequence::Cloud& cloud);

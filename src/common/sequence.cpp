@@ -103,14 +103,19 @@ double meanSpacing(const PointCloudSequence::Cloud& cloud, const KdTree<pcl::Poi
   return sum / static_cast<double>(count);
 }
 
-std::vector<double> meanSpacings(const PointCloudSequence& seq, std::size_t max_samples) {
+namespace {
+
+// measure(t) for every frame, the frames in parallel; a frame that has no spacing throws Error
+// naming the frame.
+template <class Measure>
+std::vector<double> spacingsOf(const PointCloudSequence& seq, Measure measure) {
   const int T = static_cast<int>(seq.size());
   std::vector<double> spacing(seq.size(), 0.0);
   std::vector<std::string> error(seq.size());
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < T; ++t) {
     try {
-      spacing[t] = meanSpacing(*seq.frame(t), max_samples);
+      spacing[t] = measure(static_cast<std::size_t>(t));
     } catch (const std::exception& e) {
       error[t] = e.what();
     }
@@ -118,6 +123,20 @@ std::vector<double> meanSpacings(const PointCloudSequence& seq, std::size_t max_
   for (int t = 0; t < T; ++t)
     if (!error[t].empty()) throw Error("frame " + seq.name(t) + ": " + error[t]);
   return spacing;
+}
+
+}  // namespace
+
+std::vector<double> meanSpacings(const PointCloudSequence& seq, std::size_t max_samples) {
+  return spacingsOf(seq, [&](std::size_t t) { return meanSpacing(*seq.frame(t), max_samples); });
+}
+
+std::vector<double> meanSpacings(
+    const PointCloudSequence& seq,
+    const std::function<const KdTree<pcl::PointNormal>&(std::size_t)>& tree_of,
+    std::size_t max_samples) {
+  return spacingsOf(
+      seq, [&](std::size_t t) { return meanSpacing(*seq.frame(t), tree_of(t), max_samples); });
 }
 
 double boundingBoxDiagonal(const PointCloudSequence::Cloud& cloud) {

@@ -332,24 +332,16 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   if (!spacings_.empty() && spacings_.size() != frames)
     throw Error("refinement: " + std::to_string(spacings_.size()) + " spacings for " +
                 std::to_string(frames) + " frames");
-  // The spacings given, or measured from the trees (meanSpacings' values).
-  std::vector<double> spacing = spacings_;
-  if (spacing.empty()) spacing.assign(frames, 0.0);
-  std::vector<std::string> spacing_error(frames);
   std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees(frames);
 #pragma omp parallel for schedule(dynamic)
-  for (int t = 0; t < static_cast<int>(frames); ++t) {
-    trees[t].setInputCloud(sequence_->frame(t));
-    if (!spacings_.empty()) continue;
-    try {
-      spacing[t] = meanSpacing(*sequence_->frame(t), trees[t]);
-    } catch (const std::exception& e) {
-      spacing_error[t] = e.what();
-    }
-  }
-  for (std::size_t t = 0; t < frames; ++t)
-    if (!spacing_error[t].empty())
-      throw Error("frame " + sequence_->name(t) + ": " + spacing_error[t]);
+  for (int t = 0; t < static_cast<int>(frames); ++t) trees[t].setInputCloud(sequence_->frame(t));
+  // The spacings given, or measured from the trees (meanSpacings' values).
+  const std::vector<double> spacing =
+      !spacings_.empty()
+          ? spacings_
+          : meanSpacings(*sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
+              return trees[t];
+            });
   timer.lap("trees");
   double mean_spacing = 0.0;
   for (double s : spacing) mean_spacing += s / static_cast<double>(frames);

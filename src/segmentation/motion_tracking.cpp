@@ -86,23 +86,22 @@ std::vector<Frame> makeFrames(const PointCloudSequence& seq) {
   for (int t = 0; t < T; ++t)
     if (seq.frame(t)->empty())
       throw Error("motion tracking: frame " + std::to_string(t) + " has no points");
-  // Each frame's spacing from its own tree (meanSpacings' values, without a second tree).
-  std::vector<std::string> error(T);
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < T; ++t) {
     frames[t].cloud = seq.frame(t);
     frames[t].tree.setInputCloud(frames[t].cloud);
-    try {
-      frames[t].spacing = std::max(meanSpacing(*frames[t].cloud, frames[t].tree), 1e-9);
-    } catch (const std::exception& e) {
-      error[t] = e.what();
-    }
+  }
+  // Each frame's spacing from its own tree (meanSpacings' values, without a second tree).
+  const std::vector<double> spacing =
+      meanSpacings(seq, [&](std::size_t t) -> const pcl_animseg::KdTree<pcl::PointNormal>& {
+        return frames[t].tree;
+      });
+  for (int t = 0; t < T; ++t) {
+    frames[t].spacing = std::max(spacing[t], 1e-9);
     const double bound = (kClip + 1.5) * frames[t].spacing;
     frames[t].error_bound2 = static_cast<float>(bound * bound);
     frames[t].unoriented = unoriented;
   }
-  for (int t = 0; t < T; ++t)
-    if (!error[t].empty()) throw Error("frame " + seq.name(t) + ": " + error[t]);
   return frames;
 }
 

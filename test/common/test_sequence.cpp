@@ -65,23 +65,31 @@ TEST(PointCloudSequence, MeanSpacingsOfEveryFrameAndTheFrameThatHasNone) {
   ASSERT_EQ(s.size(), 9u);
   for (int t = 0; t < 9; ++t) EXPECT_EQ(s[t], pcl_animseg::meanSpacing(*seq.frame(t))) << t;
   EXPECT_NEAR(s[4], 0.5, 1e-6);
-  // From a tree the caller built: the same values.
+  // From trees the caller built: the same values.
+  std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees(9);
+  auto tree_of = [&](std::size_t t) -> const pcl_animseg::KdTree<pcl::PointNormal>& {
+    return trees[t];
+  };
   for (int t = 0; t < 9; ++t) {
-    pcl_animseg::KdTree<pcl::PointNormal> tree;
-    tree.setInputCloud(seq.frame(t));
-    EXPECT_EQ(pcl_animseg::meanSpacing(*seq.frame(t), tree), s[t]) << t;
-    EXPECT_EQ(pcl_animseg::meanSpacing(*seq.frame(t), tree, 7),
+    trees[t].setInputCloud(seq.frame(t));
+    EXPECT_EQ(pcl_animseg::meanSpacing(*seq.frame(t), trees[t]), s[t]) << t;
+    EXPECT_EQ(pcl_animseg::meanSpacing(*seq.frame(t), trees[t], 7),
               pcl_animseg::meanSpacing(*seq.frame(t), 7))
         << t;
   }
+  EXPECT_EQ(pcl_animseg::meanSpacings(seq, tree_of), s);
   PointCloudSequence::Cloud::Ptr same(new PointCloudSequence::Cloud);
   same->resize(5);
   for (auto& p : *same) p.x = p.y = p.z = 1.f;
   seq.addFrame(same, "flat");
-  try {
-    pcl_animseg::meanSpacings(seq);
-    FAIL() << "a frame of coinciding points has no spacing";
-  } catch (const pcl_animseg::Error& e) {
-    EXPECT_NE(std::string(e.what()).find("frame flat"), std::string::npos) << e.what();
+  trees.emplace_back();
+  trees.back().setInputCloud(same);
+  for (int with_trees = 0; with_trees < 2; ++with_trees) {
+    try {
+      with_trees ? pcl_animseg::meanSpacings(seq, tree_of) : pcl_animseg::meanSpacings(seq);
+      FAIL() << "a frame of coinciding points has no spacing";
+    } catch (const pcl_animseg::Error& e) {
+      EXPECT_NE(std::string(e.what()).find("frame flat"), std::string::npos) << e.what();
+    }
   }
 }
