@@ -1208,6 +1208,72 @@ void rewireEdgesBatch(std::map<std::pair<int, int>, Edge>& edges, int a, int b,
   for (std::size_t i = 0; i < list.size(); ++i) edges[list[i]] = scored[i];
 }
 
+/** Sources packed once for a motion device's batches over them (motion_device.h): residuals and
+ * part fits, each batch sending only its poses and jobs. The same values as residual() and
+ * icp() on the cores. */
+class DeviceSourceBatches {
+ public:
+  DeviceSourceBatches(const std::vector<Source>& sources, int iterations, MotionDevice& device)
+      : device_(device) {
+    for (const Source& s : sources) {
+      appendPoints(s.p, s.n, scores_.points);
+      scores_.source_begin.push_back(static_cast<int>(scores_.points.size() / 6));
+    }
+    fits_.iterations = iterations;
+    fits_.points = scores_.points;
+    fits_.source_begin = scores_.source_begin;
+  }
+  /** A source under a pose in a frame. */
+  struct Item {
+    int source, frame;
+    Pose pose;
+  };
+  /** residual(source, pose, frame) of every item. */
+  std::vector<double> residuals(const std::vector<Item>& items) {
+    scores_.motions.clear();
+    scores_.jobs.clear();
+    for (std::size_t j = 0; j < items.size(); ++j) {
+      appendMotion(items[j].pose, scores_.motions);
+      scores_.jobs.push_back({items[j].source, static_cast<int>(j), items[j].frame});
+    }
+    std::vector<double> out;
+    device_.residuals(scores_, out);
+    if (out.size() != items.size())
+      throw Error("motion method: the device returned " + std::to_string(out.size()) +
+                  " residuals for " + std::to_string(items.size()));
+    return out;
+  }
+  /** A fit: icp(source, start, frame, iterations, max_dist), kept where its residual is at most
+   * r0, else the start. */
+  struct Fit {
+    int source, frame;
+    Pose start;
+    double r0, max_dist;
+  };
+  std::vector<Pose> fits(const std::vector<Fit>& jobs) {
+    fits_.motions.clear();
+    fits_.jobs.clear();
+    for (std::size_t j = 0; j < jobs.size(); ++j) {
+      appendMotion(jobs[j].start, fits_.motions);
+      fits_.jobs.push_back(
+          {jobs[j].source, static_cast<int>(j), jobs[j].frame, jobs[j].r0, jobs[j].max_dist});
+    }
+    std::vector<double> poses;
+    device_.partFits(fits_, poses);
+    if (poses.size() != 12 * jobs.size())
+      throw Error("motion method: the device returned " + std::to_string(poses.size() / 12) +
+                  " part fits for " + std::to_string(jobs.size()));
+    std::vector<Pose> out(jobs.size());
+    for (std::size_t j = 0; j < jobs.size(); ++j) out[j] = motionAt(&poses[12 * j]);
+    return out;
+  }
+
+ private:
+  MotionDevice& device_;
+  ResidualJobs scores_;
+  PartFitJobs fits_;
+};
+
 /** Motions of the parts of `label` (a part per reference point, -1: none; parts 0..nc-1), tracked
  * along the sequence as an articulated body: the frames in order away from the reference, the
  * parts of a frame in breadth-first order over the part adjacency (surface-graph edges and
@@ -1404,27 +1470,7 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   // residual() and icp() (motion_device.h): the same motions as the task graph on the cores,
   // whose 16 threads waited on the frames' chain of small fits (0.23 s of critical path at
   // 800k).
-  ResidualJobs scoring;
-  for (int c = 0; c < nc; ++c) {
-    appendPoints(src[c].p, src[c].n, scoring.points);
-    scoring.source_begin.push_back(static_cast<int>(scoring.points.size() / 6));
-  }
-  PartFitJobs fitting;
-  fitting.iterations = kIterations;
-  fitting.points = scoring.points;
-  fitting.source_begin = scoring.source_begin;
-  auto residualsOf = [&](const std::vector<ResidualJobs::Job>& jobs,
-                         const std::vector<Pose>& poses) {
-    scoring.jobs = jobs;
-    scoring.motions.clear();
-    for (const Pose& P : poses) appendMotion(P, scoring.motions);
-    std::vector<double> out;
-    device->residuals(scoring, out);
-    if (out.size() != jobs.size())
-      throw Error("motion method: the device returned " + std::to_string(out.size()) +
-                  " residuals for " + std::to_string(jobs.size()));
-    return out;
-  };
+  DeviceSourceBatches batches(src, kIterations, *device);
   for (const std::vector<int>& wave_tasks : taskWaves(successors)) {
     std::vector<int> wave;
     for (int task : wave_tasks)
@@ -1434,22 +1480,15 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     std::vector<std::vector<Pose>> st(W);
 #pragma omp parallel for schedule(dynamic, 1) if (W > 1)
     for (int w = 0; w < W; ++w) st[w] = startsOf(wave[w]);
-    std::vector<ResidualJobs::Job> jobs;
-    std::vector<Pose> poses;
-    for (int w = 0; w < W; ++w) {
-      const int t = frame_order[wave[w] / nc], c = wave[w] % nc;
-      for (const Pose& P : st[w]) {
-        jobs.push_back({c, static_cast<int>(poses.size()), t});
-        poses.push_back(P);
-      }
-    }
-    const std::vector<double> start_res = residualsOf(jobs, poses);
+    std::vector<DeviceSourceBatches::Item> starts;
+    for (int w = 0; w < W; ++w)
+      for (const Pose& P : st[w]) starts.push_back({wave[w] % nc, frame_order[wave[w] / nc], P});
+    const std::vector<double> start_res = batches.residuals(starts);
     // Each task's two best starts, refined by ICP on the device (r0 infinite: the ICP's
     // result is kept whatever its residual, as icp() returns it).
     std::vector<std::vector<std::pair<double, int>>> score(W);
-    fitting.jobs.clear();
-    fitting.motions.clear();
-    std::vector<std::pair<int, int>> fit_of;  // (task in the wave, start)
+    std::vector<DeviceSourceBatches::Fit> fits;
+    std::vector<int> fit_of;  // the task in the wave
     for (int w = 0, at = 0; w < W; ++w) {
       const int t = frame_order[wave[w] / nc], c = wave[w] % nc;
       std::vector<double> scores(st[w].size());
@@ -1457,33 +1496,23 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
         scores[k] = scoreWith(c, t, st[w][k], start_res[at]);
       score[w] = ranked(scores);
       for (std::size_t k = 0; k < std::min<std::size_t>(kRefined, score[w].size()); ++k) {
-        appendMotion(st[w][score[w][k].second], fitting.motions);
-        fitting.jobs.push_back({c, static_cast<int>(fit_of.size()), t,
-                                std::numeric_limits<double>::infinity(),
-                                4.0 * frames[t].spacing});
-        fit_of.push_back({w, score[w][k].second});
+        fits.push_back({c, t, st[w][score[w][k].second], std::numeric_limits<double>::infinity(),
+                        4.0 * frames[t].spacing});
+        fit_of.push_back(w);
       }
     }
-    std::vector<double> fitted;
-    device->partFits(fitting, fitted);
-    if (fitted.size() != 12 * fit_of.size())
-      throw Error("motion method: the device returned " + std::to_string(fitted.size() / 12) +
-                  " part fits for " + std::to_string(fit_of.size()));
-    std::vector<Pose> refined(fit_of.size());
-    jobs.clear();
-    for (std::size_t f = 0; f < fit_of.size(); ++f) {
-      refined[f] = motionAt(&fitted[12 * f]);
-      const int task = wave[fit_of[f].first];
-      jobs.push_back({task % nc, static_cast<int>(f), frame_order[task / nc]});
-    }
-    const std::vector<double> refined_res = residualsOf(jobs, refined);
+    const std::vector<Pose> refined = batches.fits(fits);
+    std::vector<DeviceSourceBatches::Item> refined_items;
+    for (std::size_t f = 0; f < fits.size(); ++f)
+      refined_items.push_back({fits[f].source, fits[f].frame, refined[f]});
+    const std::vector<double> refined_res = batches.residuals(refined_items);
     // As solve(): the best start, replaced by a refinement that scores lower, in rank order.
     for (std::size_t f = 0, w0 = 0; w0 < static_cast<std::size_t>(W); ++w0) {
       const int w = static_cast<int>(w0);
       const int t = frame_order[wave[w] / nc], c = wave[w] % nc;
       double best = score[w][0].first;
       motion[c][t] = st[w][score[w][0].second];
-      for (; f < fit_of.size() && fit_of[f].first == w; ++f) {
+      for (; f < fit_of.size() && fit_of[f] == w; ++f) {
         const double r = scoreWith(c, t, refined[f], refined_res[f]);
         if (r < best) best = r, motion[c][t] = refined[f];
       }
@@ -1792,46 +1821,20 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
       return fitChains(C, T, ref, Pose(Pose::Identity()), starts, score, fitFrom, same);
     // On the device: the same steps with the fits in batches (fitChainsBatched), the sources
     // packed once; the same poses.
-    PartFitJobs batch;
-    batch.iterations = kPartIcp;
-    for (int c = 0; c < C; ++c) {
-      appendPoints(src[c].p, src[c].n, batch.points);
-      batch.source_begin.push_back(static_cast<int>(batch.points.size() / 6));
-    }
+    DeviceSourceBatches batches(src, kPartIcp, *params.device);
     auto fitBatch = [&](const std::vector<ChainFit<Pose>>& jobs) {
-      batch.motions.clear();
-      batch.jobs.clear();
-      for (std::size_t j = 0; j < jobs.size(); ++j) {
-        appendMotion(jobs[j].start, batch.motions);
-        batch.jobs.push_back({jobs[j].chain, static_cast<int>(j), jobs[j].frame, jobs[j].score,
-                              4.0 * frames[jobs[j].frame].spacing});
-      }
-      std::vector<double> poses;
-      params.device->partFits(batch, poses);
-      if (poses.size() != 12 * jobs.size())
-        throw Error("motion method: the device returned " + std::to_string(poses.size() / 12) +
-                    " part fits for " + std::to_string(jobs.size()));
-      std::vector<Pose> out(jobs.size());
-      for (std::size_t j = 0; j < jobs.size(); ++j) out[j] = motionAt(&poses[12 * j]);
-      return out;
+      std::vector<DeviceSourceBatches::Fit> fits;
+      for (const ChainFit<Pose>& j : jobs)
+        fits.push_back({j.chain, j.frame, j.start, j.score, 4.0 * frames[j.frame].spacing});
+      return batches.fits(fits);
     };
     // The starts' scores on the device too: residual batches, the same values as residual(),
-    // over the sources the fits packed (the same layout). Even a handful: scoring those on the
-    // cores instead (under 64) was slower (mean-shift stage 1.11 s against 1.06 s at 800k, median
-    // of six).
-    ResidualJobs scores;
-    scores.points = batch.points;
-    scores.source_begin = batch.source_begin;
+    // over the same packed sources. Even a handful: scoring those on the cores instead (under 64)
+    // was slower (mean-shift stage 1.11 s against 1.06 s at 800k, median of six).
     auto scoreBatch = [&](const std::vector<ChainScore<Pose>>& items) {
-      scores.motions.clear();
-      scores.jobs.clear();
-      for (std::size_t j = 0; j < items.size(); ++j) {
-        appendMotion(items[j].pose, scores.motions);
-        scores.jobs.push_back({items[j].chain, static_cast<int>(j), items[j].frame});
-      }
-      std::vector<double> out;
-      params.device->residuals(scores, out);
-      return out;
+      std::vector<DeviceSourceBatches::Item> list;
+      for (const ChainScore<Pose>& x : items) list.push_back({x.chain, x.frame, x.pose});
+      return batches.residuals(list);
     };
     return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts, scoreBatch, fitBatch, same,
                             true, 6);
