@@ -1351,15 +1351,13 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
         }
       }
     }
-    std::vector<std::pair<int, int>> across;
     for (int i = 0; i < n0; ++i)
-      for (int j : across_of[i]) across.push_back({i, j});
-    for (const auto& [i, j] : across) {
-      adj[label[i]].insert(label[j]);
-      adj[label[j]].insert(label[i]);
-      contact[i].push_back(j);
-      contact[j].push_back(i);
-    }
+      for (int j : across_of[i]) {
+        adj[label[i]].insert(label[j]);
+        adj[label[j]].insert(label[i]);
+        contact[i].push_back(j);
+        contact[j].push_back(i);
+      }
     for (auto& v : contact) {
       std::sort(v.begin(), v.end());
       v.erase(std::unique(v.begin(), v.end()), v.end());
