@@ -12,6 +12,10 @@ namespace pcl_animseg {
 namespace gpu {
 namespace detail {
 
+/** A tree's nodes, their indices made global (an inner node's children + node0, a leaf's points
+ * + point0), into nodes[0 ..], and its points in leaf order as (x, y, z, 0) into points[0 ..]. */
+void packTree(const FlatKdTree3& tree, int node0, int point0, TrackNode* nodes, float* points);
+
 /** Packs `frames` for upload (host work only, no CUDA call); throws Error (naming items as
  * `what` + index) on a frame without a tree or with a normal count that does not match. */
 FrameArrays packDeviceFrames(const segmentation::DeviceFrames& frames, const std::string& what);

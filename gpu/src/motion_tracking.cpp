@@ -66,6 +66,20 @@ void reportCalls(const FrameStore& store, const char* owner) {
                    store.stats[k].calls, store.stats[k].jobs, store.stats[k].seconds);
 }
 
+void packTree(const FlatKdTree3& tree, int node0, int point0, TrackNode* nodes, float* points) {
+  const std::vector<FlatKdTree3::Node>& in = tree.nodes();
+  for (std::size_t i = 0; i < in.size(); ++i) {
+    const FlatKdTree3::Node& n = in[i];
+    const int off = n.dim >= 0 ? node0 : point0;
+    nodes[i] = TrackNode{n.split, n.dim, n.a + off, n.b + off};
+  }
+  const std::vector<float>& xyz = tree.leafPoints();
+  for (std::size_t i = 0; i < tree.size(); ++i) {
+    for (int k = 0; k < 3; ++k) points[4 * i + k] = xyz[3 * i + k];
+    points[4 * i + 3] = 0.0f;
+  }
+}
+
 FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::string& what) {
   FrameArrays a;
   a.frames = static_cast<int>(in.frames.size());
@@ -79,18 +93,11 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
     const std::vector<float>& xyz = f.tree->leafPoints();
     if (f.leaf_normals.size() != xyz.size())
       throw Error(what + " " + std::to_string(t) + " has one normal per point expected");
-    for (const FlatKdTree3::Node& n : f.tree->nodes()) {
-      TrackNode d{n.split, n.dim, n.a, n.b};
-      if (n.dim >= 0)
-        d.a += node0, d.b += node0;
-      else
-        d.a += point0, d.b += point0;
-      a.nodes.push_back(d);
-    }
+    a.nodes.resize(a.nodes.size() + f.tree->nodes().size());
+    a.points.resize(a.points.size() + 4 * f.tree->size());
+    packTree(*f.tree, node0, point0, &a.nodes[node0], &a.points[4 * static_cast<std::size_t>(point0)]);
     a.root.push_back(f.tree->nodes().empty() ? -1 : node0);
     for (std::size_t i = 0; i < xyz.size(); i += 3) {
-      for (int k = 0; k < 3; ++k) a.points.push_back(xyz[i + k]);
-      a.points.push_back(0.0f);
       for (int k = 0; k < 3; ++k) a.normals.push_back(f.leaf_normals[i + k]);
       a.normals.push_back(0.0f);
     }

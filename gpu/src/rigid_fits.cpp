@@ -100,20 +100,10 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < n_trees; ++t) {
     const FlatKdTree3& tree = *trees[t];
-    const std::vector<FlatKdTree3::Node>& nodes = tree.nodes();
-    for (std::size_t i = 0; i < nodes.size(); ++i) {
-      const FlatKdTree3::Node& n = nodes[i];
-      const int off = n.dim >= 0 ? node0[t] : point0[t];
-      packed.nodes[node0[t] + i] = detail::TrackNode{n.split, n.dim, n.a + off, n.b + off};
-    }
-    packed.root[t] = nodes.empty() ? -1 : node0[t];
+    detail::packTree(tree, node0[t], point0[t], &packed.nodes[node0[t]],
+                     &packed.points[4 * static_cast<std::size_t>(point0[t])]);
+    packed.root[t] = tree.nodes().empty() ? -1 : node0[t];
     packed.size[t] = static_cast<int>(tree.size());
-    const std::vector<float>& xyz = tree.leafPoints();
-    float* out = &packed.points[4 * static_cast<std::size_t>(point0[t])];
-    for (std::size_t i = 0; i < tree.size(); ++i) {
-      out[4 * i] = xyz[3 * i], out[4 * i + 1] = xyz[3 * i + 1], out[4 * i + 2] = xyz[3 * i + 2];
-      out[4 * i + 3] = 0.0f;
-    }
     std::copy(tree.leafRows().begin(), tree.leafRows().end(), packed.rows.begin() + point0[t]);
   }
   requireGpu();
