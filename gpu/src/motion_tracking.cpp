@@ -214,7 +214,8 @@ void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vect
     list.push_back({j.source, j.motion, j.frame});
   }
   const detail::CallTimer timer(*frames_, 0, list.size());
-  detail::runResiduals(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, out);
+  detail::runResiduals(*frames_, jobs.points, jobs.source_begin, jobs.motions, list,
+                       point_parallel_limit_, out);
 }
 
 void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) {

@@ -1,7 +1,8 @@
 // The motion method's fits, residuals and point costs on the GPU (segmentation/motion_device.h):
 // the tracking as one warp per (frame, sample) fit and one kernel launch per wave of fits that
-// depend only on earlier waves; a residual batch as one warp per residual; a point-cost batch as
-// one thread per (point, motion).
+// depend only on earlier waves; a residual batch as one thread per point and one per residual
+// for the sums (one warp per residual in very large batches); a point-cost batch as one thread
+// per (point, motion, frame).
 //
 // Each warp of the tracking does what the CPU's task does (src/segmentation/motion_tracking.cpp,
 // trackSamplesOn step 3, with icp() and residual() there): score every start on the sample's
@@ -371,6 +372,58 @@ __global__ void residualJobs(Dev d, const double* __restrict__ points,
                icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles),
                WarpGroup(lane, scratch[threadIdx.x / kWarp]));
   if (lane == 0) out[w] = r;
+}
+
+// A residual job of the point-parallel path: residualJob's fields and the index of its first
+// point among the batch's points (the jobs' points one job after the other).
+struct ResidualPointJob {
+  int source;
+  int motion;
+  int frame;
+  int first;
+};
+
+// The surface error of every point of every job, a thread per point (residual()'s error of the
+// point, the same arithmetic): the job of point i is the last one whose first point is at most
+// i (jobs without points are skipped by that rule).
+__global__ void residualPointErrors(Dev d, const double* __restrict__ points,
+                                    const int* __restrict__ source_begin,
+                                    const double* __restrict__ motions,
+                                    const ResidualPointJob* __restrict__ jobs, int n, int total,
+                                    double* __restrict__ errors) {
+  const int i = blockIdx.x * blockDim.x + threadIdx.x;
+  if (i >= total) return;
+  int lo = 0, hi = n - 1;  // jobs[lo].first <= i: the last such job
+  while (lo < hi) {
+    const int mid = (lo + hi + 1) / 2;
+    if (jobs[mid].first <= i)
+      lo = mid;
+    else
+      hi = mid - 1;
+  }
+  const ResidualPointJob job = jobs[lo];
+  const double* p = points + 6LL * (source_begin[job.source] + (i - job.first));
+  const Rigid T = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
+  double y[3], nr[3];
+  icp_step::apply(T, p, y);
+  icp_step::rotate(T, p + 3, nr);
+  errors[i] = surfaceErrorAt(d, job.frame, y, nr);
+}
+
+// Each job's errors added in point order and its RMS, residual()'s total (a thread per job).
+__global__ void residualSums(const double* __restrict__ errors,
+                             const ResidualPointJob* __restrict__ jobs, int n, int total,
+                             double* __restrict__ out) {
+  const int j = blockIdx.x * blockDim.x + threadIdx.x;
+  if (j >= n) return;
+  const int b = jobs[j].first, e = j + 1 < n ? jobs[j + 1].first : total;
+  if (e == b) {
+    out[j] = 0.0;
+    return;
+  }
+  double sum = 0.0;
+  for (int i = b; i < e; ++i) sum += errors[i];
+  out[j] = sqrt(sum / static_cast<double>(e - b));
 }
 
 // One part fit (motion_tracking.cpp's fitParts, fitFrom: icp() from the job's motion, kept when
@@ -906,13 +959,46 @@ double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vect
 
 void runResiduals(FrameStore& frames, const std::vector<double>& points,
                   const std::vector<int>& source_begin, const std::vector<double>& motions,
-                  const std::vector<ResidualJob>& jobs, std::vector<double>& out) {
+                  const std::vector<ResidualJob>& jobs, long long point_parallel_limit,
+                  std::vector<double>& out) {
   out.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  const auto in =
-      putBatch(frames, points, &source_begin, motions, jobs, jobs.size() * sizeof(double));
   const Dev d = frameView(frames);
   const long long n = static_cast<long long>(jobs.size());
+  // Up to point_parallel_limit points in all (and below 2^31), a thread per point and then a
+  // thread per job for the sums: a merge's few residuals over whole parts left a warp per job
+  // searching thousands of points 32 at a time (150-270 us a batch). Larger batches (the sample
+  // edges' hundreds of thousands of residuals) fill the GPU with a warp per job, without an
+  // error per point.
+  long long total = 0;
+  for (const ResidualJob& j : jobs) total += source_begin[j.source + 1] - source_begin[j.source];
+  if (total <= point_parallel_limit && total < (1LL << 31)) {
+    std::vector<ResidualPointJob> list(jobs.size());
+    int first = 0;
+    for (std::size_t k = 0; k < jobs.size(); ++k) {
+      const ResidualJob& j = jobs[k];
+      list[k] = {j.source, j.motion, j.frame, first};
+      first += source_begin[j.source + 1] - source_begin[j.source];
+    }
+    // job_out: every point's error, then the results.
+    const auto in = putBatch(frames, points, &source_begin, motions, list,
+                             (static_cast<std::size_t>(total) + jobs.size()) * sizeof(double));
+    auto* errors = static_cast<double*>(frames.job_out.rawPtr());
+    double* res = errors + total;
+    constexpr int kThreads = 128;
+    const int m = static_cast<int>(total), jn = static_cast<int>(n);
+    if (m > 0) {
+      residualPointErrors<<<(m + kThreads - 1) / kThreads, kThreads>>>(
+          d, in.points, in.begin, in.motions, in.list, jn, m, errors);
+      cudaCheckLaunch();
+    }
+    residualSums<<<(jn + kThreads - 1) / kThreads, kThreads>>>(errors, in.list, jn, m, res);
+    cudaCheckLaunch();
+    getResults(frames, res, out.data(), out.size() * sizeof(double));
+    return;
+  }
+  const auto in =
+      putBatch(frames, points, &source_begin, motions, jobs, jobs.size() * sizeof(double));
   residualJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
       d, in.points, in.begin, in.motions, in.list, static_cast<int>(n),
       static_cast<double*>(frames.job_out.rawPtr()));

@@ -126,10 +126,13 @@ struct ResidualJob {
   int frame;
 };
 
-/** One residual per job (points: 6 per point; source_begin: per source plus the end). */
+/** One residual per job (points: 6 per point; source_begin: per source plus the end): a thread
+ * per point when the jobs' sources hold at most point_parallel_limit points in all, else a warp
+ * per job. */
 void runResiduals(FrameStore& frames, const std::vector<double>& points,
                   const std::vector<int>& source_begin, const std::vector<double>& motions,
-                  const std::vector<ResidualJob>& jobs, std::vector<double>& out);
+                  const std::vector<ResidualJob>& jobs, long long point_parallel_limit,
+                  std::vector<double>& out);
 
 /** A point-cost job: point, motion (frames x 12 doubles). */
 struct PointCostJob {

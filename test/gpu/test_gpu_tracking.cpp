@@ -3,16 +3,22 @@
 // bit for bit, and so the same labels. Skips when no usable GPU is present.
 #include <gtest/gtest.h>
 #include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/flat_kdtree.h>
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/mean_shift_backend.h>
 #include <pcl_animseg/gpu/motion_tracking.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
+#include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
+#include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
+#include <pcl_animseg/sequence.h>
 #include <pcl_animseg/synth/articulated.h>
 
+#include <Eigen/Geometry>
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <memory>
 #include <vector>
@@ -158,4 +164,94 @@ TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
     EXPECT_EQ(differ, 0) << synth::toString(plan);
     EXPECT_GT(device.fits(), 0);
   }
+}
+
+// Residual batches on the GPU both ways (a thread per point with the sums after, and a warp per
+// job: setPointParallelLimit(0)) against the CPU's residual of each job from the same frames:
+// the same bits. The sources run from none to thousands of points, as a merge's parts do.
+TEST(GpuTracking, ResidualBatchesAreTheCpusBothWays) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const auto seq = generated(synth::BodyPlan::Humanoid, 4, 6000, 5);
+  std::vector<pcl_animseg::FlatKdTree3> trees(seq->size());
+  seg::DeviceFrames frames;
+  for (std::size_t t = 0; t < seq->size(); ++t) {
+    const auto& cloud = *seq->frame(t);
+    std::vector<float> xyz;
+    for (const auto& p : cloud) xyz.insert(xyz.end(), {p.x, p.y, p.z});
+    trees[t].build(xyz.data(), cloud.size());
+    seg::DeviceFrames::Frame f;
+    f.tree = &trees[t];
+    for (int row : trees[t].leafRows())
+      f.leaf_normals.insert(f.leaf_normals.end(),
+                            {cloud[row].normal_x, cloud[row].normal_y, cloud[row].normal_z});
+    f.spacing = pcl_animseg::meanSpacing(cloud);
+    frames.frames.push_back(f);
+  }
+  // Sources cut from frame 0: 0, 1, 37, 500 and 3000 points; motions: the identity and small
+  // turns and shifts.
+  seg::ResidualJobs b;
+  const auto& f0 = *seq->frame(0);
+  for (int n : {0, 1, 37, 500, 3000}) {
+    for (int i = 0; i < n; ++i) {
+      const auto& p = f0[(i * 7) % f0.size()];
+      b.points.insert(b.points.end(), {p.x, p.y, p.z, p.normal_x, p.normal_y, p.normal_z});
+    }
+    b.source_begin.push_back(static_cast<int>(b.points.size() / 6));
+  }
+  for (int k = 0; k < 4; ++k) {
+    const Eigen::Matrix3d r =
+        Eigen::AngleAxisd(0.05 * k, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) b.motions.push_back(r(i, j));
+    b.motions.insert(b.motions.end(), {0.01 * k, -0.005 * k, 0.0});
+  }
+  for (int s = 0; s < 5; ++s)
+    for (int m = 0; m < 4; ++m)
+      for (int t = 0; t < static_cast<int>(seq->size()); ++t) b.jobs.push_back({s, m, t});
+  // The CPU's residual of a job (motion_tracking.cpp's residual over icp_step's surface error).
+  std::vector<double> cpu;
+  for (const auto& job : b.jobs) {
+    const auto& f = frames.frames[job.frame];
+    const seg::icp_step::Rigid m = seg::icp_step::load(&b.motions[12 * job.motion]);
+    double sum = 0.0;
+    const int first = b.source_begin[job.source], end = b.source_begin[job.source + 1];
+    for (int i = first; i < end; ++i) {
+      double y[3], n[3];
+      seg::icp_step::apply(m, &b.points[6 * i], y);
+      seg::icp_step::rotate(m, &b.points[6 * i + 3], n);
+      const double bound = (frames.clip + 1.5) * f.spacing;
+      const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                          static_cast<float>(y[2])};
+      float d2 = 0.0f;
+      const int leaf =
+          f.tree->nearestLeaf(q, std::nextafter(static_cast<float>(bound * bound), 1e30f), d2);
+      double tp[3] = {0, 0, 0}, tn[3] = {0, 0, 0};
+      for (int k = 0; leaf >= 0 && k < 3; ++k) {
+        tp[k] = f.tree->leafPoints()[3 * leaf + k];
+        tn[k] = f.leaf_normals[3 * leaf + k];
+      }
+      sum += seg::icp_step::surfaceError(leaf >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented,
+                                         frames.normal_cos, frames.clip);
+    }
+    cpu.push_back(end > first ? std::sqrt(sum / (end - first)) : 0.0);
+  }
+  gpu::MotionTracking device;
+  device.setFrames(frames);
+  std::vector<double> by_point, by_warp;
+  device.residuals(b, by_point);
+  device.setPointParallelLimit(0);
+  device.residuals(b, by_warp);
+  ASSERT_EQ(by_point.size(), b.jobs.size());
+  int differ_point = 0, differ_warp = 0;
+  for (std::size_t j = 0; j < cpu.size(); ++j) {
+    differ_point += by_point[j] != cpu[j];
+    differ_warp += by_warp[j] != cpu[j];
+  }
+  std::printf("%zu residuals: %d differ from the CPU's by point, %d by warp\n", cpu.size(),
+              differ_point, differ_warp);
+  EXPECT_EQ(differ_point, 0);
+  EXPECT_EQ(differ_warp, 0);
+  // Not all zero: the turned sources lie off the surfaces.
+  EXPECT_GT(*std::max_element(cpu.begin(), cpu.end()), 0.0);
 }

@@ -10,7 +10,8 @@
  * gpu::MeanShiftBackend owns one (MeanShiftDeviceBackend::motionDevice), so that
  * `animseg --device gpu|auto` runs the default method's tracking, merge scores and point costs
  * on the GPU. One warp fits one (frame, sample) pose, one kernel launch fits a wave of them; one
- * warp computes one residual of a batch, one thread one point cost. The arithmetic and the order of
+ * thread computes one point's error of a residual batch (one warp one residual in very large
+ * batches), one thread one point cost. The arithmetic and the order of
  * every sum are the CPU's (segmentation/icp_step.h): the results are the CPU's bit for bit.
  */
 #include <pcl_animseg/segmentation/motion_device.h>
@@ -49,6 +50,10 @@ class MotionTracking : public segmentation::MotionDevice {
   double lastDeviceSeconds() const { return device_seconds_; }
   /** \brief Kernel launches (waves) of the last trackSamples. */
   int lastWaves() const { return waves_; }
+  /** \brief Residual batches of at most this many source points in all (the default 2^21) run
+   * a thread per point and then a thread per job for the sums; larger ones a warp per job. The
+   * same residuals either way. */
+  void setPointParallelLimit(long long points) { point_parallel_limit_ = points; }
 
  private:
   /** The frames on the device, after uploading the pending ones (null: none were set). */
@@ -58,6 +63,7 @@ class MotionTracking : public segmentation::MotionDevice {
   std::unique_ptr<detail::FrameStore> frames_;
   double device_seconds_ = 0.0;
   int waves_ = 0;
+  long long point_parallel_limit_ = 1LL << 21;
 };
 
 }  // namespace gpu
