@@ -78,7 +78,7 @@ void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
 bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     const std::vector<float>& queries, const std::vector<int>& tree_of,
                     std::vector<int>& rows, std::vector<int>& count) {
-  if (k < 2 || k > detail::kMaxKnn) return false;
+  if (k < 1 || k > detail::kMaxKnn) return false;
   if (queries.size() != 3 * tree_of.size())
     throw Error("GPU k-NN: three coordinates per query expected");
   const int n_trees = static_cast<int>(trees.size());

@@ -849,6 +849,26 @@ __global__ void knnKernel(const TrackNode* nodes, const float4* pts, const int* 
   out_count[q] = filled;
 }
 
+// FlatKdTree3::knn with k = 1: nearest() without a bound (its walk, the first point found among
+// equal distances), a query per thread; no point for an empty tree or a non-finite query.
+__global__ void nearestKernel(const TrackNode* nodes, const float4* pts, const int* rows,
+                              const int* root, const float* queries, const int* tree_of,
+                              long long n, int* out_rows, int* out_count) {
+  const long long q = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (q >= n) return;
+  const float qx = queries[3 * q], qy = queries[3 * q + 1], qz = queries[3 * q + 2];
+  int leaf = -1;
+  if (isfinite(qx) && isfinite(qy) && isfinite(qz)) {
+    Dev d{};
+    d.nodes = nodes;
+    d.pts = pts;
+    float d2 = 0.0f;
+    leaf = nearest(d, root[tree_of[q]], qx, qy, qz, CUDART_INF_F, d2);
+  }
+  out_rows[q] = leaf >= 0 ? rows[leaf] : -1;
+  out_count[q] = leaf >= 0 ? 1 : 0;
+}
+
 void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count) {
   const long long n = static_cast<long long>(tree_of.size());
@@ -866,9 +886,14 @@ void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
   DeviceArray<int> out_count(count.size());
   const int threads = 128;
   const long long blocks = (n + threads - 1) / threads;
-  knnKernel<<<static_cast<unsigned>(blocks), threads>>>(
-      nodes.ptr(), reinterpret_cast<const float4*>(points.ptr()), point_rows.ptr(), root.ptr(),
-      size.ptr(), q.ptr(), of.ptr(), n, k, out_rows.ptr(), out_count.ptr());
+  if (k == 1)
+    nearestKernel<<<static_cast<unsigned>(blocks), threads>>>(
+        nodes.ptr(), reinterpret_cast<const float4*>(points.ptr()), point_rows.ptr(), root.ptr(),
+        q.ptr(), of.ptr(), n, out_rows.ptr(), out_count.ptr());
+  else
+    knnKernel<<<static_cast<unsigned>(blocks), threads>>>(
+        nodes.ptr(), reinterpret_cast<const float4*>(points.ptr()), point_rows.ptr(), root.ptr(),
+        size.ptr(), q.ptr(), of.ptr(), n, k, out_rows.ptr(), out_count.ptr());
   cudaCheckLaunch();
   out_rows.download(rows);
   out_count.download(count);

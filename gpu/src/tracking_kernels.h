@@ -198,7 +198,7 @@ constexpr int kMaxKnn = 32;
 
 /** FlatKdTree3::knn (flat_kdtree.h) of every query (x, y, z in `queries`) against tree
  * tree_of[q]: the same rows in the same order; k slots per query in `rows` (-1 past count[q]).
- * 2 <= k <= kMaxKnn. */
+ * 1 <= k <= kMaxKnn (k = 1: nearest() without a bound, as FlatKdTree3::knn). */
 void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
 

@@ -1,7 +1,7 @@
 // gpu::RigidFits::knn against FlatKdTree3::knn: the same rows, squared distances and order for
-// every query, on a grid (many points at exactly equal distances: the ties decide the order and
-// which points make the last slots) and on scattered points, with trees smaller than k. Skips
-// when no usable GPU is present.
+// every query (k = 1 too, FlatKdTree3's nearest point without a bound), on a grid (many points at
+// exactly equal distances: the ties decide the order and which points make the last slots) and on
+// scattered points, with trees smaller than k. Skips when no usable GPU is present.
 #include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/flat_kdtree.h>
@@ -53,7 +53,7 @@ TEST(GpuKnn, SameListsAsTheCpuTree) {
     tree_of.push_back(2);
   }
   gpu::RigidFits device;
-  for (int k : {2, 9, 16}) {
+  for (int k : {1, 2, 9, 16}) {  // k = 1: nearest() without a bound (the walk's first of ties)
     std::vector<int> rows, count;
     ASSERT_TRUE(device.knn(ptrs, k, queries, tree_of, rows, count));
     ASSERT_EQ(count.size(), tree_of.size());
@@ -74,9 +74,9 @@ TEST(GpuKnn, SameListsAsTheCpuTree) {
     EXPECT_EQ(differ, 0) << "k " << k << ": " << differ << " of " << tree_of.size()
                          << " lists differ";
   }
-  // k outside 2..32: not offered, the caller searches on the CPU.
+  // k outside 1..32: not offered, the caller searches on the CPU.
   std::vector<int> rows, count;
-  EXPECT_FALSE(device.knn(ptrs, 1, queries, tree_of, rows, count));
+  EXPECT_FALSE(device.knn(ptrs, 0, queries, tree_of, rows, count));
   EXPECT_FALSE(device.knn(ptrs, 33, queries, tree_of, rows, count));
   std::vector<int> bad = tree_of;
   bad[0] = 3;

@@ -48,6 +48,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
            std::vector<int>& rows, std::vector<int>& count) override {
     if (!offer_knn) return false;
     ++knn_calls;
+    knn_k.push_back(k);
     std::vector<pcl_animseg::FlatKdTree3> copies;
     for (const auto* x : t) copies.push_back(*x);
     const std::size_t n = tree_of.size();
@@ -63,6 +64,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
   }
   bool offer_knn = true;
   int knn_calls = 0;
+  std::vector<int> knn_k;  // each call's k
   std::vector<pcl_animseg::FlatKdTree3> trees;
   std::vector<std::vector<float>> normals;
   std::vector<std::vector<double>> sources;

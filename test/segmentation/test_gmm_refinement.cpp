@@ -263,7 +263,9 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
     }
   EXPECT_GE(dev.fits, 3 * 4);  // every part in every frame but the first
   EXPECT_LE(dev.batches, 4);   // one batch per frame position
-  EXPECT_EQ(dev.knn_calls, 1);  // every frame's neighbour lists in one call
+  // Every frame's neighbour lists in one call, then the nearest points of the motion check's
+  // moved copies in one.
+  EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
   // A device without the k-NN: the lists on the CPU, the same result.
   animseg_test::CpuRigidDevice fits_only;
   fits_only.offer_knn = false;

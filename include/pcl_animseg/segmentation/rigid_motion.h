@@ -92,8 +92,9 @@ class RigidFitDevice {
   virtual void fit(const std::vector<RigidFitJob>& jobs, const RigidMotionParams& params,
                    std::vector<double>& poses, std::vector<double>& rms) = 0;
   /** \brief FlatKdTree3::knn of many queries at once (the same rows in the same order):
-   * query q (x, y, z at queries[3q]) against `*trees[tree_of[q]]`, its k (>= 2) nearest rows
-   * into rows[k q ..], how many in count[q]. The squared distances are the caller's to compute
+   * query q (x, y, z at queries[3q]) against `*trees[tree_of[q]]`, its k (>= 1; k = 1 is
+   * FlatKdTree3::nearest without a bound) nearest rows into rows[k q ..], how many in count[q]
+   * (none for a non-finite query). The squared distances are the caller's to compute
    * (FlatKdTree3::distance2: the same values), which halves what comes back. Returns false when
    * the device does not offer it (the default; the caller searches on the CPU). */
   virtual bool knn(const std::vector<const FlatKdTree3*>& trees, int k,
