@@ -3,7 +3,10 @@
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
 
+#include <algorithm>
+#include <cstdint>
 #include <string>
+#include <vector>
 
 #include "frame_packing.h"
 #include "tracking_kernels.h"
@@ -14,8 +17,50 @@ namespace gpu {
 namespace detail {
 struct RigidSources {
   DeviceArray<double> points;     // x, y, z per point, every source after the other
+  DeviceArray<int> orders;        // each source's rigidSearchOrder, packed the same way
   std::vector<int> begin, count;  // per source, in points
 };
+
+std::vector<int> rigidSearchOrder(const std::vector<double>& xyz) {
+  const int n = static_cast<int>(xyz.size() / 3);
+  std::vector<int> order(n);
+  for (int i = 0; i < n; ++i) order[i] = i;
+  if (n == 0) return order;
+  double lo[3], hi[3];
+  for (int k = 0; k < 3; ++k) lo[k] = hi[k] = xyz[k];
+  for (int i = 0; i < n; ++i)
+    for (int k = 0; k < 3; ++k) {
+      lo[k] = std::min(lo[k], xyz[3 * i + k]);
+      hi[k] = std::max(hi[k], xyz[3 * i + k]);
+    }
+  // A point's Morton code: 10 bits per coordinate in the box, interleaved.
+  auto spread = [](std::uint32_t v) {
+    v &= 0x3ffu;
+    v = (v | (v << 16)) & 0x030000ffu;
+    v = (v | (v << 8)) & 0x0300f00fu;
+    v = (v | (v << 4)) & 0x030c30c3u;
+    v = (v | (v << 2)) & 0x09249249u;
+    return v;
+  };
+  std::vector<std::uint32_t> code(n);
+  for (int i = 0; i < n; ++i) {
+    std::uint32_t c = 0;
+    for (int k = 0; k < 3; ++k) {
+      const double ext = hi[k] - lo[k];
+      const double u = ext > 0.0 ? (xyz[3 * i + k] - lo[k]) / ext : 0.0;
+      const auto q = static_cast<std::uint32_t>(std::min(1023.0, std::max(0.0, u * 1023.0)));
+      c |= spread(q) << k;
+    }
+    code[i] = c;
+  }
+  for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
+    const int c1 = std::min(n, c0 + kRigidChunk);
+    std::stable_sort(order.begin() + c0, order.begin() + c1,
+                     [&](int a, int b) { return code[a] < code[b]; });
+  }
+  return order;
+}
+
 }  // namespace detail
 
 RigidFits::RigidFits() = default;
@@ -38,7 +83,16 @@ void RigidFits::setSources(const std::vector<const std::vector<double>*>& source
     s->count.push_back(static_cast<int>(x->size() / 3));
     flat.insert(flat.end(), x->begin(), x->end());
   }
-  if (!flat.empty()) s->points.upload(flat);
+  std::vector<int> orders(flat.size() / 3);
+#pragma omp parallel for schedule(dynamic)
+  for (int k = 0; k < static_cast<int>(sources.size()); ++k) {
+    const std::vector<int> o = detail::rigidSearchOrder(*sources[k]);
+    std::copy(o.begin(), o.end(), orders.begin() + s->begin[k]);
+  }
+  if (!flat.empty()) {
+    s->points.upload(flat);
+    s->orders.upload(orders);
+  }
   sources_ = std::move(s);
 }
 
@@ -70,7 +124,7 @@ void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
   p.relative_mse_epsilon = params.relative_mse_epsilon;
   p.max_turn = segmentation::rigidStepMaxTurn();
   const detail::CallTimer timer(*surfaces_, 3, list.size());
-  detail::runRigidFits(*surfaces_, sources_->points, list, p, poses, rms);
+  detail::runRigidFits(*surfaces_, sources_->points, sources_->orders, list, p, poses, rms);
   fits_ += static_cast<long long>(jobs.size());
   ++batches_;
 }

@@ -519,7 +519,6 @@ __global__ void pointCostSums(const double* __restrict__ errors, int frames, int
 // thread per range searching its points in turn waited for memory most of the time).
 constexpr int kRigidThreads = icp_step::kSumRanges;
 constexpr int kRigidSearchThreads = 2 * kRigidThreads;
-constexpr int kRigidChunk = 1024;
 constexpr int kRigidCols = icp_step::kTerms + 2;  // the terms, the squared distances, the count
 struct RigidShared {
   double part[kRigidThreads][kRigidCols];
@@ -542,10 +541,14 @@ __device__ void rangeTotals(RigidShared& sh, int cols) {
 }
 
 // The nearest surface point (within bound2) of every point c0..c1-1 of the source under T, by
-// all threads of the block, into sh.match / sh.d2 (index - c0); synchronised after.
-__device__ void rigidMatches(const Dev& d, int root, const double* src, const Rigid& T, int c0,
-                             int c1, float bound2, RigidShared& sh) {
-  for (int i = c0 + static_cast<int>(threadIdx.x); i < c1; i += blockDim.x) {
+// all threads of the block, into sh.match / sh.d2 (index - c0); synchronised after. The threads
+// take the chunk's points in `order` (rigidSearchOrder: near points side by side), so that the
+// lanes of a warp walk the same branches of the tree: in the source's own order they walked
+// apart, and the warps' divergent walks were most of a fit's time.
+__device__ void rigidMatches(const Dev& d, int root, const double* src, const int* order,
+                             const Rigid& T, int c0, int c1, float bound2, RigidShared& sh) {
+  for (int s = c0 + static_cast<int>(threadIdx.x); s < c1; s += blockDim.x) {
+    const int i = order[s];
     double y[3];
     icp_step::apply(T, src + 3 * i, y);
     float d2 = 0.0f;
@@ -556,7 +559,8 @@ __device__ void rigidMatches(const Dev& d, int root, const double* src, const Ri
   __syncthreads();
 }
 
-__device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rigid T,
+__device__ Rigid rigidPass(const Dev& d, int root, const double* src, const int* order, int n,
+                           Rigid T,
                            double max_dist, int iterations, bool plane, double spacing,
                            const RigidParams& p, RigidShared& sh) {
   const float max_d2 = static_cast<float>(max_dist * max_dist);
@@ -583,7 +587,7 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rig
     for (int q = 0; q < kRigidCols; ++q) part[q] = 0.0;
     for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
       const int c1 = min(n, c0 + kRigidChunk);
-      rigidMatches(d, root, src, T, c0, c1, max_d2, sh);
+      rigidMatches(d, root, src, order, T, c0, c1, max_d2, sh);
       for (int i = max(b, c0); i < min(e, c1); ++i) {
         const int k = sh.match[i - c0];
         if (k < 0) continue;
@@ -613,8 +617,8 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, int n, Rig
 
 // RMS distance from the moved source to its nearest surface points (no bound), NaN when a point
 // finds none; added by ranges as on the CPU.
-__device__ double rigidFitness(const Dev& d, int root, const double* src, int n, const Rigid& T,
-                               RigidShared& sh) {
+__device__ double rigidFitness(const Dev& d, int root, const double* src, const int* order, int n,
+                               const Rigid& T, RigidShared& sh) {
   if (n == 0) return CUDART_NAN;
   const int j = threadIdx.x;
   const bool ranger = j < kRigidThreads;
@@ -623,7 +627,7 @@ __device__ double rigidFitness(const Dev& d, int root, const double* src, int n,
   double sum = 0.0, missing = 0.0;
   for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
     const int c1 = min(n, c0 + kRigidChunk);
-    rigidMatches(d, root, src, T, c0, c1, CUDART_INF_F, sh);
+    rigidMatches(d, root, src, order, T, c0, c1, CUDART_INF_F, sh);
     for (int i = max(b, c0); i < min(e, c1); ++i) {
       if (sh.match[i - c0] < 0)
         missing += 1.0;
@@ -644,12 +648,13 @@ __device__ double rigidFitness(const Dev& d, int root, const double* src, int n,
 }
 
 __global__ void __launch_bounds__(kRigidSearchThreads)
-    rigidFitJobs(Dev d, const double* __restrict__ sources, const RigidJob* __restrict__ jobs,
-                 RigidParams p, double* poses, double* rms_out) {
+    rigidFitJobs(Dev d, const double* __restrict__ sources, const int* __restrict__ orders,
+                 const RigidJob* __restrict__ jobs, RigidParams p, double* poses, double* rms_out) {
   __shared__ RigidShared sh;
   const RigidJob job = jobs[blockIdx.x];
   const int root = d.root[job.surface];
   const double* src = sources + 3LL * job.source_begin;
+  const int* order = orders + job.source_begin;
   const int n = job.source_count;
   const double fine = p.max_correspondence_spacings * job.spacing;
   const double coarse = fmax(fine, p.coarse_distance * job.part_diag);
@@ -657,13 +662,13 @@ __global__ void __launch_bounds__(kRigidSearchThreads)
   Rigid m = icp_step::load(job.start);
   if (job.wide)
     for (int k = 0; k < 2; ++k)
-      m = rigidPass(d, root, src, n, m, passes[k], max(1, p.max_iterations / 2), false, job.spacing,
-                    p, sh);
-  m = rigidPass(d, root, src, n, m, fine, p.max_iterations, false, job.spacing, p, sh);
-  double rms = rigidFitness(d, root, src, n, m, sh);
+      m = rigidPass(d, root, src, order, n, m, passes[k], max(1, p.max_iterations / 2), false,
+                    job.spacing, p, sh);
+  m = rigidPass(d, root, src, order, n, m, fine, p.max_iterations, false, job.spacing, p, sh);
+  double rms = rigidFitness(d, root, src, order, n, m, sh);
   const Rigid plane =
-      rigidPass(d, root, src, n, m, fine, p.max_iterations, true, job.spacing, p, sh);
-  const double rms_plane = rigidFitness(d, root, src, n, plane, sh);
+      rigidPass(d, root, src, order, n, m, fine, p.max_iterations, true, job.spacing, p, sh);
+  const double rms_plane = rigidFitness(d, root, src, order, n, plane, sh);
   if (rms_plane <= rms) {
     m = plane;
     rms = rms_plane;
@@ -766,8 +771,8 @@ int blocksFor(long long warps) {
 }  // namespace
 
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
-                  const std::vector<RigidJob>& jobs, const RigidParams& params,
-                  std::vector<double>& poses, std::vector<double>& rms) {
+                  const DeviceArray<int>& orders, const std::vector<RigidJob>& jobs,
+                  const RigidParams& params, std::vector<double>& poses, std::vector<double>& rms) {
   poses.assign(jobs.size() * kPoseDoubles, 0.0);
   rms.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
@@ -777,7 +782,8 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   const int n = static_cast<int>(jobs.size());
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
   rigidFitJobs<<<n, kRigidSearchThreads>>>(
-      d, sources.ptr(), static_cast<const RigidJob*>(surfaces.job_in.rawPtr()), params, out,
+      d, sources.ptr(), orders.ptr(), static_cast<const RigidJob*>(surfaces.job_in.rawPtr()),
+      params, out,
       out + static_cast<std::size_t>(n) * kPoseDoubles);
   cudaCheckLaunch();
   std::vector<double> all(jobs.size() * (kPoseDoubles + 1));

@@ -202,12 +202,21 @@ constexpr int kMaxKnn = 32;
 void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
 
+/** The rigid fits' nearest-point searches go kRigidChunk source points at a time. */
+constexpr int kRigidChunk = 1024;
+
+/** The order in which a rigid fit searches a source's points (x, y, z per point): within each
+ * chunk of kRigidChunk points, by the Morton code of the point in the source's bounding box
+ * (each entry a point's index in the source). Which thread searches a point does not change its
+ * match, only how far apart the lanes of a warp walk. */
+std::vector<int> rigidSearchOrder(const std::vector<double>& xyz);
+
 /** segmentation::fitRigidJob for every job, one block each: poses (12 doubles per job) and rms.
  * `surfaces`: the parts' trees as frames (their spacing and orientation unused); `sources`:
- * the packed sources on the device. */
+ * the packed sources on the device, `orders` their rigidSearchOrder()s packed the same way. */
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
-                  const std::vector<RigidJob>& jobs, const RigidParams& params,
-                  std::vector<double>& poses, std::vector<double>& rms);
+                  const DeviceArray<int>& orders, const std::vector<RigidJob>& jobs,
+                  const RigidParams& params, std::vector<double>& poses, std::vector<double>& rms);
 
 }  // namespace detail
 }  // namespace gpu
