@@ -23,6 +23,7 @@
 #include <memory>
 #include <vector>
 
+#include "segmentation/cpu_residuals.h"
 #include "segmentation/synthetic_parts.h"
 
 namespace gpu = pcl_animseg::gpu;
@@ -209,33 +210,8 @@ TEST(GpuTracking, ResidualBatchesAreTheCpusBothWays) {
   for (int s = 0; s < 5; ++s)
     for (int m = 0; m < 4; ++m)
       for (int t = 0; t < static_cast<int>(seq->size()); ++t) b.jobs.push_back({s, m, t});
-  // The CPU's residual of a job (motion_tracking.cpp's residual over icp_step's surface error).
-  std::vector<double> cpu;
-  for (const auto& job : b.jobs) {
-    const auto& f = frames.frames[job.frame];
-    const seg::icp_step::Rigid m = seg::icp_step::load(&b.motions[12 * job.motion]);
-    double sum = 0.0;
-    const int first = b.source_begin[job.source], end = b.source_begin[job.source + 1];
-    for (int i = first; i < end; ++i) {
-      double y[3], n[3];
-      seg::icp_step::apply(m, &b.points[6 * i], y);
-      seg::icp_step::rotate(m, &b.points[6 * i + 3], n);
-      const double bound = (frames.clip + 1.5) * f.spacing;
-      const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                          static_cast<float>(y[2])};
-      float d2 = 0.0f;
-      const int leaf =
-          f.tree->nearestLeaf(q, std::nextafter(static_cast<float>(bound * bound), 1e30f), d2);
-      double tp[3] = {0, 0, 0}, tn[3] = {0, 0, 0};
-      for (int k = 0; leaf >= 0 && k < 3; ++k) {
-        tp[k] = f.tree->leafPoints()[3 * leaf + k];
-        tn[k] = f.leaf_normals[3 * leaf + k];
-      }
-      sum += seg::icp_step::surfaceError(leaf >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented,
-                                         frames.normal_cos, frames.clip);
-    }
-    cpu.push_back(end > first ? std::sqrt(sum / (end - first)) : 0.0);
-  }
+  // The CPU's residual of each job from the same frames (motion_tracking.cpp's residual).
+  const std::vector<double> cpu = animseg_test::cpuResiduals(frames, b);
   gpu::MotionTracking device;
   device.setFrames(frames);
   std::vector<double> by_point, by_warp;

@@ -17,6 +17,7 @@
 #include <string>
 #include <vector>
 
+#include "cpu_residuals.h"
 #include "synthetic_parts.h"
 
 namespace seg = pcl_animseg::segmentation;
@@ -95,23 +96,7 @@ class RecordingDevice : public seg::MotionDevice {
   }
   // icp_step's surface error of a moved point against frame t, from the frames given.
   double surfaceError(int t, const double* y, const double* n) const {
-    const auto& f = frames.frames[t];
-    const double bound = (frames.clip + 1.5) * f.spacing;
-    const float bound2 = static_cast<float>(bound * bound);
-    const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                        static_cast<float>(y[2])};
-    float d2 = 0.0f;
-    const int row = f.tree->nearest(q, std::nextafter(bound2, 1e30f), d2);
-    double tp[3] = {0, 0, 0}, tn[3] = {0, 0, 0};
-    if (row >= 0) {
-      const int leaf = leaf_of[t][row];
-      for (int k = 0; k < 3; ++k) {
-        tp[k] = f.tree->leafPoints()[3 * leaf + k];
-        tn[k] = f.leaf_normals[3 * leaf + k];
-      }
-    }
-    return seg::icp_step::surfaceError(row >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented,
-                                       frames.normal_cos, frames.clip);
+    return animseg_test::deviceSurfaceError(frames, t, y, n);
   }
   static seg::icp_step::Rigid motionAt(const std::vector<double>& motions, std::size_t k) {
     return seg::icp_step::load(&motions[12 * k]);
@@ -119,19 +104,7 @@ class RecordingDevice : public seg::MotionDevice {
   void residuals(const seg::ResidualJobs& b, std::vector<double>& out) override {
     ++batches;
     jobs += b.jobs.size();
-    out.clear();
-    for (const auto& job : b.jobs) {
-      const seg::icp_step::Rigid m = motionAt(b.motions, job.motion);
-      double sum = 0.0;
-      const int first = b.source_begin[job.source], end = b.source_begin[job.source + 1];
-      for (int i = first; i < end; ++i) {
-        double y[3], n[3];
-        seg::icp_step::apply(m, &b.points[6 * i], y);
-        seg::icp_step::rotate(m, &b.points[6 * i + 3], n);
-        sum += surfaceError(job.frame, y, n);
-      }
-      out.push_back(end > first ? std::sqrt(sum / (end - first)) : 0.0);
-    }
+    out = animseg_test::cpuResiduals(frames, b);
   }
   void pointCosts(const seg::PointCostJobs& b, std::vector<double>& out) override {
     ++cost_batches;
