@@ -560,8 +560,7 @@ __device__ void rigidMatches(const Dev& d, int root, const double* src, const in
 }
 
 __device__ Rigid rigidPass(const Dev& d, int root, const double* src, const int* order, int n,
-                           Rigid T,
-                           double max_dist, int iterations, bool plane, double spacing,
+                           Rigid T, double max_dist, int iterations, bool plane, double spacing,
                            const RigidParams& p, RigidShared& sh) {
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double max_move = p.transformation_epsilon * spacing;
@@ -783,8 +782,7 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
   rigidFitJobs<<<n, kRigidSearchThreads>>>(
       d, sources.ptr(), orders.ptr(), static_cast<const RigidJob*>(surfaces.job_in.rawPtr()),
-      params, out,
-      out + static_cast<std::size_t>(n) * kPoseDoubles);
+      params, out, out + static_cast<std::size_t>(n) * kPoseDoubles);
   cudaCheckLaunch();
   std::vector<double> all(jobs.size() * (kPoseDoubles + 1));
   surfaces.job_out.downloadBytes(all.data(), all.size() * sizeof(double));

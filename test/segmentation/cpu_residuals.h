@@ -18,8 +18,7 @@ inline double deviceSurfaceError(const pcl_animseg::segmentation::DeviceFrames& 
   namespace is = pcl_animseg::segmentation::icp_step;
   const auto& f = frames.frames[t];
   const double bound = (frames.clip + 1.5) * f.spacing;
-  const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                      static_cast<float>(y[2])};
+  const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]), static_cast<float>(y[2])};
   float d2 = 0.0f;
   const int leaf =
       f.tree->nearestLeaf(q, std::nextafter(static_cast<float>(bound * bound), 1e30f), d2);
@@ -28,8 +27,8 @@ inline double deviceSurfaceError(const pcl_animseg::segmentation::DeviceFrames& 
     tp[k] = f.tree->leafPoints()[3 * leaf + k];
     tn[k] = f.leaf_normals[3 * leaf + k];
   }
-  return is::surfaceError(leaf >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented,
-                          frames.normal_cos, frames.clip);
+  return is::surfaceError(leaf >= 0, d2, y, n, tp, tn, f.spacing, f.unoriented, frames.normal_cos,
+                          frames.clip);
 }
 
 // Every job's RMS surface error (0 for a source without points).
