@@ -13,7 +13,6 @@
 #include <memory>
 #include <queue>
 #include <tuple>
-#include <unordered_map>
 
 #include "mean_shift_internal.h"
 #include "surface_fold.h"
@@ -419,12 +418,14 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
 
   // With a device that offers it, every frame's lists in one k-NN call (the same lists; on the
   // cores they were a fifth of the refinement's CPU time at 800k), which the frames' lists view.
+  // The frames' flat trees, which a device searches (the lists here, the motion check's nearest
+  // points below).
+  std::vector<const FlatKdTree3*> flat(frames);
+  for (std::size_t t = 0; t < frames; ++t) flat[t] = &trees[t].flatTree();
   if (device_ && p.max_iterations > 0) {
     const int k = p.boundary_k + 1;
-    std::vector<const FlatKdTree3*> flat(frames);
     std::vector<std::size_t> first(frames + 1, 0);  // each frame's first query
     for (std::size_t t = 0; t < frames; ++t) {
-      flat[t] = &trees[t].flatTree();
       first[t + 1] =
           first[t] + static_cast<std::size_t>(std::count_if(labels[t].begin(), labels[t].end(),
                                                             [](int l) { return l >= 0; }));
@@ -746,11 +747,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
           for (int k = 0; k < 2; ++k)
             movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], copies[first[t] + 2 * v + k]);
-      std::vector<int> nearest;  // per copy, in order: its nearest point (cloud index) or -1
+      // Each residual's first copy, then every copy's nearest point (a cloud index, -1: none).
+      std::vector<std::size_t> at(copies.size() + 1, 0);
+      for (std::size_t r = 0; r < copies.size(); ++r) at[r + 1] = at[r] + copies[r].size();
+      std::vector<int> nearest(at.back(), -1);
       bool searched = false;
-      if (device_) {
-        std::vector<std::size_t> at(copies.size() + 1, 0);
-        for (std::size_t r = 0; r < copies.size(); ++r) at[r + 1] = at[r] + copies[r].size();
+      if (device_ && at.back() > 0) {
         std::vector<float> queries(3 * at.back());
         std::vector<int> tree_of(at.back());
 #pragma omp parallel for schedule(dynamic, 256)
@@ -761,51 +763,40 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
             queries[3 * q] = y.x(), queries[3 * q + 1] = y.y(), queries[3 * q + 2] = y.z();
             tree_of[q] = copies[r][c].first;
           }
-        std::vector<const FlatKdTree3*> flat(frames);
-        for (std::size_t t = 0; t < frames; ++t) flat[t] = &trees[t].flatTree();
         std::vector<int> rows, count;
-        if (!queries.empty() && device_->knn(flat, 1, queries, tree_of, rows, count)) {
+        if (device_->knn(flat, 1, queries, tree_of, rows, count)) {
           if (count.size() != tree_of.size() || rows.size() != tree_of.size())
             throw Error("refinement: the device's nearest points do not match their queries");
-          nearest.resize(tree_of.size());
           for (std::size_t q = 0; q < tree_of.size(); ++q)
-            nearest[q] = count[q] > 0 ? trees[tree_of[q]].cloudIndex(rows[q]) : -1;
+            if (count[q] > 0) nearest[q] = trees[tree_of[q]].cloudIndex(rows[q]);
           searched = true;
-        }
-        if (searched) {
-#pragma omp parallel for schedule(dynamic)
-          for (int t = 0; t < static_cast<int>(frames); ++t) {
-            motion_res[t].resize(verdict[t].size());
-            for (std::size_t v = 0; v < verdict[t].size(); ++v)
-              for (int k = 0; k < 2; ++k) {
-                const std::size_t r = first[t] + 2 * v + k;
-                double sum = 0.0;
-                int n = 0;
-                for (std::size_t c = 0; c < copies[r].size(); ++c)
-                  copyTerm(copies[r][c].first, copies[r][c].second, nearest[at[r] + c], sum, n);
-                motion_res[t][v][k] = residualOf(sum, n);
-              }
-          }
         }
       }
       if (!searched) {
-#pragma omp parallel for schedule(dynamic)
-        for (int t = 0; t < static_cast<int>(frames); ++t) {
+#pragma omp parallel for schedule(dynamic, 256)
+        for (long r = 0; r < static_cast<long>(copies.size()); ++r) {
           std::vector<int> idx(1);
           std::vector<float> d2(1);
-          motion_res[t].resize(verdict[t].size());
-          for (std::size_t v = 0; v < verdict[t].size(); ++v)
-            for (int k = 0; k < 2; ++k) {
-              double sum = 0.0;
-              int n = 0;
-              for (const auto& [u, y] : copies[first[t] + 2 * v + k]) {
-                pcl::PointNormal q;
-                q.getVector3fMap() = y.cast<float>();
-                copyTerm(u, y, trees[u].nearestKSearch(q, 1, idx, d2) < 1 ? -1 : idx[0], sum, n);
-              }
-              motion_res[t][v][k] = residualOf(sum, n);
-            }
+          for (std::size_t c = 0; c < copies[r].size(); ++c) {
+            const auto& [u, y] = copies[r][c];
+            pcl::PointNormal q;
+            q.getVector3fMap() = y.cast<float>();
+            if (trees[u].nearestKSearch(q, 1, idx, d2) > 0) nearest[at[r] + c] = idx[0];
+          }
         }
+      }
+#pragma omp parallel for schedule(dynamic)
+      for (int t = 0; t < static_cast<int>(frames); ++t) {
+        motion_res[t].resize(verdict[t].size());
+        for (std::size_t v = 0; v < verdict[t].size(); ++v)
+          for (int k = 0; k < 2; ++k) {
+            const std::size_t r = first[t] + 2 * v + k;
+            double sum = 0.0;
+            int n = 0;
+            for (std::size_t c = 0; c < copies[r].size(); ++c)
+              copyTerm(copies[r][c].first, copies[r][c].second, nearest[at[r] + c], sum, n);
+            motion_res[t][v][k] = residualOf(sum, n);
+          }
       }
     }
     // 3c. The motion check (the other part's motion must explain the point about as well as its
