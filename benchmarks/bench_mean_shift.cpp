@@ -3,7 +3,7 @@
 //
 //   bench_mean_shift [--points N] [--frames T] [--refine K] [--exact-every1 a] [--exact-every2 b]
 //                    [--full 0|1] [--features synthetic|pipeline] [--plan P] [--bandwidth W]
-//                    [--w4 W4] [--exact 0|1] [--min-leaf-points M]
+//                    [--w4 W4] [--exact 0|1] [--min-leaf-points M] [--exact-borders 0|1]
 //
 // Runs MeanShiftSegmentation (paper method: every point iterated, so the cost is the kernel
 // sums) on one of two 30-D inputs:
@@ -19,6 +19,8 @@
 //    cells hold N/M ~ 760 points at 800k, the paper's regime (1024-8192).
 // --min-leaf-points M: the Gaussian kd-tree splits no cell of fewer than M points, so that N/M is
 // at least about M/2 (the band is 1024-8192); on the subsamples M / k.
+// --exact-borders 1: the Gaussian kd-tree runs with MeanShiftParams::exact_borders (border points
+// follow exact trajectories).
 // Exact backend (--exact 0 skips it): too slow at 800k, so it runs on two per-frame subsamples and is extrapolated
 // with the fitted power law (its cost grows faster than N: the neighbours within 3 bandwidths
 // grow with the density). Prints wall, user and system CPU time (the machine is shared: CPU time
@@ -165,8 +167,9 @@ struct Timing {
 };
 
 Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, double bandwidth,
-                double w4, int min_leaf_points) {
+                double w4, int min_leaf_points, bool exact_borders = false) {
   seg::MeanShiftParams p;
+  p.exact_borders = exact_borders;
   p.method = seg::MeanShiftMethod::Paper;
   p.backend = backend;
   p.refine_iterations = refine;
@@ -192,7 +195,8 @@ Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, doub
 
 const char* const kOptions[] = {"--points",   "--frames", "--refine",   "--exact-every1",
                                  "--exact-every2", "--full", "--features", "--plan",
-                                 "--bandwidth", "--w4",     "--exact", "--min-leaf-points"};
+                                 "--bandwidth", "--w4",     "--exact", "--min-leaf-points",
+                                 "--exact-borders"};
 
 /** Every argument is a known option followed by its value; anything else is an error. */
 void checkArguments(int argc, char** argv) {
@@ -237,6 +241,7 @@ int main(int argc, char** argv) {
     const int sub2 = static_cast<int>(argValue(argc, argv, "--exact-every2", 40));
     const bool run_full = argValue(argc, argv, "--full", 1) != 0;
     const bool run_exact = argValue(argc, argv, "--exact", 1) != 0;
+    const bool borders = argValue(argc, argv, "--exact-borders", 0) != 0;
     const std::string features = argText(argc, argv, "--features", "synthetic");
     const std::string plan = argText(argc, argv, "--plan", "humanoid");
     const seg::MeanShiftParams defaults;
@@ -257,10 +262,12 @@ int main(int argc, char** argv) {
     if (run_full) {
       const Sample full = make(1);
       const Timing g =
-          runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4, min_leaf);
-      std::printf("gkdtree (refine %d): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
+          runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4, min_leaf,
+                   borders);
+      std::printf("gkdtree (refine %d%s): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
                   "MiB\n",
-                  refine, g.wall, g.cpu, g.clusters, peakRssMiB());
+                  refine, borders ? ", exact borders" : "", g.wall, g.cpu, g.clusters,
+                  peakRssMiB());
     }
     if (!run_exact) {
       std::printf("peak RSS %.0f MiB\n", peakRssMiB());
@@ -274,7 +281,8 @@ int main(int argc, char** argv) {
       const Timing e = runStage(s, seg::MeanShiftBackend::Exact, 0, bandwidth, w4, 1);
       const Timing g =
           runStage(s, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
-                   std::max(1, min_leaf / every[i]));  // the full run's cells, thinned
+                   std::max(1, min_leaf / every[i]),  // the full run's cells, thinned
+                   borders);
       nn[i] = static_cast<double>(s.seq->totalPoints());
       cpu[i] = e.cpu;
       std::printf("subsample %.0f points: exact wall %.2f s user+sys %.2f s (%d clusters); "

@@ -55,8 +55,8 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
     throw Error("--sliver-fraction must be in [0, 1)");
 }
 
-/** Adds the paper method's Gaussian kd-tree knobs --exact-steps, --cell-extent and
- * --cell-min-points with the defaults of `d`. */
+/** Adds the paper method's Gaussian kd-tree knobs --exact-steps, --cell-extent,
+ * --cell-min-points and --exact-borders with the defaults of `d`. */
 inline void addPaperOptions(boost::program_options::options_description& od,
                             const segmentation::MeanShiftParams& d) {
   namespace po = boost::program_options;
@@ -69,13 +69,18 @@ inline void addPaperOptions(boost::program_options::options_description& od,
      "al.'s eta; smaller: more cells, more accurate)")
     ("cell-min-points", po::value<int>()->default_value(d.gkdtree.min_leaf_points),
      "paper method, gkdtree backend: a filter cell of fewer points is not split (the sampling "
-     "factor N/M is then at least about half of it; the paper used 1024-8192)");
+     "factor N/M is then at least about half of it; the paper used 1024-8192)")
+    ("exact-borders",
+     "paper method, gkdtree backend: points on a border between two clusters (and their "
+     "cells) follow their own exact trajectories, so that the borders agree with the exact "
+     "backend's; costs up to the exact backend's time where most points lie on borders");
 }
 
 /** The paper options into `p`; throws Error (one line) for a value out of range. */
 inline void readPaperOptions(const boost::program_options::variables_map& vm,
                              segmentation::MeanShiftParams& p) {
   p.refine_iterations = vm["exact-steps"].as<int>();
+  p.exact_borders = vm.count("exact-borders") > 0;
   const double extent = vm["cell-extent"].as<double>();
   p.gkdtree.min_leaf_points = vm["cell-min-points"].as<int>();
   if (p.refine_iterations < 0) throw Error("--exact-steps must be >= 0");

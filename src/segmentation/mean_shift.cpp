@@ -1292,34 +1292,16 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   }
 }
 
-/** Paper's method: mean shift of every point (Eq. 9) until it stops (on the CPU or the device),
- * then modes. */
-void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
-              const MeanShiftParams& params, MeanShiftDeviceBackend* device,
-              std::vector<int>& flat, Eigen::MatrixXf& modes, int& num_clusters,
-              std::unique_ptr<JointKernelSum>& sums, Eigen::VectorXf& point_density,
-              Progress* progress) {
-  const Eigen::Index n = space.z.rows();
-  const int dim = static_cast<int>(space.z.cols());
-  Eigen::MatrixXf y;
-  Eigen::VectorXf end_density;
-  if (device) {
-    const std::vector<char> no_keys;
-    const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
-    if (progress) progress->begin("mean shift on " + device->name(), 1);
-    device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y,
-                      end_density);
-    if (progress) progress->end();
-    if (params.refine_iterations > 0) {
-      refineEndPoints(space, params, space.has_keypoints ? space.keypoint : std::vector<char>(),
-                      y);
-      device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
-                      end_density);
-    }
-  } else {
-    seekModesCpu(space, params, y, end_density, sums, point_density, progress);
-  }
+/** Modes from the end points y (one row per data point): end points grouped into modes, tiny
+ * clusters absorbed by the neighbour they share most k-NN edges with; flat the clusters, modes
+ * one row per cluster. */
+void groupAndAbsorb(const JointSpace& space, const std::vector<int>& graph, int k,
+                    const MeanShiftParams& params, const Eigen::MatrixXf& y,
+                    const Eigen::VectorXf& end_density, std::vector<int>& flat,
+                    Eigen::MatrixXf& modes, int& num_clusters) {
   StageTimer timer;
+  const Eigen::Index n = y.rows();
+  const int dim = static_cast<int>(y.cols());
   std::vector<int> mode_rep;  // point whose end point is the mode
   groupModes(y, space.metric_plain, end_density, params.merge_radius, flat, mode_rep);
   timer.lap("mode grouping");
@@ -1425,6 +1407,104 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   modes.resize(num_clusters, dim);
   for (int c = 0; c < num_clusters; ++c) modes.row(c) = y.row(final_rep[c]);
   timer.lap("absorption");
+}
+
+/** One round of MeanShiftParams::exact_borders: the points on a border between two clusters of
+ * the labels flat (a k-NN edge of their frame, either way, to another cluster) that have not run
+ * yet (`done`) follow their own exact mean-shift trajectories from their own positions: y's rows
+ * of these points become their end points, and `done` marks them. Returns the points run,
+ * ascending. */
+std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int>& graph, int k,
+                                  const MeanShiftParams& params, const std::vector<int>& flat,
+                                  std::vector<char>& done, Eigen::MatrixXf& y) {
+  const Eigen::Index n = y.rows();
+  std::vector<char> border(n, 0);
+  for (Eigen::Index i = 0; i < n; ++i)
+    for (int m = 0; m < k; ++m) {
+      const int j = graph[i * k + m];
+      if (j >= 0 && flat[j] != flat[i]) border[i] = border[j] = 1;
+    }
+  std::vector<int> rows;
+  for (Eigen::Index i = 0; i < n; ++i)
+    if (border[i] && !done[i]) rows.push_back(static_cast<int>(i));
+  if (rows.empty()) return rows;
+  Eigen::MatrixXf yb(rows.size(), y.cols());
+  std::vector<char> keys(space.has_keypoints ? rows.size() : 0);
+  for (std::size_t b = 0; b < rows.size(); ++b) {
+    yb.row(b) = space.z.row(rows[b]);
+    if (space.has_keypoints) keys[b] = space.keypoint[rows[b]];
+  }
+  // From a data point the exact trajectory has its whole way to go, not only the last steps.
+  MeanShiftParams exact_params = params;
+  exact_params.refine_iterations = std::max(params.refine_iterations, params.max_iterations);
+  refineEndPoints(space, exact_params, keys, yb);
+  for (std::size_t b = 0; b < rows.size(); ++b) {
+    y.row(rows[b]) = yb.row(b);
+    done[rows[b]] = 1;
+  }
+  return rows;
+}
+
+/** Paper's method: mean shift of every point (Eq. 9) until it stops (on the CPU or the device),
+ * then modes. */
+void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
+              const MeanShiftParams& params, MeanShiftDeviceBackend* device,
+              std::vector<int>& flat, Eigen::MatrixXf& modes, int& num_clusters,
+              std::unique_ptr<JointKernelSum>& sums, Eigen::VectorXf& point_density,
+              Progress* progress) {
+  const Eigen::Index n = space.z.rows();
+  const int dim = static_cast<int>(space.z.cols());
+  Eigen::MatrixXf y;
+  Eigen::VectorXf end_density;
+  if (device) {
+    const std::vector<char> no_keys;
+    const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
+    if (progress) progress->begin("mean shift on " + device->name(), 1);
+    device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y,
+                      end_density);
+    if (progress) progress->end();
+    if (params.refine_iterations > 0) {
+      refineEndPoints(space, params, space.has_keypoints ? space.keypoint : std::vector<char>(),
+                      y);
+      device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
+                      end_density);
+    }
+  } else {
+    seekModesCpu(space, params, y, end_density, sums, point_density, progress);
+  }
+  groupAndAbsorb(space, graph, k, params, y, end_density, flat, modes, num_clusters);
+  if (params.exact_borders && params.backend == MeanShiftBackend::GaussianKdTree) {
+    // The filter's labels are right but at the borders of its basins: exact trajectories for
+    // the border points move a border by a ring of neighbours at a time, so rounds follow it
+    // until it settles (each round runs only points that have not run yet: at most n in all).
+    StageTimer border_timer;
+    if (progress) progress->begin("exact border trajectories", 1);
+    std::vector<char> done(n, 0);
+    std::size_t total = 0;
+    int rounds = 0;
+    for (;;) {
+      const auto rerun = exactBorderRound(space, graph, k, params, flat, done, y);
+      if (rerun.empty()) break;
+      total += rerun.size();
+      ++rounds;
+      // The re-run end points' densities (the order in which groupModes visits them).
+      if (device) {
+        const std::vector<char> no_keys;
+        const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
+        device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
+                        end_density);
+      } else {
+        Eigen::MatrixXf out(n, dim + 1);
+        sums->evaluate(y, rerun, space.has_keypoints ? space.keypoint : std::vector<char>(), out);
+        for (int i : rerun) end_density[i] = out(i, dim);
+      }
+      groupAndAbsorb(space, graph, k, params, y, end_density, flat, modes, num_clusters);
+    }
+    border_timer.lap("exact border trajectories");
+    if (progress)
+      progress->end(std::to_string(total) + " of " + std::to_string(n) + " points, " +
+                    std::to_string(rounds) + " rounds");
+  }
 }
 
 }  // namespace

@@ -122,3 +122,45 @@ TEST(GpuMeanShift, BadInputIsAnError) {
                       Eigen::RowVectorXf::Ones(70), {}, y, f),
                pcl_animseg::Error);
 }
+
+// MeanShiftParams::exact_borders behind the device backend: the device iterates every point and
+// gives the densities, the border rounds' exact trajectories run on the CPU. The CPU doing the
+// same (every point iterated) gives the same clusters.
+TEST(GpuMeanShift, ExactBordersAgreeWithCpu) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  pcl_animseg::synth::SynthParams sp;
+  sp.plan = pcl_animseg::synth::BodyPlan::Humanoid;
+  sp.frames = 6;
+  sp.points = 1500;
+  sp.seed = 5;
+  auto sequence = std::make_shared<pcl_animseg::PointCloudSequence>(
+      pcl_animseg::synth::toSequence(pcl_animseg::synth::generate(sp)));
+  seg::MeanShiftParams mp;
+  mp.method = seg::MeanShiftMethod::Paper;
+  mp.backend = seg::MeanShiftBackend::GaussianKdTree;
+  mp.bandwidth = 0.2;
+  mp.iterate_cells = false;
+  mp.exact_borders = true;
+  auto labelsOf = [&](bool on_gpu, std::string& used) {
+    seg::MeanShiftSegmentation ms;
+    ms.setInputSequence(sequence);
+    ms.setParams(mp);
+    if (on_gpu) ms.setDeviceBackend(std::make_shared<gpu::MeanShiftBackend>());
+    seg::SegmentationResult r;
+    ms.segment(r);
+    used = ms.deviceUsed();
+    std::vector<int> out;
+    for (const auto& frame : r.labels) out.insert(out.end(), frame.begin(), frame.end());
+    return out;
+  };
+  std::string cpu_used, gpu_used;
+  const std::vector<int> cpu_labels = labelsOf(false, cpu_used);
+  const std::vector<int> gpu_labels = labelsOf(true, gpu_used);
+  const double ari = pcl_animseg::evaluation::adjustedRandIndex(cpu_labels, gpu_labels);
+  std::printf("exact borders: %zu points, CPU (%s) against GPU (%s): ARI %.4f\n",
+              cpu_labels.size(), cpu_used.c_str(), gpu_used.c_str(), ari);
+  EXPECT_EQ(cpu_used, "cpu");
+  EXPECT_NE(gpu_used, "cpu");
+  EXPECT_GE(ari, 0.99);
+}

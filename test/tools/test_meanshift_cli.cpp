@@ -6,6 +6,8 @@
 
 #include <gtest/gtest.h>
 
+#include <fstream>
+
 namespace fs = std::filesystem;
 using namespace cli_test;
 
@@ -74,6 +76,26 @@ TEST(MeanShiftCli, PaperOptionsReachTheFilter) {
   const int plain = clusters("");
   EXPECT_EQ(clusters(" --cell-min-points 100000"), 1);
   EXPECT_GT(clusters(" --exact-steps 0"), plain);
+  // --exact-borders reaches the stage: its border points run exact trajectories (logged with
+  // their count), and a config file's true means the same.
+  const std::string out = tmp.str() + "/borders";
+  const std::string cmd = tool("animseg_meanshift") + " --no-features --input " + tmp.str() +
+                          "/in --output " + out + " --method paper --bandwidth 0.1";
+  const RunResult on = run(cmd + " --exact-borders", tmp.dir());
+  EXPECT_EQ(on.code, 0) << on.err;
+  EXPECT_NE(on.err.find("exact border trajectories"), std::string::npos) << on.err;
+  EXPECT_NE(on.err.find(" points"), std::string::npos) << on.err;
+  {
+    std::ofstream(tmp.str() + "/borders.json") << "{\"exact-borders\": true}";
+  }
+  fs::remove_all(out);
+  const RunResult config = run(cmd + " --config " + tmp.str() + "/borders.json", tmp.dir());
+  EXPECT_EQ(config.code, 0) << config.err;
+  EXPECT_NE(config.err.find("exact border trajectories"), std::string::npos) << config.err;
+  fs::remove_all(out);
+  const RunResult off = run(cmd, tmp.dir());
+  EXPECT_EQ(off.code, 0) << off.err;
+  EXPECT_EQ(off.err.find("exact border trajectories"), std::string::npos) << off.err;
 }
 
 TEST(MeanShiftCli, BadInputIsOneErrorLine) {
