@@ -94,6 +94,12 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     r.notes.push_back(note);
     progress.debug(note);
   }
+  if (params.mean_shift.exact_borders &&
+      (motion_method ||
+       params.mean_shift.backend != segmentation::MeanShiftBackend::GaussianKdTree))
+    r.notes.push_back(
+        "--exact-borders not applied: it finishes the paper method's Gaussian kd-tree filter "
+        "(--method paper --backend gkdtree)");
   SequenceFeatures features;
   if (params.features && motion_method) {
     r.notes.push_back(

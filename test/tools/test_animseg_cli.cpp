@@ -53,14 +53,15 @@ TEST(AnimsegCli, WritesEveryOutputInInputOrder) {
 }
 
 // The default motion method uses neither the paper's features nor their joint-space densities,
-// so animseg does not compute them (a note says so); --method paper does.
+// so animseg does not compute them (a note says so); --method paper does. --exact-borders, which
+// finishes the paper method's filter, is noted as not applied to the motion method.
 TEST(AnimsegCli, FeaturesOnlyForThePaperMethod) {
   TempDir tmp;
   makeSequence(tmp.dir() / "in");
   for (const std::string method : {"motion", "paper"}) {
     const std::string out = tmp.str() + "/out_" + method;
-    const RunResult r = run(tool("animseg") + " --quiet --method " + method + " --input " +
-                                tmp.str() + "/in --output " + out,
+    const RunResult r = run(tool("animseg") + " --quiet --exact-borders --method " + method +
+                                " --input " + tmp.str() + "/in --output " + out,
                             tmp.dir());
     ASSERT_EQ(r.code, 0) << r.err;
     const std::string summary = slurp(out + "/summary.json");
@@ -68,6 +69,9 @@ TEST(AnimsegCli, FeaturesOnlyForThePaperMethod) {
     const bool noted = summary.find("features not computed") != std::string::npos;
     EXPECT_EQ(skipped, method == "motion") << summary;
     EXPECT_EQ(noted, method == "motion") << summary;
+    EXPECT_EQ(summary.find("--exact-borders not applied") != std::string::npos, method == "motion")
+        << summary;
+    EXPECT_NE(summary.find("\"exact-borders\": true"), std::string::npos) << summary;
     EXPECT_NE(summary.find("\"mean_shift\": "), std::string::npos);
     // The GPU's peak memory: a number when the stage ran on it, null on the CPU.
     const bool on_cpu = summary.find("\"device\": \"cpu\"") != std::string::npos;
