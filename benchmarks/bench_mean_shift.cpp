@@ -21,12 +21,11 @@
 // at least about M/2 (the band is 1024-8192); on the subsamples M / k.
 // --exact-borders 1: the Gaussian kd-tree runs with MeanShiftParams::exact_borders (border points
 // follow exact trajectories).
-// Exact backend (--exact 0 skips it): too slow at 800k, so it runs on two per-frame subsamples and is extrapolated
-// with the fitted power law (its cost grows faster than N: the neighbours within 3 bandwidths
-// grow with the density). Prints wall, user and system CPU time (the machine is shared: CPU time
-// is the fairer number), peak RSS (getrusage) and, on the subsamples, the ARI between the two
-// backends' labels.
-// Plain program (not Google Benchmark): one run of each is what we record.
+// Exact backend (--exact 0 skips it): too slow at 800k, so it runs on two per-frame subsamples and
+// is extrapolated with the fitted power law (its cost grows faster than N: the neighbours within 3
+// bandwidths grow with the density). Prints wall, user and system CPU time (the machine is shared:
+// CPU time is the fairer number), peak RSS (getrusage) and, on the subsamples, the ARI between the
+// two backends' labels. Plain program (not Google Benchmark): one run of each is what we record.
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/features/multiscale.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
@@ -193,10 +192,10 @@ Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, doub
   return t;
 }
 
-const char* const kOptions[] = {"--points",   "--frames", "--refine",   "--exact-every1",
-                                 "--exact-every2", "--full", "--features", "--plan",
-                                 "--bandwidth", "--w4",     "--exact", "--min-leaf-points",
-                                 "--exact-borders"};
+const char* const kOptions[] = {"--points",       "--frames", "--refine",   "--exact-every1",
+                                "--exact-every2", "--full",   "--features", "--plan",
+                                "--bandwidth",    "--w4",     "--exact",    "--min-leaf-points",
+                                "--exact-borders"};
 
 /** Every argument is a known option followed by its value; anything else is an error. */
 void checkArguments(int argc, char** argv) {
@@ -261,13 +260,12 @@ int main(int argc, char** argv) {
                 features == "pipeline" ? plan.c_str() : "", bandwidth, w4);
     if (run_full) {
       const Sample full = make(1);
-      const Timing g =
-          runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4, min_leaf,
-                   borders);
-      std::printf("gkdtree (refine %d%s): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
-                  "MiB\n",
-                  refine, borders ? ", exact borders" : "", g.wall, g.cpu, g.clusters,
-                  peakRssMiB());
+      const Timing g = runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
+                                min_leaf, borders);
+      std::printf(
+          "gkdtree (refine %d%s): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
+          "MiB\n",
+          refine, borders ? ", exact borders" : "", g.wall, g.cpu, g.clusters, peakRssMiB());
     }
     if (!run_exact) {
       std::printf("peak RSS %.0f MiB\n", peakRssMiB());
@@ -279,10 +277,9 @@ int main(int argc, char** argv) {
     for (int i = 0; i < 2; ++i) {
       const Sample s = make(every[i]);
       const Timing e = runStage(s, seg::MeanShiftBackend::Exact, 0, bandwidth, w4, 1);
-      const Timing g =
-          runStage(s, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
-                   std::max(1, min_leaf / every[i]),  // the full run's cells, thinned
-                   borders);
+      const Timing g = runStage(s, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
+                                std::max(1, min_leaf / every[i]),  // the full run's cells, thinned
+                                borders);
       nn[i] = static_cast<double>(s.seq->totalPoints());
       cpu[i] = e.cpu;
       std::printf("subsample %.0f points: exact wall %.2f s user+sys %.2f s (%d clusters); "

@@ -1448,10 +1448,9 @@ std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int
 /** Paper's method: mean shift of every point (Eq. 9) until it stops (on the CPU or the device),
  * then modes. */
 void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
-              const MeanShiftParams& params, MeanShiftDeviceBackend* device,
-              std::vector<int>& flat, Eigen::MatrixXf& modes, int& num_clusters,
-              std::unique_ptr<JointKernelSum>& sums, Eigen::VectorXf& point_density,
-              Progress* progress) {
+              const MeanShiftParams& params, MeanShiftDeviceBackend* device, std::vector<int>& flat,
+              Eigen::MatrixXf& modes, int& num_clusters, std::unique_ptr<JointKernelSum>& sums,
+              Eigen::VectorXf& point_density, Progress* progress) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
   Eigen::MatrixXf y;
@@ -1460,12 +1459,10 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     const std::vector<char> no_keys;
     const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
     if (progress) progress->begin("mean shift on " + device->name(), 1);
-    device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y,
-                      end_density);
+    device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y, end_density);
     if (progress) progress->end();
     if (params.refine_iterations > 0) {
-      refineEndPoints(space, params, space.has_keypoints ? space.keypoint : std::vector<char>(),
-                      y);
+      refineEndPoints(space, params, space.has_keypoints ? space.keypoint : std::vector<char>(), y);
       device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
                       end_density);
     }

@@ -158,8 +158,8 @@ TEST(GpuMeanShift, ExactBordersAgreeWithCpu) {
   const std::vector<int> cpu_labels = labelsOf(false, cpu_used);
   const std::vector<int> gpu_labels = labelsOf(true, gpu_used);
   const double ari = pcl_animseg::evaluation::adjustedRandIndex(cpu_labels, gpu_labels);
-  std::printf("exact borders: %zu points, CPU (%s) against GPU (%s): ARI %.4f\n",
-              cpu_labels.size(), cpu_used.c_str(), gpu_used.c_str(), ari);
+  std::printf("exact borders: %zu points, CPU (%s) against GPU (%s): ARI %.4f\n", cpu_labels.size(),
+              cpu_used.c_str(), gpu_used.c_str(), ari);
   EXPECT_EQ(cpu_used, "cpu");
   EXPECT_NE(gpu_used, "cpu");
   EXPECT_GE(ari, 0.99);

@@ -1,12 +1,11 @@
 // The command-line contract of `animseg_meanshift`: outputs in input order, segmentation.txt that
 // the hierarchy stage reads, bad input.
-#include "tools/cli_util.h"
-
+#include <gtest/gtest.h>
 #include <pcl_animseg/io/segmentation_io.h>
 
-#include <gtest/gtest.h>
-
 #include <fstream>
+
+#include "tools/cli_util.h"
 
 namespace fs = std::filesystem;
 using namespace cli_test;
@@ -85,9 +84,7 @@ TEST(MeanShiftCli, PaperOptionsReachTheFilter) {
   EXPECT_EQ(on.code, 0) << on.err;
   EXPECT_NE(on.err.find("exact border trajectories"), std::string::npos) << on.err;
   EXPECT_NE(on.err.find(" points"), std::string::npos) << on.err;
-  {
-    std::ofstream(tmp.str() + "/borders.json") << "{\"exact-borders\": true}";
-  }
+  { std::ofstream(tmp.str() + "/borders.json") << "{\"exact-borders\": true}"; }
   fs::remove_all(out);
   const RunResult config = run(cmd + " --config " + tmp.str() + "/borders.json", tmp.dir());
   EXPECT_EQ(config.code, 0) << config.err;
