@@ -60,20 +60,22 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
 inline void addPaperOptions(boost::program_options::options_description& od,
                             const segmentation::MeanShiftParams& d) {
   namespace po = boost::program_options;
-  od.add_options()(
-      "exact-steps", po::value<int>()->default_value(d.refine_iterations),
-      "paper method, gkdtree backend: exact mean shift steps that finish the filter's iteration "
-      "(0: the filter alone)")(
-      "cell-extent", po::value<double>()->default_value(d.gkdtree.leaf_extent),
-      "paper method, gkdtree backend: longest side of a filter cell, in bandwidths (Adams et "
-      "al.'s eta; smaller: more cells, more accurate)")(
-      "cell-min-points", po::value<int>()->default_value(d.gkdtree.min_leaf_points),
-      "paper method, gkdtree backend: a filter cell of fewer points is not split (the sampling "
-      "factor N/M is then at least about half of it; the paper used 1024-8192)")(
-      "exact-borders",
-      "paper method, gkdtree backend: points on a border between two clusters (and their "
-      "cells) follow their own exact trajectories, so that the borders agree with the exact "
-      "backend's; costs up to the exact backend's time where most points lie on borders");
+  // clang-format off
+  od.add_options()
+    ("exact-steps", po::value<int>()->default_value(d.refine_iterations),
+     "paper method, gkdtree backend: exact mean shift steps that finish the filter's iteration "
+     "(0: the filter alone)")
+    ("cell-extent", po::value<double>()->default_value(d.gkdtree.leaf_extent),
+     "paper method, gkdtree backend: longest side of a filter cell, in bandwidths (Adams et "
+     "al.'s eta; smaller: more cells, more accurate)")
+    ("cell-min-points", po::value<int>()->default_value(d.gkdtree.min_leaf_points),
+     "paper method, gkdtree backend: a filter cell of fewer points is not split (the sampling "
+     "factor N/M is then at least about half of it; the paper used 1024-8192)")
+    ("exact-borders",
+     "paper method, gkdtree backend: points on a border between two clusters follow their own "
+     "exact trajectories, so that the borders agree with the exact backend's; costs the exact "
+     "method's time for those points (most points where clusters interleave)");
+  // clang-format on
 }
 
 /** The paper options into `p`; throws Error (one line) for a value out of range. */

@@ -1453,16 +1453,16 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
               Eigen::VectorXf& point_density, Progress* progress) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
+  const std::vector<char> no_keys;
+  const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
   Eigen::MatrixXf y;
   Eigen::VectorXf end_density;
   if (device) {
-    const std::vector<char> no_keys;
-    const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
     if (progress) progress->begin("mean shift on " + device->name(), 1);
     device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y, end_density);
     if (progress) progress->end();
     if (params.refine_iterations > 0) {
-      refineEndPoints(space, params, space.has_keypoints ? space.keypoint : std::vector<char>(), y);
+      refineEndPoints(space, params, keys, y);
       device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
                       end_density);
     }
@@ -1486,14 +1486,20 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
       ++rounds;
       // The re-run end points' densities (the order in which groupModes visits them).
       if (device) {
-        const std::vector<char> no_keys;
-        const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
         device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
                         end_density);
-      } else {
-        Eigen::MatrixXf out(n, dim + 1);
-        sums->evaluate(y, rerun, space.has_keypoints ? space.keypoint : std::vector<char>(), out);
-        for (int i : rerun) end_density[i] = out(i, dim);
+      } else {  // only theirs, in a matrix of their own
+        const Eigen::Index r = static_cast<Eigen::Index>(rerun.size());
+        Eigen::MatrixXf yr(r, dim), out(r, dim + 1);
+        std::vector<char> kr(keys.empty() ? 0 : rerun.size());
+        for (Eigen::Index b = 0; b < r; ++b) {
+          yr.row(b) = y.row(rerun[b]);
+          if (!keys.empty()) kr[b] = keys[rerun[b]];
+        }
+        std::vector<int> rows(rerun.size());
+        std::iota(rows.begin(), rows.end(), 0);
+        sums->evaluate(yr, rows, kr, out);
+        for (Eigen::Index b = 0; b < r; ++b) end_density[rerun[b]] = out(b, dim);
       }
       groupAndAbsorb(space, graph, k, params, y, end_density, flat, modes, num_clusters);
     }
