@@ -42,6 +42,18 @@ void jointSpace(const pcl_animseg::PointCloudSequence& sequence, const seg::Mean
   metric.tail(3).setConstant(static_cast<float>(std::sqrt(p.w1) / p.bandwidth));
 }
 
+/** A generated 6-frame sequence of `plan` (seed 5), about `points` points a frame. */
+std::shared_ptr<pcl_animseg::PointCloudSequence> synthSequence(pcl_animseg::synth::BodyPlan plan,
+                                                               int points) {
+  pcl_animseg::synth::SynthParams sp;
+  sp.plan = plan;
+  sp.frames = 6;
+  sp.points = points;
+  sp.seed = 5;
+  return std::make_shared<pcl_animseg::PointCloudSequence>(
+      pcl_animseg::synth::toSequence(pcl_animseg::synth::generate(sp)));
+}
+
 }  // namespace
 
 TEST(GpuMeanShift, AgreesWithCpuPaperMethod) {
@@ -49,13 +61,7 @@ TEST(GpuMeanShift, AgreesWithCpuPaperMethod) {
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
   for (auto plan : {pcl_animseg::synth::BodyPlan::Quadruped,
                     pcl_animseg::synth::BodyPlan::Humanoid}) {
-    pcl_animseg::synth::SynthParams sp;
-    sp.plan = plan;
-    sp.frames = 6;
-    sp.points = 3000;
-    sp.seed = 5;
-    auto sequence = std::make_shared<pcl_animseg::PointCloudSequence>(
-        pcl_animseg::synth::toSequence(pcl_animseg::synth::generate(sp)));
+    const auto sequence = synthSequence(plan, 3000);
 
     seg::MeanShiftParams mp;
     mp.method = seg::MeanShiftMethod::Paper;
@@ -129,13 +135,7 @@ TEST(GpuMeanShift, BadInputIsAnError) {
 TEST(GpuMeanShift, ExactBordersAgreeWithCpu) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  pcl_animseg::synth::SynthParams sp;
-  sp.plan = pcl_animseg::synth::BodyPlan::Humanoid;
-  sp.frames = 6;
-  sp.points = 1500;
-  sp.seed = 5;
-  auto sequence = std::make_shared<pcl_animseg::PointCloudSequence>(
-      pcl_animseg::synth::toSequence(pcl_animseg::synth::generate(sp)));
+  const auto sequence = synthSequence(pcl_animseg::synth::BodyPlan::Humanoid, 1500);
   seg::MeanShiftParams mp;
   mp.method = seg::MeanShiftMethod::Paper;
   mp.backend = seg::MeanShiftBackend::GaussianKdTree;
