@@ -1038,9 +1038,11 @@ using detail::StageTimer;
  * data's principal axes: together 2.5-3x fewer seconds than a plain search per step. On dense
  * data (the paper's bandwidth: half of the data within 3.5 bandwidths of a group) the sums are
  * the cost, and the few groups' steps are summed together chunk by chunk of the data on every
- * core (see ExactBackend::evaluateCached). */
+ * core (see ExactBackend::evaluateCached). With `progress`, the first step (every group's, most of
+ * the work when the groups start from data points) reports how many groups it has summed. */
 void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
-                     const std::vector<char>& row_key, Eigen::MatrixXf& y) {
+                     const std::vector<char>& row_key, Eigen::MatrixXf& y,
+                     Progress* progress = nullptr) {
   StageTimer timer;
   const Eigen::Index n = y.rows();  // end points: one per data point or per cell
   const int dim = static_cast<int>(y.cols());
@@ -1111,7 +1113,21 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   long evaluations = 0;
   int iterations = 0;
   for (int it = 0; it < params.refine_iterations && !active.empty(); ++it) {
-    exact.evaluate(yg, active, key_of, out);
+    if (progress && it == 0) {
+      // The first step of every group is most of the work: it is summed a slice of the groups at
+      // a time, so that the progress moves (each group's sums do not depend on the others').
+      constexpr std::size_t kSlice = 8192;
+      progress->begin("first exact steps", active.size());
+      for (std::size_t a = 0; a < active.size(); a += kSlice) {
+        const std::vector<int> slice(active.begin() + a,
+                                     active.begin() + std::min(active.size(), a + kSlice));
+        exact.evaluate(yg, slice, key_of, out);
+        progress->update(std::min(active.size(), a + kSlice));
+      }
+      progress->end();
+    } else {
+      exact.evaluate(yg, active, key_of, out);
+    }
     evaluations += static_cast<long>(active.size());
     ++iterations;
     std::vector<int> still, stopped;
@@ -1416,7 +1432,8 @@ void groupAndAbsorb(const JointSpace& space, const std::vector<int>& graph, int 
  * ascending. */
 std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int>& graph, int k,
                                   const MeanShiftParams& params, const std::vector<int>& flat,
-                                  std::vector<char>& done, Eigen::MatrixXf& y) {
+                                  std::vector<char>& done, Eigen::MatrixXf& y,
+                                  Progress* progress) {
   const Eigen::Index n = y.rows();
   std::vector<char> border(n, 0);
   for (Eigen::Index i = 0; i < n; ++i)
@@ -1437,7 +1454,7 @@ std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int
   // From a data point the exact trajectory has its whole way to go, not only the last steps.
   MeanShiftParams exact_params = params;
   exact_params.refine_iterations = std::max(params.refine_iterations, params.max_iterations);
-  refineEndPoints(space, exact_params, keys, yb);
+  refineEndPoints(space, exact_params, keys, yb, progress);
   for (std::size_t b = 0; b < rows.size(); ++b) {
     y.row(rows[b]) = yb.row(b);
     done[rows[b]] = 1;
@@ -1480,7 +1497,7 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     std::size_t total = 0;
     int rounds = 0;
     for (;;) {
-      const auto rerun = exactBorderRound(space, graph, k, params, flat, done, y);
+      const auto rerun = exactBorderRound(space, graph, k, params, flat, done, y, progress);
       if (rerun.empty()) break;
       total += rerun.size();
       ++rounds;
