@@ -1432,8 +1432,7 @@ void groupAndAbsorb(const JointSpace& space, const std::vector<int>& graph, int 
  * ascending. */
 std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int>& graph, int k,
                                   const MeanShiftParams& params, const std::vector<int>& flat,
-                                  std::vector<char>& done, Eigen::MatrixXf& y,
-                                  Progress* progress) {
+                                  std::vector<char>& done, Eigen::MatrixXf& y, Progress* progress) {
   const Eigen::Index n = y.rows();
   std::vector<char> border(n, 0);
   for (Eigen::Index i = 0; i < n; ++i)
