@@ -95,7 +95,8 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
       throw Error(what + " " + std::to_string(t) + " has one normal per point expected");
     a.nodes.resize(a.nodes.size() + f.tree->nodes().size());
     a.points.resize(a.points.size() + 4 * f.tree->size());
-    packTree(*f.tree, node0, point0, &a.nodes[node0], &a.points[4 * static_cast<std::size_t>(point0)]);
+    packTree(*f.tree, node0, point0, &a.nodes[node0],
+             &a.points[4 * static_cast<std::size_t>(point0)]);
     a.root.push_back(f.tree->nodes().empty() ? -1 : node0);
     for (std::size_t i = 0; i < xyz.size(); i += 3) {
       for (int k = 0; k < 3; ++k) a.normals.push_back(f.leaf_normals[i + k]);
