@@ -3,7 +3,8 @@
 //
 //   bench_mean_shift [--points N] [--frames T] [--refine K] [--exact-every1 a] [--exact-every2 b]
 //                    [--full 0|1] [--features synthetic|pipeline] [--plan P] [--bandwidth W]
-//                    [--w4 W4] [--exact 0|1] [--min-leaf-points M] [--exact-borders 0|1]
+//                    [--w4 W4] [--exact 0|1] [--min-leaf-points M] [--exact-borders 0|1|2]
+//                    [--full-exact 0|1] [--device cpu|gpu]
 //
 // Runs MeanShiftSegmentation (paper method: every point iterated, so the cost is the kernel
 // sums) on one of two 30-D inputs:
@@ -20,7 +21,11 @@
 // --min-leaf-points M: the Gaussian kd-tree splits no cell of fewer than M points, so that N/M is
 // at least about M/2 (the band is 1024-8192); on the subsamples M / k.
 // --exact-borders 1: the Gaussian kd-tree runs with MeanShiftParams::exact_borders (border points
-// follow exact trajectories).
+// follow exact trajectories); 2: the full run both without and with.
+// --full-exact 1: the exact backend on all points too (with --device gpu: its sums on the GPU),
+// and the ARI of each Gaussian kd-tree run to it.
+// --device gpu: the stage with the CUDA backend (the filter, the exact sums and the densities on
+// the GPU; where the CUDA module is built).
 // Exact backend (--exact 0 skips it): too slow at 800k, so it runs on two per-frame subsamples and
 // is extrapolated with the fitted power law (its cost grows faster than N: the neighbours within 3
 // bandwidths grow with the density). Prints wall, user and system CPU time (the machine is shared:
@@ -30,6 +35,9 @@
 #include <pcl_animseg/features/multiscale.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
 #include <pcl_animseg/synth/articulated.h>
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+#include <pcl_animseg/gpu/mean_shift_backend.h>
+#endif
 
 #include <sys/resource.h>
 
@@ -166,7 +174,7 @@ struct Timing {
 };
 
 Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, double bandwidth,
-                double w4, int min_leaf_points, bool exact_borders = false) {
+                double w4, int min_leaf_points, bool exact_borders = false, bool on_gpu = false) {
   seg::MeanShiftParams p;
   p.exact_borders = exact_borders;
   p.method = seg::MeanShiftMethod::Paper;
@@ -180,6 +188,13 @@ Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, doub
   ms.setSignatures(s.sig);
   if (!s.keypoints.empty()) ms.setKeypoints(s.keypoints);
   ms.setParams(p);
+  if (on_gpu) {
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+    ms.setDeviceBackend(pcl_animseg::gpu::makeMeanShiftBackend());
+#else
+    throw std::runtime_error("--device gpu: built without the CUDA module");
+#endif
+  }
   seg::SegmentationResult r;
   const double c0 = cpuSeconds();
   const auto t0 = std::chrono::steady_clock::now();
@@ -195,7 +210,7 @@ Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, doub
 const char* const kOptions[] = {"--points",       "--frames", "--refine",   "--exact-every1",
                                 "--exact-every2", "--full",   "--features", "--plan",
                                 "--bandwidth",    "--w4",     "--exact",    "--min-leaf-points",
-                                "--exact-borders"};
+                                "--exact-borders", "--full-exact", "--device"};
 
 /** Every argument is a known option followed by its value; anything else is an error. */
 void checkArguments(int argc, char** argv) {
@@ -240,7 +255,14 @@ int main(int argc, char** argv) {
     const int sub2 = static_cast<int>(argValue(argc, argv, "--exact-every2", 40));
     const bool run_full = argValue(argc, argv, "--full", 1) != 0;
     const bool run_exact = argValue(argc, argv, "--exact", 1) != 0;
-    const bool borders = argValue(argc, argv, "--exact-borders", 0) != 0;
+    const int borders_mode = static_cast<int>(argValue(argc, argv, "--exact-borders", 0));
+    const bool borders = borders_mode == 1;
+    const bool full_exact = argValue(argc, argv, "--full-exact", 0) != 0;
+    const std::string device = argText(argc, argv, "--device", "cpu");
+    if (device != "cpu" && device != "gpu") throw std::runtime_error("--device must be cpu or gpu");
+    if (borders_mode < 0 || borders_mode > 2)
+      throw std::runtime_error("--exact-borders must be 0, 1 or 2");
+    const bool on_gpu = device == "gpu";
     const std::string features = argText(argc, argv, "--features", "synthetic");
     const std::string plan = argText(argc, argv, "--plan", "humanoid");
     const seg::MeanShiftParams defaults;
@@ -255,17 +277,36 @@ int main(int argc, char** argv) {
                                     : makeSequence(n, frames, every, 1);
     };
     std::printf("bench_mean_shift: %d points x 30-D, %d frames, paper method, %s features%s%s, "
-                "w = %.3g, w4 = %.3g\n",
+                "w = %.3g, w4 = %.3g, device %s\n",
                 n, frames, features.c_str(), features == "pipeline" ? " of a " : "",
-                features == "pipeline" ? plan.c_str() : "", bandwidth, w4);
+                features == "pipeline" ? plan.c_str() : "", bandwidth, w4, device.c_str());
     if (run_full) {
       const Sample full = make(1);
-      const Timing g = runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
-                                min_leaf, borders);
-      std::printf(
-          "gkdtree (refine %d%s): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
-          "MiB\n",
-          refine, borders ? ", exact borders" : "", g.wall, g.cpu, g.clusters, peakRssMiB());
+      std::vector<Timing> runs;
+      for (int b = 0; b < 2; ++b) {
+        const bool with = borders_mode == 2 ? b == 1 : borders;
+        if (b == 1 && borders_mode != 2) break;
+        runs.push_back(runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth,
+                                w4, min_leaf, with, on_gpu));
+        const Timing& g = runs.back();
+        std::printf(
+            "gkdtree (refine %d%s): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
+            "MiB\n",
+            refine, with ? ", exact borders" : "", g.wall, g.cpu, g.clusters, peakRssMiB());
+      }
+      if (full_exact) {
+        const Timing e =
+            runStage(full, seg::MeanShiftBackend::Exact, 0, bandwidth, w4, 1, false, on_gpu);
+        std::printf("exact, all points: wall %.2f s, user+sys %.2f s, %d clusters\n", e.wall,
+                    e.cpu, e.clusters);
+        for (std::size_t b = 0; b < runs.size(); ++b) {
+          const bool with = borders_mode == 2 ? b == 1 : borders;
+          std::printf("ARI gkdtree%s against exact: %.4f (wall ratio %.1fx)\n",
+                      with ? " + exact borders" : "",
+                      pcl_animseg::evaluation::adjustedRandIndex(e.labels, runs[b].labels),
+                      e.wall / runs[b].wall);
+        }
+      }
     }
     if (!run_exact) {
       std::printf("peak RSS %.0f MiB\n", peakRssMiB());
@@ -276,10 +317,11 @@ int main(int argc, char** argv) {
     const int every[2] = {sub1, sub2};
     for (int i = 0; i < 2; ++i) {
       const Sample s = make(every[i]);
-      const Timing e = runStage(s, seg::MeanShiftBackend::Exact, 0, bandwidth, w4, 1);
+      const Timing e =
+          runStage(s, seg::MeanShiftBackend::Exact, 0, bandwidth, w4, 1, false, on_gpu);
       const Timing g = runStage(s, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
                                 std::max(1, min_leaf / every[i]),  // the full run's cells, thinned
-                                borders);
+                                borders, on_gpu);
       nn[i] = static_cast<double>(s.seq->totalPoints());
       cpu[i] = e.cpu;
       std::printf("subsample %.0f points: exact wall %.2f s user+sys %.2f s (%d clusters); "

@@ -3,13 +3,113 @@
 // JointKernelSum.
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/gauss_transform.h>
 #include <pcl_animseg/gpu/gaussian_kdtree.h>
 #include <pcl_animseg/gpu/mean_shift_backend.h>
+
+#include <vector>
 
 namespace pcl_animseg {
 namespace gpu {
 
+namespace {
+
+/** The exact sums of the pair rule as the CPU's JointKernelSum groups them: the non-keypoints for
+ * every query under the plain metric; the keypoints under the plain metric for plain queries and
+ * under the pair metric (Eq. 5) for keypoint queries. A dimension whose metric is 0 is carried
+ * along outside the distance. */
+class ExactSums : public segmentation::DeviceExactSums {
+ public:
+  ExactSums(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+            const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint)
+      : dim_(static_cast<int>(z.cols())) {
+    if (metric_plain.size() != z.cols() || metric_key.size() != z.cols())
+      throw Error("GPU exact sums: metrics and data differ in dimension");
+    if (!keypoint.empty() && keypoint.size() != static_cast<std::size_t>(z.rows()))
+      throw Error("GPU exact sums: keypoint flags must have one entry per point");
+    std::vector<Eigen::Index> plain, key;
+    for (Eigen::Index i = 0; i < z.rows(); ++i)
+      (!keypoint.empty() && keypoint[i] ? key : plain).push_back(i);
+    add(z, plain, metric_plain, 0);
+    add(z, key, metric_plain, 1);
+    add(z, key, metric_key, 2);
+  }
+
+  void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows,
+                const std::vector<char>& query_key, Eigen::MatrixXf& out) override {
+    if (q.cols() != dim_ || out.cols() != dim_ + 1)
+      throw Error("GPU exact sums: queries or output of the wrong width");
+    for (int r : rows) out.row(r).setZero();
+    std::vector<int> plain_rows, key_rows;
+    for (int r : rows) (!query_key.empty() && query_key[r] ? key_rows : plain_rows).push_back(r);
+    Eigen::MatrixXd sums;
+    for (const Group& g : groups_) {
+      const std::vector<int>& rr =
+          g.applies_to == 0 ? rows : (g.applies_to == 1 ? plain_rows : key_rows);
+      if (rr.empty()) continue;
+      const int dx = static_cast<int>(g.dist.size());
+      Eigen::MatrixXf qs(rr.size(), dx);
+      for (std::size_t r = 0; r < rr.size(); ++r)
+        for (int k = 0; k < dx; ++k) qs(r, k) = q(rr[r], g.dist[k]) * g.scale[k];
+      g.transform.evaluate(qs, sums);
+      const int dc = static_cast<int>(g.carried.size());
+      for (std::size_t r = 0; r < rr.size(); ++r) {
+        // Back from the metric's units to the raw coordinates (the values of Eq. 10).
+        for (int k = 0; k < dx; ++k)
+          out(rr[r], g.dist[k]) += static_cast<float>(sums(r, k) / g.scale[k]);
+        for (int k = 0; k < dc; ++k) out(rr[r], g.carried[k]) += static_cast<float>(sums(r, dx + k));
+        out(rr[r], dim_) += static_cast<float>(sums(r, dx + dc));
+      }
+    }
+  }
+
+ private:
+  struct Group {
+    GaussTransform transform;
+    std::vector<int> dist, carried;  // dimensions in the distance / carried along
+    std::vector<double> scale;       // the metric of each distance dimension
+    int applies_to = 0;  // 0: every query, 1: plain queries only, 2: keypoint queries only
+  };
+
+  void add(const Eigen::MatrixXf& z, const std::vector<Eigen::Index>& idx,
+           const Eigen::RowVectorXf& metric, int applies_to) {
+    if (idx.empty()) return;
+    Group g;
+    g.applies_to = applies_to;
+    for (int k = 0; k < dim_; ++k) {
+      if (metric[k] > 0.0f) {
+        g.dist.push_back(k);
+        g.scale.push_back(metric[k]);
+      } else {
+        g.carried.push_back(k);
+      }
+    }
+    if (g.dist.empty()) throw Error("GPU exact sums: every weight of the metric is 0");
+    const int dx = static_cast<int>(g.dist.size()), dc = static_cast<int>(g.carried.size());
+    Eigen::MatrixXf x(idx.size(), dx), c(dc ? idx.size() : 0, dc);
+    for (std::size_t i = 0; i < idx.size(); ++i) {
+      for (int k = 0; k < dx; ++k) x(i, k) = z(idx[i], g.dist[k]) * metric[g.dist[k]];
+      for (int k = 0; k < dc; ++k) c(i, k) = z(idx[i], g.carried[k]);
+    }
+    g.transform.setData(x, c, 3.0f);
+    groups_.push_back(std::move(g));
+  }
+
+  int dim_ = 0;
+  std::vector<Group> groups_;
+};
+
+}  // namespace
+
 std::string MeanShiftBackend::name() const { return deviceLabel(); }
+
+std::unique_ptr<segmentation::DeviceExactSums> MeanShiftBackend::exactSums(
+    const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+    const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint) {
+  requireGpu();
+  if (z.rows() == 0) throw Error("GPU exact sums: no data points");
+  return std::make_unique<ExactSums>(z, metric_plain, metric_key, keypoint);
+}
 
 void MeanShiftBackend::seekModes(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
                                  const Eigen::RowVectorXf& metric_key,
@@ -42,6 +142,15 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
     throw Error("GPU density: query flags must have one entry per query");
   out.setZero(q);
   if (q == 0) return;
+  if (params.backend == segmentation::MeanShiftBackend::Exact) {
+    ExactSums sums(z, metric_plain, metric_key, keypoint);
+    std::vector<int> rows(static_cast<std::size_t>(q));
+    for (Eigen::Index r = 0; r < q; ++r) rows[r] = static_cast<int>(r);
+    Eigen::MatrixXf res(q, z.cols() + 1);
+    sums.evaluate(queries, rows, keypoint.empty() ? std::vector<char>() : query_key, res);
+    out = res.col(z.cols());
+    return;
+  }
   // Groups as on the CPU: non-keypoints for every query under the plain metric; keypoints under
   // the plain metric for plain queries and under the pair metric (Eq. 5) for keypoint queries.
   std::vector<Eigen::Index> plain, key;

@@ -1042,7 +1042,7 @@ using detail::StageTimer;
  * the work when the groups start from data points) reports how many groups it has summed. */
 void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
                      const std::vector<char>& row_key, Eigen::MatrixXf& y,
-                     Progress* progress = nullptr) {
+                     Progress* progress = nullptr, DeviceExactSums* device_sums = nullptr) {
   StageTimer timer;
   const Eigen::Index n = y.rows();  // end points: one per data point or per cell
   const int dim = static_cast<int>(y.cols());
@@ -1074,8 +1074,17 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   exact_params.backend = MeanShiftBackend::Exact;
   // Each group keeps its neighbour list within 3.5 bandwidths while it moves less than 0.5 (the
   // 30-D tree search, not the sum over the ~50 points it finds, is what an exact step costs).
-  JointKernelSum exact(space, values, exact_params, 0.5f);
+  // On a device the same sums run there instead.
+  std::unique_ptr<JointKernelSum> cpu_exact;
+  if (!device_sums) cpu_exact = std::make_unique<JointKernelSum>(space, values, exact_params, 0.5f);
   values.resize(0, 0);
+  auto evaluate = [&](const std::vector<int>& rows, Eigen::MatrixXf& sums_out) {
+    if (device_sums) device_sums->evaluate(yg, rows, key_of, sums_out);
+    else cpu_exact->evaluate(yg, rows, key_of, sums_out);
+  };
+  auto forget = [&](const std::vector<int>& rows) {
+    if (cpu_exact) cpu_exact->forget(rows);
+  };
   timer.lap("refinement: groups + index");
   Eigen::MatrixXf out(g, dim + 1);
   std::vector<int> active(g);
@@ -1121,12 +1130,12 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
       for (std::size_t a = 0; a < active.size(); a += kSlice) {
         const std::vector<int> slice(active.begin() + a,
                                      active.begin() + std::min(active.size(), a + kSlice));
-        exact.evaluate(yg, slice, key_of, out);
+        evaluate(slice, out);
         progress->update(std::min(active.size(), a + kSlice));
       }
       progress->end();
     } else {
-      exact.evaluate(yg, active, key_of, out);
+      evaluate(active, out);
     }
     evaluations += static_cast<long>(active.size());
     ++iterations;
@@ -1143,17 +1152,18 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
       if (!(step2 < tol2) && !claim(r)) still.push_back(r);
       else stopped.push_back(r);
     }
-    exact.forget(stopped);  // their neighbour lists
+    forget(stopped);  // their neighbour lists
     active.swap(still);
   }
-  exact.forget(active);
+  forget(active);
   for (int r = 0; r < g; ++r) yg.row(r) = yg.row(root(r)).eval();
   for (Eigen::Index i = 0; i < n; ++i) y.row(i) = yg.row(group_of[i]);
   if (timer.on())
     std::fprintf(stderr,
                  "[mean shift] refinement: %d groups, %ld exact steps, %ld tree searches, %d "
-                 "iterations, %zu not converged\n",
-                 g, evaluations, exact.searches(), iterations, active.size());
+                 "iterations, %zu not converged%s\n",
+                 g, evaluations, cpu_exact ? cpu_exact->searches() : 0L, iterations,
+                 active.size(), device_sums ? " (sums on the device)" : "");
 }
 
 /** Starting points of the Gaussian kd-tree backend (Sect. 3.3): the cells of the filter's tree
@@ -1199,18 +1209,27 @@ const filters::GaussianKdTree& cellStarts(const JointSpace& space, const JointKe
  * and every point takes its cell's end point: the paper's Sect. 3.3, N/M times fewer queries. */
 void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen::MatrixXf& y,
                   Eigen::VectorXf& end_density, std::unique_ptr<JointKernelSum>& sums_out,
-                  Eigen::VectorXf& point_density, Progress* progress) {
+                  Eigen::VectorXf& point_density, Progress* progress,
+                  DeviceExactSums* device_sums = nullptr) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
   StageTimer timer;
-  Eigen::MatrixXf values(n, dim + 1);
-  values.leftCols(dim) = space.z;
-  values.col(dim).setOnes();
-  sums_out = std::make_unique<JointKernelSum>(space, values, params);
+  // The exact backend's sums on a device (device_sums): the iteration below is the same, and
+  // sums_out stays empty.
+  if (params.backend != MeanShiftBackend::Exact) device_sums = nullptr;
+  if (!device_sums) {
+    Eigen::MatrixXf values(n, dim + 1);
+    values.leftCols(dim) = space.z;
+    values.col(dim).setOnes();
+    sums_out = std::make_unique<JointKernelSum>(space, values, params);
+  }
   // The tree's build and blur report their own times: the walk's below starts here.
   timer.restart();
-  const JointKernelSum& sums = *sums_out;
-  values.resize(0, 0);
+  auto evaluate = [&](const Eigen::MatrixXf& q, const std::vector<int>& rows,
+                      const std::vector<char>& q_key, Eigen::MatrixXf& out) {
+    if (device_sums) device_sums->evaluate(q, rows, q_key, out);
+    else sums_out->evaluate(q, rows, q_key, out);
+  };
   const bool cells = params.backend == MeanShiftBackend::GaussianKdTree && params.iterate_cells;
   std::vector<int> start_of, cell_start;
   std::vector<char> start_key;
@@ -1218,7 +1237,7 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   filters::GaussianKdTree own(params.gkdtree);
   const filters::GaussianKdTree* tree = nullptr;
   if (cells) {
-    tree = &cellStarts(space, sums, own, start_of, cell_start, ys, start_key);
+    tree = &cellStarts(space, *sums_out, own, start_of, cell_start, ys, start_key);
   } else {
     ys = space.z;
     if (space.has_keypoints) start_key = space.keypoint;
@@ -1238,7 +1257,7 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   if (progress) progress->begin("mean shift iterations", params.max_iterations);
   for (int it = 0; it < params.max_iterations && !active.empty(); ++it) {
     // Eq. 10: homogeneous coordinates, so the last column is the denominator of Eq. 8.
-    sums.evaluate(ys, active, start_key, out);
+    evaluate(ys, active, start_key, out);
     // The density at the points (a cell's points: at their mean), for the saddles.
     if (it == 0) start_density = out.col(dim);
     std::vector<char> done(active.size(), 0);
@@ -1290,7 +1309,7 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   // Density at the end points, to visit them from the highest.
   std::vector<int> all(m);
   std::iota(all.begin(), all.end(), 0);
-  sums.evaluate(ys, all, start_key, out);
+  evaluate(ys, all, start_key, out);
   timer.lap("density at end points");
   if (!cells) {
     y = std::move(ys);
@@ -1432,7 +1451,8 @@ void groupAndAbsorb(const JointSpace& space, const std::vector<int>& graph, int 
  * ascending. */
 std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int>& graph, int k,
                                   const MeanShiftParams& params, const std::vector<int>& flat,
-                                  std::vector<char>& done, Eigen::MatrixXf& y, Progress* progress) {
+                                  std::vector<char>& done, Eigen::MatrixXf& y, Progress* progress,
+                                  DeviceExactSums* device_sums) {
   const Eigen::Index n = y.rows();
   std::vector<char> border(n, 0);
   for (Eigen::Index i = 0; i < n; ++i)
@@ -1453,7 +1473,7 @@ std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int
   // From a data point the exact trajectory has its whole way to go, not only the last steps.
   MeanShiftParams exact_params = params;
   exact_params.refine_iterations = std::max(params.refine_iterations, params.max_iterations);
-  refineEndPoints(space, exact_params, keys, yb, progress);
+  refineEndPoints(space, exact_params, keys, yb, progress, device_sums);
   for (std::size_t b = 0; b < rows.size(); ++b) {
     y.row(rows[b]) = yb.row(b);
     done[rows[b]] = 1;
@@ -1473,17 +1493,27 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   const std::vector<char>& keys = space.has_keypoints ? space.keypoint : no_keys;
   Eigen::MatrixXf y;
   Eigen::VectorXf end_density;
-  if (device) {
+  const bool gkd = params.backend == MeanShiftBackend::GaussianKdTree;
+  // The exact sums on the device, where it offers them: the exact backend's iteration, the
+  // refinement's exact steps and the border rounds'.
+  std::unique_ptr<DeviceExactSums> device_sums;
+  if (device && (!gkd || params.refine_iterations > 0 || params.exact_borders)) {
+    StageTimer upload_timer;
+    device_sums = device->exactSums(space.z, space.metric_plain, space.metric_key, keys);
+    upload_timer.lap("exact sums: data to the device");
+  }
+  if (device && gkd) {
     if (progress) progress->begin("mean shift on " + device->name(), 1);
     device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y, end_density);
     if (progress) progress->end();
     if (params.refine_iterations > 0) {
-      refineEndPoints(space, params, keys, y);
+      refineEndPoints(space, params, keys, y, nullptr, device_sums.get());
       device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
                       end_density);
     }
   } else {
-    seekModesCpu(space, params, y, end_density, sums, point_density, progress);
+    // The CPU's iteration; for the exact backend with its sums on the device when it has them.
+    seekModesCpu(space, params, y, end_density, sums, point_density, progress, device_sums.get());
   }
   groupAndAbsorb(space, graph, k, params, y, end_density, flat, modes, num_clusters);
   if (params.exact_borders && params.backend == MeanShiftBackend::GaussianKdTree) {
@@ -1496,7 +1526,8 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     std::size_t total = 0;
     int rounds = 0;
     for (;;) {
-      const auto rerun = exactBorderRound(space, graph, k, params, flat, done, y, progress);
+      const auto rerun =
+          exactBorderRound(space, graph, k, params, flat, done, y, progress, device_sums.get());
       if (rerun.empty()) break;
       total += rerun.size();
       ++rounds;
@@ -1576,7 +1607,8 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     });
     timer.restart();
     guarded([&](MeanShiftDeviceBackend* d) {
-      if (!d && sums) {
+      // The CPU's sums where they ran (on the CPU, or its fall-back): the densities reuse them.
+      if (sums) {
         detail::finishResult(space, flat, num_clusters, graph, k, *sums, point_density,
                              result);
       } else {

@@ -416,3 +416,130 @@ TEST(MeanShiftKernelSums, CachedSumsAreExactWithLongAndShortLists) {
   EXPECT_GT(f.maxCoeff(), 1000.0f);  // queries in the blob
   EXPECT_LT(f.minCoeff(), 50.0f);    // queries among the spread points
 }
+
+namespace {
+
+// Exact sums summed point by point (no keypoints), counting its calls.
+class BruteForceSums : public seg::DeviceExactSums {
+ public:
+  BruteForceSums(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric, int* calls)
+      : z_(z), metric_(metric), calls_(calls) {}
+  void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows, const std::vector<char>&,
+                Eigen::MatrixXf& out) override {
+    ++*calls_;
+    for (int r : rows) {
+      Eigen::VectorXd acc = Eigen::VectorXd::Zero(z_.cols() + 1);
+      for (Eigen::Index j = 0; j < z_.rows(); ++j) {
+        const double d2 = (q.row(r) - z_.row(j)).cwiseProduct(metric_).squaredNorm();
+        if (!(d2 < 9.0)) continue;
+        const double w = std::exp(-0.5 * d2);
+        acc.head(z_.cols()) += w * z_.row(j).transpose().cast<double>();
+        acc[z_.cols()] += w;
+      }
+      out.row(r) = acc.transpose().cast<float>();
+    }
+  }
+
+ private:
+  Eigen::MatrixXf z_;
+  Eigen::RowVectorXf metric_;
+  int* calls_;
+};
+
+// A device whose only work is exact sums: its filter "iteration" leaves every point where it is
+// (so that the refinement's exact steps do all of the mean shift) and its densities are exact.
+class ExactSumsDevice : public seg::MeanShiftDeviceBackend {
+ public:
+  std::string name() const override { return "exact sums device"; }
+  void seekModes(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric,
+                 const Eigen::RowVectorXf& key_metric, const std::vector<char>& keypoint,
+                 const seg::MeanShiftParams& params, Eigen::MatrixXf& y,
+                 Eigen::VectorXf& density) override {
+    y = z;
+    this->density(z, metric, key_metric, keypoint, params, z, {}, density);
+  }
+  void density(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric,
+               const Eigen::RowVectorXf&, const std::vector<char>&, const seg::MeanShiftParams&,
+               const Eigen::MatrixXf& q, const std::vector<char>&,
+               Eigen::VectorXf& out) override {
+    int ignored = 0;
+    BruteForceSums sums(z, metric, &ignored);
+    std::vector<int> rows(q.rows());
+    std::iota(rows.begin(), rows.end(), 0);
+    Eigen::MatrixXf o(q.rows(), z.cols() + 1);
+    sums.evaluate(q, rows, {}, o);
+    out = o.col(z.cols());
+  }
+  std::unique_ptr<seg::DeviceExactSums> exactSums(const Eigen::MatrixXf& z,
+                                                  const Eigen::RowVectorXf& metric,
+                                                  const Eigen::RowVectorXf&,
+                                                  const std::vector<char>&) override {
+    if (!offer_sums) return nullptr;
+    return std::make_unique<BruteForceSums>(z, metric, &calls);
+  }
+  int calls = 0;
+  bool offer_sums = true;
+};
+
+/** Whether two labellings are the same partition of the points. */
+bool samePartition(const seg::SegmentationResult& a, const seg::SegmentationResult& b) {
+  std::map<int, int> ab, ba;
+  for (std::size_t t = 0; t < a.labels.size(); ++t)
+    for (std::size_t j = 0; j < a.labels[t].size(); ++j) {
+      const int x = a.labels[t][j], y = b.labels[t][j];
+      if (ab.emplace(x, y).first->second != y) return false;
+      if (ba.emplace(y, x).first->second != x) return false;
+    }
+  return true;
+}
+
+}  // namespace
+
+// A device's exact sums (MeanShiftDeviceBackend::exactSums) run the exact backend's iteration and
+// the Gaussian kd-tree backend's exact refinement: the same clusters as the same steps summed on
+// the CPU.
+TEST(MeanShift, DeviceExactSumsRunTheExactSteps) {
+  const auto seq = twoBlobs(3, 7);
+  seg::MeanShiftParams p;
+  p.method = seg::MeanShiftMethod::Paper;
+  p.bandwidth = 0.3;
+  auto segment = [&](const std::shared_ptr<ExactSumsDevice>& device) {
+    seg::MeanShiftSegmentation ms;
+    ms.setInputSequence(seq);
+    ms.setParams(p);
+    if (device) ms.setDeviceBackend(device);
+    seg::SegmentationResult r;
+    ms.segment(r);
+    EXPECT_EQ(ms.deviceUsed(), device ? "exact sums device" : "cpu");
+    return r;
+  };
+  auto expectSame = [](const seg::SegmentationResult& a, const seg::SegmentationResult& b) {
+    EXPECT_GE(a.num_clusters, 2);
+    EXPECT_EQ(a.num_clusters, b.num_clusters);
+    EXPECT_TRUE(samePartition(a, b));
+    ASSERT_EQ(a.mode_density.size(), b.mode_density.size());
+    for (std::size_t c = 0; c < a.mode_density.size(); ++c)
+      EXPECT_NEAR(a.mode_density[c], b.mode_density[c], 1e-3 * b.mode_density[c]);
+  };
+  {
+    SCOPED_TRACE("exact backend");
+    p.backend = seg::MeanShiftBackend::Exact;
+    auto device = std::make_shared<ExactSumsDevice>();
+    const seg::SegmentationResult on_device = segment(device);
+    EXPECT_GT(device->calls, 2);  // the iteration's steps went through it
+    expectSame(on_device, segment(nullptr));
+  }
+  {
+    // The device's "filter" leaves the points where they are: the refinement's exact steps do
+    // all of the mean shift, summed on the device or (a device without exact sums) on the CPU.
+    SCOPED_TRACE("Gaussian kd-tree backend, exact refinement");
+    p.backend = seg::MeanShiftBackend::GaussianKdTree;
+    auto device = std::make_shared<ExactSumsDevice>();
+    auto without = std::make_shared<ExactSumsDevice>();
+    without->offer_sums = false;
+    const seg::SegmentationResult on_device = segment(device);
+    EXPECT_GT(device->calls, 2);
+    expectSame(on_device, segment(without));
+    EXPECT_EQ(without->calls, 0);
+  }
+}

@@ -150,12 +150,28 @@ struct MeanShiftParams {
   int reference_frame = -1;
 };
 
+/** \brief Exact kernel sums over a joint space on a device (MeanShiftDeviceBackend::exactSums):
+ * what the CPU's exact backend sums, the data's Gaussians cut off at 3 bandwidths, with the
+ * keypoint pair rule of Eq. 5. */
+class DeviceExactSums {
+ public:
+  virtual ~DeviceExactSums() = default;
+  /** \brief For r in rows: out.row(r) = sum_j exp(-d(q_r, z_j)^2 / 2) [z_j, 1] (Eq. 10's
+   * homogeneous sums: out has D + 1 columns), d the metric of Eq. 6, or of Eq. 5 between two
+   * keypoints (query_key[r]: query r is a keypoint; empty: none is). Other rows are untouched.
+   * Throws Error on a device failure. */
+  virtual void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows,
+                        const std::vector<char>& query_key, Eigen::MatrixXf& out) = 0;
+};
+
 /** \brief Where the kernel sums of the stage run when not on the CPU: an engine object that a
  * device library implements (the CUDA module: gpu::makeMeanShiftBackend() in
  * <pcl_animseg/gpu/mean_shift_backend.h>) and the caller hands to
  * MeanShiftSegmentation::setDeviceBackend. The segmentation module itself never links a device
- * library. A device backend evaluates with the Gaussian kd-tree (MeanShiftParams::gkdtree),
- * whatever MeanShiftParams::backend says. Every method throws Error on a device failure (no
+ * library. A device backend's filter is the Gaussian kd-tree (MeanShiftParams::gkdtree); where it
+ * offers exact sums (exactSums), the exact backend (MeanShiftParams::backend) and the exact steps
+ * of the Gaussian kd-tree backend (the refinement, MeanShiftParams::exact_borders) run on the
+ * device too, and otherwise on the CPU. Every method throws Error on a device failure (no
  * device, out of memory, kernel fault): never a silent wrong result.
  *
  * The data are the joint space of Eq. 5-6: z (N x D raw features), the per-dimension metrics
@@ -168,13 +184,15 @@ class MeanShiftDeviceBackend {
   virtual std::string name() const = 0;
   /** \brief The paper method's iteration: Eq. 9 from every row of z until the step is below
    * params.convergence or params.max_iterations; y (N x D) the end points, density (N) the
-   * kernel sum at each end point (a keypoint's with the pair rule). */
+   * kernel sum at each end point (a keypoint's with the pair rule). The Gaussian kd-tree
+   * backend's iteration (the stage runs the exact backend's through exactSums). */
   virtual void seekModes(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
                          const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
                          const MeanShiftParams& params, Eigen::MatrixXf& y,
                          Eigen::VectorXf& density) = 0;
   /** \brief The density of Eq. 4 (kernel sum over all rows of z) at the rows of `queries`
-   * (raw coordinates); query_key[r] says whether query r is a keypoint (empty: none is). */
+   * (raw coordinates); query_key[r] says whether query r is a keypoint (empty: none is). With
+   * the Gaussian kd-tree (params.backend), or exact sums for the exact backend. */
   virtual void density(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
                        const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
                        const MeanShiftParams& params, const Eigen::MatrixXf& queries,
@@ -183,6 +201,15 @@ class MeanShiftDeviceBackend {
    * (motion_device.h), owned by this backend; nullptr (the default): the motion method runs on
    * the CPU. */
   virtual MotionDevice* motionDevice() { return nullptr; }
+  /** \brief Exact kernel sums over the joint space (z, metrics, keypoint flags as above) on the
+   * device, for the exact backend's iteration and the exact steps of the Gaussian kd-tree
+   * backend; nullptr (the default): they run on the CPU. */
+  virtual std::unique_ptr<DeviceExactSums> exactSums(const Eigen::MatrixXf& /*z*/,
+                                                     const Eigen::RowVectorXf& /*metric_plain*/,
+                                                     const Eigen::RowVectorXf& /*metric_key*/,
+                                                     const std::vector<char>& /*keypoint*/) {
+    return nullptr;
+  }
   /** \brief The sampling factor N/M of the last seekModes' filter tree over the non-keypoint
    * points (SegmentationResult::sampling_factor); 0 when unknown. */
   virtual double samplingFactor() const { return 0.0; }

@@ -15,9 +15,10 @@
  * The paper method runs its iteration (gpu::MeanShift) and its densities on the device; the
  * motion method its tracking, residuals and point costs (gpu::MotionTracking) and densities. Kernel
  * sums use the Gaussian kd-tree with MeanShiftParams::gkdtree, exactly the CPU filter's tree, so
- * the labels agree with the CPU's gkdtree backend. The exact refinement of the end points
- * (MeanShiftParams::refine_iterations) stays on the CPU. Every CUDA failure throws
- * pcl_animseg::Error.
+ * the labels agree with the CPU's gkdtree backend. Exact sums (the exact backend, the
+ * refinement's exact steps, MeanShiftParams::exact_borders) run on the device as an exact Gauss
+ * transform (gauss_transform.h); the stage's bookkeeping around them stays on the CPU. Every CUDA
+ * failure throws pcl_animseg::Error.
  */
 #include <pcl_animseg/gpu/mean_shift.h>
 #include <pcl_animseg/gpu/motion_tracking.h>
@@ -44,6 +45,11 @@ class MeanShiftBackend : public segmentation::MeanShiftDeviceBackend {
                const std::vector<char>& query_key, Eigen::VectorXf& out) override;
   /** \brief The motion method's fits and residuals on this device (motion_tracking.h). */
   segmentation::MotionDevice* motionDevice() override { return &tracking_; }
+  /** \brief Exact sums on this device (gpu::GaussTransform, one per point group of the pair
+   * rule, as the CPU's JointKernelSum). */
+  std::unique_ptr<segmentation::DeviceExactSums> exactSums(
+      const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+      const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint) override;
   double samplingFactor() const override {
     return stats_.plain_samples ? static_cast<double>(stats_.plain_points) /
                                       static_cast<double>(stats_.plain_samples)

@@ -1,0 +1,224 @@
+// Host side of the exact Gauss transform (gauss_transform.h): argument checks, the kd order of
+// data and queries, the tiles' boxes, copies.
+#include <pcl_animseg/error.h>
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/device_array.h>
+#include <pcl_animseg/gpu/gauss_transform.h>
+
+#include "gauss_transform_device.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <numeric>
+#include <string>
+#include <utility>
+#include <vector>
+
+namespace pcl_animseg {
+namespace gpu {
+
+namespace {
+
+constexpr float kFar = 1e18f;  // padding rows: beyond any cutoff, and their square still finite
+constexpr std::size_t kPartialBytes = std::size_t{256} << 20;  // the split sums of one call
+
+/** The rows of x (row-major, `stride` floats a row, the first `dims` compared) ordered so that
+ * every run of `leaf` consecutive rows (from 0) is a cell of a kd-tree: each cell is halved at a
+ * multiple of `leaf` rows by the median of its widest coordinate. */
+std::vector<int> kdOrder(const float* x, int n, int stride, int dims, int leaf) {
+  std::vector<int> order(n);
+  std::iota(order.begin(), order.end(), 0);
+  std::vector<std::pair<int, int>> level{{0, n}}, next;
+  while (!level.empty()) {
+    next.assign(level.size() * 2, {0, 0});
+#pragma omp parallel for schedule(dynamic, 1) if (level.size() > 1)
+    for (std::ptrdiff_t c = 0; c < static_cast<std::ptrdiff_t>(level.size()); ++c) {
+      const int lo = level[c].first, hi = level[c].second;
+      if (hi - lo <= leaf) continue;
+      int best = 0;
+      float widest = -1.0f;
+      for (int k = 0; k < dims; ++k) {
+        float a = x[static_cast<std::size_t>(order[lo]) * stride + k], b = a;
+        for (int i = lo + 1; i < hi; ++i) {
+          const float v = x[static_cast<std::size_t>(order[i]) * stride + k];
+          a = std::min(a, v);
+          b = std::max(b, v);
+        }
+        if (b - a > widest) {
+          widest = b - a;
+          best = k;
+        }
+      }
+      const int cells = (hi - lo + leaf - 1) / leaf;
+      const int mid = lo + cells / 2 * leaf;
+      std::nth_element(order.begin() + lo, order.begin() + mid, order.begin() + hi,
+                       [&](int a, int b) {
+                         const float va = x[static_cast<std::size_t>(a) * stride + best];
+                         const float vb = x[static_cast<std::size_t>(b) * stride + best];
+                         return va < vb || (va == vb && a < b);
+                       });
+      next[2 * c] = {lo, mid};
+      next[2 * c + 1] = {mid, hi};
+    }
+    level.clear();
+    for (const auto& cell : next)
+      if (cell.second - cell.first > leaf) level.push_back(cell);
+  }
+  return order;
+}
+
+int strideFor(int width) {
+  for (int s : {8, 16, 32, 64})
+    if (width <= s) return s;
+  return 0;
+}
+
+using Clock = std::chrono::steady_clock;
+
+}  // namespace
+
+struct GaussTransform::Data {
+  int n = 0, dx = 0, dc = 0, stride = 0, tiles = 0, multiprocessors = 1;
+  float cutoff2 = 9.0f;
+  DeviceArray<float> x, tile_lo, tile_hi;
+  // Per call, kept between calls.
+  mutable DeviceArray<float> q;
+  mutable DeviceArray<double> partial, sums;
+  mutable DeviceArray<unsigned long long> counters;
+};
+
+GaussTransform::GaussTransform() = default;
+GaussTransform::~GaussTransform() = default;
+GaussTransform::GaussTransform(GaussTransform&&) noexcept = default;
+GaussTransform& GaussTransform::operator=(GaussTransform&&) noexcept = default;
+
+std::size_t GaussTransform::size() const { return data_ ? static_cast<std::size_t>(data_->n) : 0; }
+int GaussTransform::distanceDims() const { return data_ ? data_->dx : 0; }
+int GaussTransform::carriedDims() const { return data_ ? data_->dc : 0; }
+
+void GaussTransform::setData(const Eigen::MatrixXf& x, const Eigen::MatrixXf& carried,
+                             float cutoff) {
+  const Eigen::Index n = x.rows();
+  const int dx = static_cast<int>(x.cols());
+  const int dc = carried.size() ? static_cast<int>(carried.cols()) : 0;
+  if (n == 0 || dx == 0) throw Error("GPU Gauss transform: no data points");
+  if (dc && carried.rows() != n)
+    throw Error("GPU Gauss transform: the carried coordinates need one row per data point");
+  if (dx + dc > 64)
+    throw Error("GPU Gauss transform: " + std::to_string(dx + dc) +
+                " dimensions, at most 64 are supported");
+  if (n > (Eigen::Index{1} << 30)) throw Error("GPU Gauss transform: too many data points");
+  if (!(cutoff > 0.0f) || !std::isfinite(cutoff))
+    throw Error("GPU Gauss transform: the cutoff must be positive");
+  if (!x.allFinite() || (dc && !carried.allFinite()))
+    throw Error("GPU Gauss transform: the data contain NaN or Inf");
+  requireGpu();
+  auto d = std::make_unique<Data>();
+  d->n = static_cast<int>(n);
+  d->dx = dx;
+  d->dc = dc;
+  d->stride = strideFor(dx + dc);
+  d->cutoff2 = cutoff * cutoff;
+  d->multiprocessors = std::max(1, deviceInfo().multiprocessors);
+  const int s = d->stride;
+  const int tile = detail::kGaussTile;
+  d->tiles = static_cast<int>((n + tile - 1) / tile);
+  std::vector<float> rows(static_cast<std::size_t>(n) * s, 0.0f);
+  for (Eigen::Index i = 0; i < n; ++i) {
+    float* row = rows.data() + static_cast<std::size_t>(i) * s;
+    for (int k = 0; k < dx; ++k) row[k] = x(i, k);
+    for (int k = 0; k < dc; ++k) row[dx + k] = carried(i, k);
+  }
+  const std::vector<int> order = kdOrder(rows.data(), d->n, s, dx, tile);
+  std::vector<float> tiled(static_cast<std::size_t>(d->tiles) * tile * s, 0.0f);
+  std::vector<float> lo(static_cast<std::size_t>(d->tiles) * s, 0.0f), hi(lo.size(), 0.0f);
+#pragma omp parallel for schedule(static)
+  for (int t = 0; t < d->tiles; ++t) {
+    float* blo = lo.data() + static_cast<std::size_t>(t) * s;
+    float* bhi = hi.data() + static_cast<std::size_t>(t) * s;
+    for (int k = 0; k < dx; ++k) {
+      blo[k] = kFar;
+      bhi[k] = -kFar;
+    }
+    for (int m = 0; m < tile; ++m) {
+      const std::size_t i = static_cast<std::size_t>(t) * tile + m;
+      float* dst = tiled.data() + i * s;
+      if (i >= static_cast<std::size_t>(n)) {
+        for (int k = 0; k < dx; ++k) dst[k] = kFar;
+        continue;
+      }
+      const float* src = rows.data() + static_cast<std::size_t>(order[i]) * s;
+      std::copy(src, src + s, dst);
+      for (int k = 0; k < dx; ++k) {
+        blo[k] = std::min(blo[k], src[k]);
+        bhi[k] = std::max(bhi[k], src[k]);
+      }
+    }
+  }
+  d->x.upload(tiled);
+  d->tile_lo.upload(lo);
+  d->tile_hi.upload(hi);
+  d->counters.create(2);
+  data_ = std::move(d);
+}
+
+void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXd& out) const {
+  if (!data_) throw Error("GPU Gauss transform: setData() must be called before evaluate()");
+  const Data& d = *data_;
+  if (q.cols() != d.dx)
+    throw Error("GPU Gauss transform: queries have " + std::to_string(q.cols()) +
+                " coordinates, the data " + std::to_string(d.dx));
+  if (!q.allFinite()) throw Error("GPU Gauss transform: the queries contain NaN or Inf");
+  if (q.rows() > (Eigen::Index{1} << 30)) throw Error("GPU Gauss transform: too many queries");
+  const auto start = Clock::now();
+  const int nq = static_cast<int>(q.rows());
+  const int s = d.stride;
+  out.setZero(nq, d.dx + d.dc + 1);
+  stats_ = GaussTransformStats();
+  stats_.queries = nq;
+  if (nq == 0) return;
+  std::vector<float> rows(static_cast<std::size_t>(nq) * s, 0.0f);
+  for (int r = 0; r < nq; ++r)
+    for (int k = 0; k < d.dx; ++k) rows[static_cast<std::size_t>(r) * s + k] = q(r, k);
+  const std::vector<int> order = kdOrder(rows.data(), nq, s, d.dx, detail::kGaussTile);
+  std::vector<float> sorted(rows.size());
+  for (int r = 0; r < nq; ++r)
+    std::copy_n(rows.data() + static_cast<std::size_t>(order[r]) * s, s,
+                sorted.data() + static_cast<std::size_t>(r) * s);
+  // Enough blocks to fill the device: few queries spread the data over more of them.
+  const int blocks = (nq + detail::kGaussTile - 1) / detail::kGaussTile;
+  const int wanted = (8 * d.multiprocessors + blocks - 1) / blocks;
+  const std::size_t row_bytes = static_cast<std::size_t>(nq) * (s + 1) * sizeof(double);
+  const int by_memory = static_cast<int>(std::max<std::size_t>(1, kPartialBytes / row_bytes));
+  const int splits = std::max(1, std::min({wanted, std::max(1, d.tiles / 4), by_memory}));
+  d.q.upload(sorted);
+  d.partial.create(static_cast<std::size_t>(splits) * nq * (s + 1));
+  d.counters.setZero();
+  detail::gaussTransformPartial(d.x.ptr(), d.tile_lo.ptr(), d.tile_hi.ptr(), d.tiles, s, d.dx,
+                                d.dc > 0, d.q.ptr(), nq, splits, d.cutoff2, d.partial.ptr(),
+                                d.counters.ptr());
+  const DeviceArray<double>* result = &d.partial;
+  if (splits > 1) {
+    d.sums.create(static_cast<std::size_t>(nq) * (s + 1));
+    detail::gaussTransformReduce(d.partial.ptr(), nq, s, splits, d.sums.ptr());
+    result = &d.sums;
+  }
+  std::vector<double> host(static_cast<std::size_t>(nq) * (s + 1));
+  result->downloadBytes(host.data(), host.size() * sizeof(double));
+  unsigned long long counts[2] = {0, 0};
+  d.counters.download(counts);
+  const int width = d.dx + d.dc;
+  for (int r = 0; r < nq; ++r) {
+    const double* src = host.data() + static_cast<std::size_t>(r) * (s + 1);
+    for (int c = 0; c < width; ++c) out(order[r], c) = src[c];
+    out(order[r], width) = src[s];
+  }
+  stats_.tiles_visited = static_cast<long long>(counts[0]);
+  stats_.tiles_skipped = static_cast<long long>(counts[1]);
+  stats_.splits = splits;
+  stats_.seconds = std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+}  // namespace gpu
+}  // namespace pcl_animseg
