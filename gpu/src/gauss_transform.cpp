@@ -25,7 +25,9 @@ constexpr std::size_t kPartialBytes = std::size_t{256} << 20;  // the split sums
 
 /** The rows of x (row-major, `stride` floats a row, the first `dims` compared) ordered so that
  * every run of `leaf` consecutive rows (from 0) is a cell of a kd-tree: each cell is halved at a
- * multiple of `leaf` rows by the median of its widest coordinate. */
+ * multiple of `leaf` rows by the median of its widest coordinate, the widths measured on at most
+ * kWidthSample of its rows (the order only decides which tiles a block can skip, not the sums;
+ * every row of every cell made the queries' order cost four times the device's sums). */
 std::vector<int> kdOrder(const float* x, int n, int stride, int dims, int leaf) {
   std::vector<int> order(n);
   std::iota(order.begin(), order.end(), 0);
@@ -36,20 +38,21 @@ std::vector<int> kdOrder(const float* x, int n, int stride, int dims, int leaf) 
     for (std::ptrdiff_t c = 0; c < static_cast<std::ptrdiff_t>(level.size()); ++c) {
       const int lo = level[c].first, hi = level[c].second;
       if (hi - lo <= leaf) continue;
-      int best = 0;
-      float widest = -1.0f;
-      for (int k = 0; k < dims; ++k) {
-        float a = x[static_cast<std::size_t>(order[lo]) * stride + k], b = a;
-        for (int i = lo + 1; i < hi; ++i) {
-          const float v = x[static_cast<std::size_t>(order[i]) * stride + k];
-          a = std::min(a, v);
-          b = std::max(b, v);
-        }
-        if (b - a > widest) {
-          widest = b - a;
-          best = k;
+      constexpr int kWidthSample = 256;
+      const int step = std::max(1, (hi - lo) / kWidthSample);
+      std::vector<float> a(x + static_cast<std::size_t>(order[lo]) * stride,
+                           x + static_cast<std::size_t>(order[lo]) * stride + dims);
+      std::vector<float> b = a;
+      for (int i = lo + step; i < hi; i += step) {
+        const float* row = x + static_cast<std::size_t>(order[i]) * stride;
+        for (int k = 0; k < dims; ++k) {
+          a[k] = std::min(a[k], row[k]);
+          b[k] = std::max(b[k], row[k]);
         }
       }
+      int best = 0;
+      for (int k = 1; k < dims; ++k)
+        if (b[k] - a[k] > b[best] - a[best]) best = k;
       const int cells = (hi - lo + leaf - 1) / leaf;
       const int mid = lo + cells / 2 * leaf;
       std::nth_element(order.begin() + lo, order.begin() + mid, order.begin() + hi,
@@ -83,8 +86,9 @@ struct GaussTransform::Data {
   float cutoff2 = 9.0f;
   DeviceArray<float> x, tile_lo, tile_hi;
   // Per call, kept between calls.
-  mutable DeviceArray<float> q;
-  mutable DeviceArray<double> partial, sums;
+  mutable DeviceArray<float> q, sums;
+  mutable DeviceArray<int> order;
+  mutable DeviceArray<double> partial;
   mutable DeviceArray<unsigned long long> counters;
 };
 
@@ -163,7 +167,7 @@ void GaussTransform::setData(const Eigen::MatrixXf& x, const Eigen::MatrixXf& ca
   data_ = std::move(d);
 }
 
-void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXd& out) const {
+void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) const {
   if (!data_) throw Error("GPU Gauss transform: setData() must be called before evaluate()");
   const Data& d = *data_;
   if (q.cols() != d.dx)
@@ -174,15 +178,17 @@ void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXd& out) co
   const auto start = Clock::now();
   const int nq = static_cast<int>(q.rows());
   const int s = d.stride;
-  out.setZero(nq, d.dx + d.dc + 1);
+  out.resize(nq, d.dx + d.dc + 1);
   stats_ = GaussTransformStats();
   stats_.queries = nq;
   if (nq == 0) return;
   std::vector<float> rows(static_cast<std::size_t>(nq) * s, 0.0f);
+#pragma omp parallel for schedule(static)
   for (int r = 0; r < nq; ++r)
     for (int k = 0; k < d.dx; ++k) rows[static_cast<std::size_t>(r) * s + k] = q(r, k);
   const std::vector<int> order = kdOrder(rows.data(), nq, s, d.dx, detail::kGaussTile);
   std::vector<float> sorted(rows.size());
+#pragma omp parallel for schedule(static)
   for (int r = 0; r < nq; ++r)
     std::copy_n(rows.data() + static_cast<std::size_t>(order[r]) * s, s,
                 sorted.data() + static_cast<std::size_t>(r) * s);
@@ -193,27 +199,22 @@ void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXd& out) co
   const int by_memory = static_cast<int>(std::max<std::size_t>(1, kPartialBytes / row_bytes));
   const int splits = std::max(1, std::min({wanted, std::max(1, d.tiles / 4), by_memory}));
   d.q.upload(sorted);
+  d.order.upload(order);
   d.partial.create(static_cast<std::size_t>(splits) * nq * (s + 1));
   d.counters.setZero();
+  detail::DeviceClock clock;
+  clock.start();
   detail::gaussTransformPartial(d.x.ptr(), d.tile_lo.ptr(), d.tile_hi.ptr(), d.tiles, s, d.dx,
                                 d.dc > 0, d.q.ptr(), nq, splits, d.cutoff2, d.partial.ptr(),
                                 d.counters.ptr());
-  const DeviceArray<double>* result = &d.partial;
-  if (splits > 1) {
-    d.sums.create(static_cast<std::size_t>(nq) * (s + 1));
-    detail::gaussTransformReduce(d.partial.ptr(), nq, s, splits, d.sums.ptr());
-    result = &d.sums;
-  }
-  std::vector<double> host(static_cast<std::size_t>(nq) * (s + 1));
-  result->downloadBytes(host.data(), host.size() * sizeof(double));
+  const int width = d.dx + d.dc;
+  d.sums.create(static_cast<std::size_t>(nq) * (width + 1));
+  detail::gaussTransformFinish(d.partial.ptr(), nq, s, splits, d.order.ptr(), width,
+                               d.sums.ptr());
+  stats_.kernel_seconds = clock.seconds();
+  d.sums.download(out.data());  // column-major, in the caller's row order
   unsigned long long counts[2] = {0, 0};
   d.counters.download(counts);
-  const int width = d.dx + d.dc;
-  for (int r = 0; r < nq; ++r) {
-    const double* src = host.data() + static_cast<std::size_t>(r) * (s + 1);
-    for (int c = 0; c < width; ++c) out(order[r], c) = src[c];
-    out(order[r], width) = src[s];
-  }
   stats_.tiles_visited = static_cast<long long>(counts[0]);
   stats_.tiles_skipped = static_cast<long long>(counts[1]);
   stats_.splits = splits;

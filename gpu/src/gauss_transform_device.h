@@ -19,11 +19,31 @@ void gaussTransformPartial(const float* x, const float* tile_lo, const float* ti
                            int stride, int dx, bool carried, const float* q, int nq, int splits,
                            float cutoff2, double* partial, unsigned long long* counters);
 
-/** out[r * (stride + 1) + c] = sum over s in order of partial[(s * nq + r) * (stride + 1) + c]. */
-void gaussTransformReduce(const double* partial, int nq, int stride, int splits, double* out);
+/** The sums of each query row r of the partial kernel's order, added over the splits s in order
+ * (partial[(s * nq + r) * (stride + 1) + c]), as floats in the caller's order and layout:
+ * out[c * nq + order[r]] for the columns c < width (the data's coordinates) and c = width (the
+ * weight, the partial sums' column `stride`); column-major, as Eigen's matrices. */
+void gaussTransformFinish(const double* partial, int nq, int stride, int splits,
+                          const int* order, int width, float* out);
 
 /** Shared memory a block of the partial kernel needs (bytes). */
 int gaussTransformSharedBytes(int stride);
+
+/** Device time between start() and seconds() (CUDA events on the default stream; seconds()
+ * waits for the work queued before it). */
+class DeviceClock {
+ public:
+  DeviceClock();
+  ~DeviceClock();
+  DeviceClock(const DeviceClock&) = delete;
+  DeviceClock& operator=(const DeviceClock&) = delete;
+  void start();
+  double seconds();
+
+ private:
+  void* start_ = nullptr;
+  void* stop_ = nullptr;
+};
 
 }  // namespace detail
 }  // namespace gpu

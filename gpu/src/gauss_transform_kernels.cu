@@ -120,13 +120,16 @@ __global__ void __launch_bounds__(kThreads)
   }
 }
 
-__global__ void reduceKernel(const double* __restrict__ partial, long long entries, int splits,
-                             double* __restrict__ out) {
+__global__ void finishKernel(const double* __restrict__ partial, int nq, int stride, int splits,
+                             const int* __restrict__ order, int width, float* __restrict__ out) {
   const long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
-  if (e >= entries) return;
+  if (e >= static_cast<long long>(nq) * (width + 1)) return;
+  const int r = static_cast<int>(e / (width + 1)), c = static_cast<int>(e % (width + 1));
+  const long long entries = static_cast<long long>(nq) * (stride + 1);
+  const long long at = static_cast<long long>(r) * (stride + 1) + (c < width ? c : stride);
   double sum = 0.0;
-  for (int s = 0; s < splits; ++s) sum += partial[s * entries + e];
-  out[e] = sum;
+  for (int s = 0; s < splits; ++s) sum += partial[s * entries + at];
+  out[static_cast<long long>(c) * nq + order[r]] = static_cast<float>(sum);
 }
 
 template <int S, bool CARRY>
@@ -178,12 +181,41 @@ void gaussTransformPartial(const float* x, const float* tile_lo, const float* ti
 #undef ANIMSEG_GT_CASE
 }
 
-void gaussTransformReduce(const double* partial, int nq, int stride, int splits, double* out) {
-  const long long entries = static_cast<long long>(nq) * (stride + 1);
+DeviceClock::DeviceClock() {
+  cudaEvent_t a = nullptr, b = nullptr;
+  cudaSafeCall(cudaEventCreate(&a));
+  if (cudaEventCreate(&b) != cudaSuccess) {
+    cudaEventDestroy(a);
+    cudaGetLastError();
+    throw Error("GPU: cudaEventCreate failed");
+  }
+  start_ = a;
+  stop_ = b;
+}
+
+DeviceClock::~DeviceClock() {
+  cudaEventDestroy(static_cast<cudaEvent_t>(start_));
+  cudaEventDestroy(static_cast<cudaEvent_t>(stop_));
+}
+
+void DeviceClock::start() { cudaSafeCall(cudaEventRecord(static_cast<cudaEvent_t>(start_))); }
+
+double DeviceClock::seconds() {
+  cudaSafeCall(cudaEventRecord(static_cast<cudaEvent_t>(stop_)));
+  cudaSafeCall(cudaEventSynchronize(static_cast<cudaEvent_t>(stop_)));
+  float ms = 0.0f;
+  cudaSafeCall(cudaEventElapsedTime(&ms, static_cast<cudaEvent_t>(start_),
+                                    static_cast<cudaEvent_t>(stop_)));
+  return 1e-3 * ms;
+}
+
+void gaussTransformFinish(const double* partial, int nq, int stride, int splits,
+                          const int* order, int width, float* out) {
+  const long long entries = static_cast<long long>(nq) * (width + 1);
   if (entries == 0) return;
   constexpr int threads = 256;
-  reduceKernel<<<static_cast<unsigned>((entries + threads - 1) / threads), threads>>>(
-      partial, entries, splits, out);
+  finishKernel<<<static_cast<unsigned>((entries + threads - 1) / threads), threads>>>(
+      partial, nq, stride, splits, order, width, out);
   cudaCheckLaunch();
 }
 

@@ -7,6 +7,8 @@
 #include <pcl_animseg/gpu/gaussian_kdtree.h>
 #include <pcl_animseg/gpu/mean_shift_backend.h>
 
+#include <cstdio>
+#include <cstdlib>
 #include <vector>
 
 namespace pcl_animseg {
@@ -34,6 +36,13 @@ class ExactSums : public segmentation::DeviceExactSums {
     add(z, key, metric_plain, 1);
     add(z, key, metric_key, 2);
   }
+  ~ExactSums() override {
+    if (calls_ && std::getenv("ANIMSEG_MS_TIMING"))
+      std::fprintf(stderr,
+                   "[gpu exact sums] %ld calls, %lld queries, %lld tiles summed, %lld skipped, "
+                   "kernels %.3f s, calls %.3f s\n",
+                   calls_, queries_, visited_, skipped_, kernel_s_, call_s_);
+  }
 
   void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows,
                 const std::vector<char>& query_key, Eigen::MatrixXf& out) override {
@@ -42,23 +51,32 @@ class ExactSums : public segmentation::DeviceExactSums {
     for (int r : rows) out.row(r).setZero();
     std::vector<int> plain_rows, key_rows;
     for (int r : rows) (!query_key.empty() && query_key[r] ? key_rows : plain_rows).push_back(r);
-    Eigen::MatrixXd sums;
+    Eigen::MatrixXf sums;
     for (const Group& g : groups_) {
       const std::vector<int>& rr =
           g.applies_to == 0 ? rows : (g.applies_to == 1 ? plain_rows : key_rows);
       if (rr.empty()) continue;
       const int dx = static_cast<int>(g.dist.size());
       Eigen::MatrixXf qs(rr.size(), dx);
+#pragma omp parallel for schedule(static)
       for (std::size_t r = 0; r < rr.size(); ++r)
         for (int k = 0; k < dx; ++k) qs(r, k) = q(rr[r], g.dist[k]) * g.scale[k];
       g.transform.evaluate(qs, sums);
+      const GaussTransformStats& st = g.transform.lastStats();
+      ++calls_;
+      queries_ += st.queries;
+      visited_ += st.tiles_visited;
+      skipped_ += st.tiles_skipped;
+      kernel_s_ += st.kernel_seconds;
+      call_s_ += st.seconds;
       const int dc = static_cast<int>(g.carried.size());
+#pragma omp parallel for schedule(static)
       for (std::size_t r = 0; r < rr.size(); ++r) {
         // Back from the metric's units to the raw coordinates (the values of Eq. 10).
         for (int k = 0; k < dx; ++k)
-          out(rr[r], g.dist[k]) += static_cast<float>(sums(r, k) / g.scale[k]);
-        for (int k = 0; k < dc; ++k) out(rr[r], g.carried[k]) += static_cast<float>(sums(r, dx + k));
-        out(rr[r], dim_) += static_cast<float>(sums(r, dx + dc));
+          out(rr[r], g.dist[k]) += sums(r, k) / g.scale[k];
+        for (int k = 0; k < dc; ++k) out(rr[r], g.carried[k]) += sums(r, dx + k);
+        out(rr[r], dim_) += sums(r, dx + dc);
       }
     }
   }
@@ -67,7 +85,7 @@ class ExactSums : public segmentation::DeviceExactSums {
   struct Group {
     GaussTransform transform;
     std::vector<int> dist, carried;  // dimensions in the distance / carried along
-    std::vector<double> scale;       // the metric of each distance dimension
+    std::vector<float> scale;        // the metric of each distance dimension
     int applies_to = 0;  // 0: every query, 1: plain queries only, 2: keypoint queries only
   };
 
@@ -97,6 +115,9 @@ class ExactSums : public segmentation::DeviceExactSums {
 
   int dim_ = 0;
   std::vector<Group> groups_;
+  long calls_ = 0;
+  long long queries_ = 0, visited_ = 0, skipped_ = 0;
+  double kernel_s_ = 0.0, call_s_ = 0.0;
 };
 
 }  // namespace

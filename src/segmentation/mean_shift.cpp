@@ -1531,18 +1531,21 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
       if (rerun.empty()) break;
       total += rerun.size();
       ++rounds;
-      // The re-run end points' densities (the order in which groupModes visits them).
+      // The re-run end points' densities (the order in which groupModes visits them): only
+      // theirs, in a matrix of their own (the others' end points have not moved).
+      const Eigen::Index r = static_cast<Eigen::Index>(rerun.size());
+      Eigen::MatrixXf yr(r, dim);
+      std::vector<char> kr(keys.empty() ? 0 : rerun.size());
+      for (Eigen::Index b = 0; b < r; ++b) {
+        yr.row(b) = y.row(rerun[b]);
+        if (!keys.empty()) kr[b] = keys[rerun[b]];
+      }
       if (device) {
-        device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
-                        end_density);
-      } else {  // only theirs, in a matrix of their own
-        const Eigen::Index r = static_cast<Eigen::Index>(rerun.size());
-        Eigen::MatrixXf yr(r, dim), out(r, dim + 1);
-        std::vector<char> kr(keys.empty() ? 0 : rerun.size());
-        for (Eigen::Index b = 0; b < r; ++b) {
-          yr.row(b) = y.row(rerun[b]);
-          if (!keys.empty()) kr[b] = keys[rerun[b]];
-        }
+        Eigen::VectorXf fr;
+        device->density(space.z, space.metric_plain, space.metric_key, keys, params, yr, kr, fr);
+        for (Eigen::Index b = 0; b < r; ++b) end_density[rerun[b]] = fr[b];
+      } else {
+        Eigen::MatrixXf out(r, dim + 1);
         std::vector<int> rows(rerun.size());
         std::iota(rows.begin(), rows.end(), 0);
         sums->evaluate(yr, rows, kr, out);

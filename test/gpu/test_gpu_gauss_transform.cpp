@@ -52,14 +52,14 @@ Eigen::MatrixXd reference(const Eigen::MatrixXf& x, const Eigen::MatrixXf& carri
 
 /** Largest error of `got` against `ref`, relative to the sum of |w x| of each entry's row (the
  * scale at which float sums round). */
-double worstError(const Eigen::MatrixXd& got, const Eigen::MatrixXd& ref,
+double worstError(const Eigen::MatrixXf& got, const Eigen::MatrixXd& ref,
                   const Eigen::MatrixXf& q) {
   double worst = 0.0;
   for (Eigen::Index r = 0; r < ref.rows(); ++r) {
     const double scale =
         ref(r, ref.cols() - 1) * (1.0 + q.row(r).cwiseAbs().maxCoeff() + 3.0) + 1e-12;
     for (Eigen::Index c = 0; c < ref.cols(); ++c)
-      worst = std::max(worst, std::abs(got(r, c) - ref(r, c)) / scale);
+      worst = std::max(worst, std::abs(static_cast<double>(got(r, c)) - ref(r, c)) / scale);
   }
   return worst;
 }
@@ -78,9 +78,11 @@ TEST(GpuGaussTransform, MatchesDoubleSumsOnTheCpu) {
     EXPECT_EQ(gt.distanceDims(), d);
     // Many queries (one split) and few (the data spread over many blocks).
     for (int nq : {3000, 17}) {
-      Eigen::MatrixXf q = x.topRows(nq);
-      q += 0.3f * clustered(nq, d, 1, 0.0f, 5);
-      Eigen::MatrixXd got;
+      // Few queries: all near one centre (every 8th point), so their box skips the others.
+      Eigen::MatrixXf q(nq, d);
+      for (int r = 0; r < nq; ++r) q.row(r) = x.row(nq < 128 ? 8 * r : r);
+      q += (0.3f / std::sqrt(static_cast<float>(d))) * clustered(nq, d, 1, 0.0f, 5);
+      Eigen::MatrixXf got;
       gt.evaluate(q, got);
       const Eigen::MatrixXd ref = reference(x, Eigen::MatrixXf(), q, 3.0f);
       ASSERT_EQ(got.rows(), nq);
@@ -92,7 +94,7 @@ TEST(GpuGaussTransform, MatchesDoubleSumsOnTheCpu) {
                   d, nq, err, st.splits, st.tiles_visited, st.tiles_skipped,
                   ref.col(d).minCoeff());
       EXPECT_LT(err, 1e-5);
-      EXPECT_GT(ref.col(d).minCoeff(), 1.0);  // every query has terms: the test sums something
+      EXPECT_GT(ref.col(d).minCoeff(), 0.5);  // every query has terms: the test sums something
       EXPECT_GT(st.tiles_skipped, 0);
       if (nq < 128) EXPECT_GT(st.splits, 1);
     }
@@ -109,7 +111,7 @@ TEST(GpuGaussTransform, CarriedCoordinatesAndCutoff) {
     gpu::GaussTransform gt;
     gt.setData(x, carried, cutoff);
     EXPECT_EQ(gt.carriedDims(), 2);
-    Eigen::MatrixXd got;
+    Eigen::MatrixXf got;
     gt.evaluate(q, got);
     const Eigen::MatrixXd ref = reference(x, carried, q, cutoff);
     ASSERT_EQ(got.cols(), 8);
@@ -121,7 +123,7 @@ TEST(GpuGaussTransform, BadInputIsAnError) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
   gpu::GaussTransform gt;
-  Eigen::MatrixXd out;
+  Eigen::MatrixXf out;
   EXPECT_THROW(gt.evaluate(Eigen::MatrixXf::Zero(2, 3), out), pcl_animseg::Error);
   EXPECT_THROW(gt.setData(Eigen::MatrixXf(0, 3)), pcl_animseg::Error);
   EXPECT_THROW(gt.setData(Eigen::MatrixXf::Zero(10, 65)), pcl_animseg::Error);

@@ -17,12 +17,12 @@
  * through shared memory, skipping the tiles whose box is beyond the cutoff from its queries' box.
  * Few queries spread the data over more blocks; their partial sums are added in a fixed order, so
  * a call's result does not depend on the device's scheduling. Sums are float within a tile and
- * double across tiles.
+ * double across tiles, returned as floats.
  *
  * \code
  * pcl_animseg::gpu::GaussTransform gt;
  * gt.setData(x);               // N x d, already scaled by the metric (d <= 64)
- * Eigen::MatrixXd sums;
+ * Eigen::MatrixXf sums;
  * gt.evaluate(queries, sums);  // Q x (d + 1): the weighted sums of x, then of 1
  * \endcode
  * Every CUDA failure throws pcl_animseg::Error.
@@ -41,6 +41,7 @@ struct GaussTransformStats {
   long long tiles_visited = 0;  ///< (query block, data tile) pairs summed
   long long tiles_skipped = 0;  ///< pairs skipped by their boxes
   int splits = 1;               ///< parts of the data each query's sums came in
+  double kernel_seconds = 0.0;  ///< the device's sums (kernels only)
   double seconds = 0.0;         ///< the call, copies and the host's query order included
 };
 
@@ -58,7 +59,7 @@ class GaussTransform {
                float cutoff = 3.0f);
   /** \brief out (Q x (dx + dc + 1)) = the sums above at the rows of q (Q x dx, the distance
    * coordinates). Throws Error before setData or on a bad width or non-finite queries. */
-  void evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXd& out) const;
+  void evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) const;
 
   std::size_t size() const;  ///< N
   int distanceDims() const;  ///< dx
