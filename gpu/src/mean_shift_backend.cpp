@@ -7,8 +7,11 @@
 #include <pcl_animseg/gpu/gaussian_kdtree.h>
 #include <pcl_animseg/gpu/mean_shift_backend.h>
 
+#include <algorithm>
+#include <cstdint>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <vector>
 
 namespace pcl_animseg {
@@ -120,6 +123,60 @@ class ExactSums : public segmentation::DeviceExactSums {
   double kernel_s_ = 0.0, call_s_ = 0.0;
 };
 
+/** A 64-bit hash of `bytes` bytes (word by word, chunks in parallel, combined in order): the
+ * density cache's key. */
+std::uint64_t hashBytes(const void* data, std::size_t bytes, std::uint64_t seed) {
+  constexpr std::size_t kChunk = std::size_t{1} << 20;
+  const auto* p = static_cast<const unsigned char*>(data);
+  const std::size_t chunks = (bytes + kChunk - 1) / kChunk;
+  std::vector<std::uint64_t> part(chunks);
+#pragma omp parallel for schedule(static)
+  for (std::ptrdiff_t c = 0; c < static_cast<std::ptrdiff_t>(chunks); ++c) {
+    const std::size_t lo = static_cast<std::size_t>(c) * kChunk;
+    const std::size_t hi = std::min(bytes, lo + kChunk);
+    std::uint64_t h = 0x9e3779b97f4a7c15ull ^ (hi - lo);
+    std::size_t i = lo;
+    for (; i + 8 <= hi; i += 8) {
+      std::uint64_t w;
+      std::memcpy(&w, p + i, 8);
+      h = (h ^ w) * 0xff51afd7ed558ccdull;
+      h ^= h >> 32;
+    }
+    for (; i < hi; ++i) h = (h ^ p[i]) * 0x100000001b3ull;
+    part[c] = h;
+  }
+  std::uint64_t h = seed ^ bytes;
+  for (std::uint64_t v : part) {
+    h = (h ^ v) * 0xc4ceb9fe1a85ec53ull;
+    h ^= h >> 29;
+  }
+  return h;
+}
+
+}  // namespace
+
+struct MeanShiftBackend::DensityCache {
+  std::uint64_t key = 0;
+  // Per group of the pair rule (see density()): the tree and its blurred weights (none: empty).
+  GaussianKdTree trees[3];
+  Eigen::MatrixXf weights[3];
+  bool built[3] = {false, false, false};
+};
+
+namespace {
+
+std::uint64_t densityKey(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
+                         const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
+                         const filters::GaussianKdTreeParams& g) {
+  std::uint64_t h = hashBytes(z.data(), sizeof(float) * z.size(), 0x1234u + z.rows());
+  h = hashBytes(metric_plain.data(), sizeof(float) * metric_plain.size(), h + z.cols());
+  h = hashBytes(metric_key.data(), sizeof(float) * metric_key.size(), h);
+  h = hashBytes(keypoint.data(), keypoint.size(), h + keypoint.size());
+  const float fields[5] = {g.leaf_extent, static_cast<float>(g.min_leaf_points), g.blur_radius,
+                           static_cast<float>(g.slice_samples), g.slice_sigma};
+  return hashBytes(fields, sizeof fields, h);
+}
+
 }  // namespace
 
 std::string MeanShiftBackend::name() const { return deviceLabel(); }
@@ -179,27 +236,47 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
   std::vector<Eigen::Index> qplain, qkey;
   for (Eigen::Index r = 0; r < q; ++r)
     (!keypoint.empty() && !query_key.empty() && query_key[r] ? qkey : qplain).push_back(r);
-  auto add = [&](const std::vector<Eigen::Index>& data, const std::vector<Eigen::Index>& rows,
-                 const Eigen::RowVectorXf& metric, bool all_queries) {
+  // The trees and blurred weights are kept for the next call on the same data (the same bits as
+  // building them again: the build and the blur do not depend on the queries).
+  const std::uint64_t key_now = densityKey(z, metric_plain, metric_key, keypoint, params.gkdtree);
+  if (!density_cache_ || density_cache_->key != key_now) {
+    density_cache_.reset();  // the old trees' device memory first
+    density_cache_ = std::make_shared<DensityCache>();
+    density_cache_->key = key_now;
+  }
+  DensityCache& cache = *density_cache_;
+  auto add = [&](int slot, const std::vector<Eigen::Index>& data,
+                 const std::vector<Eigen::Index>& rows, const Eigen::RowVectorXf& metric,
+                 bool all_queries) {
     if (data.empty()) return;
     const std::size_t nr = all_queries ? static_cast<std::size_t>(q) : rows.size();
     if (nr == 0) return;
-    Eigen::MatrixXf x(data.size(), z.cols());
-    for (std::size_t i = 0; i < data.size(); ++i) x.row(i) = z.row(data[i]).cwiseProduct(metric);
+    if (!cache.built[slot]) {
+      Eigen::MatrixXf x(data.size(), z.cols());
+      for (std::size_t i = 0; i < data.size(); ++i)
+        x.row(i) = z.row(data[i]).cwiseProduct(metric);
+      cache.trees[slot] = GaussianKdTree(params.gkdtree);
+      cache.trees[slot].build(x);
+      cache.trees[slot].splatBlur(Eigen::MatrixXf::Ones(x.rows(), 1), cache.weights[slot]);
+      cache.built[slot] = true;
+    }
     Eigen::MatrixXf qs(nr, z.cols());
     for (std::size_t r = 0; r < nr; ++r)
       qs.row(r) = queries.row(all_queries ? static_cast<Eigen::Index>(r) : rows[r])
                       .cwiseProduct(metric);
-    GaussianKdTree tree(params.gkdtree);
-    tree.build(x);
     Eigen::MatrixXf res;
-    tree.filter(Eigen::MatrixXf::Ones(x.rows(), 1), qs, res);
+    cache.trees[slot].slice(cache.weights[slot], qs, res);
     for (std::size_t r = 0; r < nr; ++r)
       out[all_queries ? static_cast<Eigen::Index>(r) : rows[r]] += res(r, 0);
   };
-  add(plain, {}, metric_plain, true);
-  add(key, qplain, metric_plain, false);
-  add(key, qkey, metric_key, false);
+  try {
+    add(0, plain, {}, metric_plain, true);
+    add(1, key, qplain, metric_plain, false);
+    add(2, key, qkey, metric_key, false);
+  } catch (...) {
+    density_cache_.reset();  // never keep a half-built entry
+    throw;
+  }
 }
 
 std::shared_ptr<segmentation::MeanShiftDeviceBackend> makeMeanShiftBackend(bool check_now) {

@@ -164,3 +164,40 @@ TEST(GpuMeanShift, ExactBordersAgreeWithCpu) {
   EXPECT_NE(gpu_used, "cpu");
   EXPECT_GE(ari, 0.99);
 }
+
+// The backend keeps the density's trees for the next call on the same data: the same values as a
+// fresh backend's, for other queries too, and new trees once the data change.
+TEST(GpuMeanShift, DensityKeepsItsTreesOnlyForTheSameData) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const auto sequence = synthSequence(pcl_animseg::synth::BodyPlan::Quadruped, 1500);
+  seg::MeanShiftParams mp;
+  Eigen::MatrixXf z;
+  Eigen::RowVectorXf metric;
+  jointSpace(*sequence, mp, z, metric);
+  std::vector<char> key(static_cast<std::size_t>(z.rows()), 0);
+  for (std::size_t i = 0; i < key.size(); i += 9) key[i] = 1;
+  Eigen::RowVectorXf pair = metric;
+  pair.tail(3) *= 1.5f;
+  const Eigen::MatrixXf q1 = z.topRows(500), q2 = z.bottomRows(700);
+  const std::vector<char> k1(key.begin(), key.begin() + 500), k2(key.end() - 700, key.end());
+  auto fresh = [&](const Eigen::MatrixXf& data, const Eigen::MatrixXf& q,
+                   const std::vector<char>& qk) {
+    gpu::MeanShiftBackend b;
+    Eigen::VectorXf f;
+    b.density(data, metric, pair, key, mp, q, qk, f);
+    return f;
+  };
+  gpu::MeanShiftBackend kept;
+  Eigen::VectorXf f1, f2, f3;
+  kept.density(z, metric, pair, key, mp, q1, k1, f1);
+  kept.density(z, metric, pair, key, mp, q2, k2, f2);  // the kept trees
+  EXPECT_TRUE(f1 == fresh(z, q1, k1));
+  EXPECT_TRUE(f2 == fresh(z, q2, k2));
+  Eigen::MatrixXf moved = z;
+  moved.col(0).array() += 0.05f;  // other data: new trees
+  kept.density(moved, metric, pair, key, mp, q2, k2, f3);
+  EXPECT_TRUE(f3 == fresh(moved, q2, k2));
+  EXPECT_FALSE(f3 == f2);
+  EXPECT_GT(f2.minCoeff(), 0.0f);
+}

@@ -59,8 +59,12 @@ class MeanShiftBackend : public segmentation::MeanShiftDeviceBackend {
   const MeanShiftStats& lastStats() const { return stats_; }
 
  private:
+  /** The density's filter trees and blurred weights of the last data (density() is called again
+   * on the same joint space with other queries: the border rounds of exact_borders). */
+  struct DensityCache;
   MeanShiftStats stats_;
   MotionTracking tracking_;
+  std::shared_ptr<DensityCache> density_cache_;
 };
 
 /** \brief A MeanShiftBackend; throws Error when no usable GPU is present (check gpuAvailable
