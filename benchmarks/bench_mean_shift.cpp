@@ -207,10 +207,10 @@ Timing runStage(const Sample& s, seg::MeanShiftBackend backend, int refine, doub
   return t;
 }
 
-const char* const kOptions[] = {"--points",       "--frames", "--refine",   "--exact-every1",
-                                "--exact-every2", "--full",   "--features", "--plan",
-                                "--bandwidth",    "--w4",     "--exact",    "--min-leaf-points",
-                                "--exact-borders", "--full-exact", "--device"};
+const char* const kOptions[] = {
+    "--points", "--frames",          "--refine",        "--exact-every1", "--exact-every2",
+    "--full",   "--features",        "--plan",          "--bandwidth",    "--w4",
+    "--exact",  "--min-leaf-points", "--exact-borders", "--full-exact",   "--device"};
 
 /** Every argument is a known option followed by its value; anything else is an error. */
 void checkArguments(int argc, char** argv) {
@@ -276,18 +276,19 @@ int main(int argc, char** argv) {
       return features == "pipeline" ? makePipelineSequence(plan, n, frames, every, 1)
                                     : makeSequence(n, frames, every, 1);
     };
-    std::printf("bench_mean_shift: %d points x 30-D, %d frames, paper method, %s features%s%s, "
-                "w = %.3g, w4 = %.3g, device %s\n",
-                n, frames, features.c_str(), features == "pipeline" ? " of a " : "",
-                features == "pipeline" ? plan.c_str() : "", bandwidth, w4, device.c_str());
+    std::printf(
+        "bench_mean_shift: %d points x 30-D, %d frames, paper method, %s features%s%s, "
+        "w = %.3g, w4 = %.3g, device %s\n",
+        n, frames, features.c_str(), features == "pipeline" ? " of a " : "",
+        features == "pipeline" ? plan.c_str() : "", bandwidth, w4, device.c_str());
     if (run_full) {
       const Sample full = make(1);
       std::vector<Timing> runs;
       for (int b = 0; b < 2; ++b) {
         const bool with = borders_mode == 2 ? b == 1 : borders;
         if (b == 1 && borders_mode != 2) break;
-        runs.push_back(runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth,
-                                w4, min_leaf, with, on_gpu));
+        runs.push_back(runStage(full, seg::MeanShiftBackend::GaussianKdTree, refine, bandwidth, w4,
+                                min_leaf, with, on_gpu));
         const Timing& g = runs.back();
         std::printf(
             "gkdtree (refine %d%s): wall %.2f s, user+sys %.2f s, %d clusters, peak RSS %.0f "
@@ -297,8 +298,8 @@ int main(int argc, char** argv) {
       if (full_exact) {
         const Timing e =
             runStage(full, seg::MeanShiftBackend::Exact, 0, bandwidth, w4, 1, false, on_gpu);
-        std::printf("exact, all points: wall %.2f s, user+sys %.2f s, %d clusters\n", e.wall,
-                    e.cpu, e.clusters);
+        std::printf("exact, all points: wall %.2f s, user+sys %.2f s, %d clusters\n", e.wall, e.cpu,
+                    e.clusters);
         for (std::size_t b = 0; b < runs.size(); ++b) {
           const bool with = borders_mode == 2 ? b == 1 : borders;
           std::printf("ARI gkdtree%s against exact: %.4f (wall ratio %.1fx)\n",

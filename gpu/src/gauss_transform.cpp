@@ -5,8 +5,6 @@
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/gpu/gauss_transform.h>
 
-#include "gauss_transform_device.h"
-
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -14,6 +12,8 @@
 #include <string>
 #include <utility>
 #include <vector>
+
+#include "gauss_transform_device.h"
 
 namespace pcl_animseg {
 namespace gpu {
@@ -209,8 +209,7 @@ void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) co
                                 d.counters.ptr());
   const int width = d.dx + d.dc;
   d.sums.create(static_cast<std::size_t>(nq) * (width + 1));
-  detail::gaussTransformFinish(d.partial.ptr(), nq, s, splits, d.order.ptr(), width,
-                               d.sums.ptr());
+  detail::gaussTransformFinish(d.partial.ptr(), nq, s, splits, d.order.ptr(), width, d.sums.ptr());
   stats_.kernel_seconds = clock.seconds();
   d.sums.download(out.data());  // column-major, in the caller's row order
   unsigned long long counts[2] = {0, 0};

@@ -23,8 +23,8 @@ void gaussTransformPartial(const float* x, const float* tile_lo, const float* ti
  * (partial[(s * nq + r) * (stride + 1) + c]), as floats in the caller's order and layout:
  * out[c * nq + order[r]] for the columns c < width (the data's coordinates) and c = width (the
  * weight, the partial sums' column `stride`); column-major, as Eigen's matrices. */
-void gaussTransformFinish(const double* partial, int nq, int stride, int splits,
-                          const int* order, int width, float* out);
+void gaussTransformFinish(const double* partial, int nq, int stride, int splits, const int* order,
+                          int width, float* out);
 
 /** Shared memory a block of the partial kernel needs (bytes). */
 int gaussTransformSharedBytes(int stride);

@@ -1,10 +1,10 @@
 // The exact Gauss transform's kernels (gauss_transform.h): a query per thread, the data a tile at
 // a time through shared memory, tiles beyond the cutoff from the block's queries skipped by their
 // boxes. Written by hand: no kept library offers a d-dimensional exact Gauss transform in CUDA.
+#include <cfloat>
+
 #include "cuda_check.h"
 #include "gauss_transform_device.h"
-
-#include <cfloat>
 
 namespace pcl_animseg {
 namespace gpu {
@@ -23,9 +23,9 @@ constexpr int sharedBytes() {
 template <int S, bool CARRY>
 __global__ void __launch_bounds__(kThreads)
     partialKernel(const float* __restrict__ x, const float* __restrict__ tile_lo,
-                  const float* __restrict__ tile_hi, int tiles, int dx,
-                  const float* __restrict__ q, int nq, int tiles_per_split, float cutoff2,
-                  double* __restrict__ partial, unsigned long long* counters) {
+                  const float* __restrict__ tile_hi, int tiles, int dx, const float* __restrict__ q,
+                  int nq, int tiles_per_split, float cutoff2, double* __restrict__ partial,
+                  unsigned long long* counters) {
   extern __shared__ __align__(16) unsigned char smem[];
   float* s_x = reinterpret_cast<float*>(smem);
   float* s_qlo = s_x + kGaussTile * S;
@@ -71,7 +71,8 @@ __global__ void __launch_bounds__(kThreads)
     }
     ++visited;
     __syncthreads();  // the previous tile is no longer read
-    const float4* src = reinterpret_cast<const float4*>(x + static_cast<long long>(t) * kGaussTile * S);
+    const float4* src =
+        reinterpret_cast<const float4*>(x + static_cast<long long>(t) * kGaussTile * S);
     float4* dst = reinterpret_cast<float4*>(s_x);
     for (int i = tid; i < kGaussTile * S / 4; i += kThreads) dst[i] = src[i];
     __syncthreads();
@@ -150,10 +151,14 @@ void launch(const float* x, const float* tile_lo, const float* tile_hi, int tile
 
 int gaussTransformSharedBytes(int stride) {
   switch (stride) {
-    case 8: return sharedBytes<8>();
-    case 16: return sharedBytes<16>();
-    case 32: return sharedBytes<32>();
-    default: return sharedBytes<64>();
+    case 8:
+      return sharedBytes<8>();
+    case 16:
+      return sharedBytes<16>();
+    case 32:
+      return sharedBytes<32>();
+    default:
+      return sharedBytes<64>();
   }
 }
 
@@ -161,14 +166,12 @@ void gaussTransformPartial(const float* x, const float* tile_lo, const float* ti
                            int stride, int dx, bool carried, const float* q, int nq, int splits,
                            float cutoff2, double* partial, unsigned long long* counters) {
   if (nq <= 0 || tiles <= 0) return;
-#define ANIMSEG_GT_CASE(S)                                                                   \
-  case S:                                                                                    \
-    if (carried)                                                                             \
-      launch<S, true>(x, tile_lo, tile_hi, tiles, dx, q, nq, splits, cutoff2, partial,       \
-                      counters);                                                             \
-    else                                                                                     \
-      launch<S, false>(x, tile_lo, tile_hi, tiles, dx, q, nq, splits, cutoff2, partial,      \
-                       counters);                                                            \
+#define ANIMSEG_GT_CASE(S)                                                                         \
+  case S:                                                                                          \
+    if (carried)                                                                                   \
+      launch<S, true>(x, tile_lo, tile_hi, tiles, dx, q, nq, splits, cutoff2, partial, counters);  \
+    else                                                                                           \
+      launch<S, false>(x, tile_lo, tile_hi, tiles, dx, q, nq, splits, cutoff2, partial, counters); \
     break;
   switch (stride) {
     ANIMSEG_GT_CASE(8)
@@ -204,13 +207,13 @@ double DeviceClock::seconds() {
   cudaSafeCall(cudaEventRecord(static_cast<cudaEvent_t>(stop_)));
   cudaSafeCall(cudaEventSynchronize(static_cast<cudaEvent_t>(stop_)));
   float ms = 0.0f;
-  cudaSafeCall(cudaEventElapsedTime(&ms, static_cast<cudaEvent_t>(start_),
-                                    static_cast<cudaEvent_t>(stop_)));
+  cudaSafeCall(
+      cudaEventElapsedTime(&ms, static_cast<cudaEvent_t>(start_), static_cast<cudaEvent_t>(stop_)));
   return 1e-3 * ms;
 }
 
-void gaussTransformFinish(const double* partial, int nq, int stride, int splits,
-                          const int* order, int width, float* out) {
+void gaussTransformFinish(const double* partial, int nq, int stride, int splits, const int* order,
+                          int width, float* out) {
   const long long entries = static_cast<long long>(nq) * (width + 1);
   if (entries == 0) return;
   constexpr int threads = 256;

@@ -76,8 +76,7 @@ class ExactSums : public segmentation::DeviceExactSums {
 #pragma omp parallel for schedule(static)
       for (std::size_t r = 0; r < rr.size(); ++r) {
         // Back from the metric's units to the raw coordinates (the values of Eq. 10).
-        for (int k = 0; k < dx; ++k)
-          out(rr[r], g.dist[k]) += sums(r, k) / g.scale[k];
+        for (int k = 0; k < dx; ++k) out(rr[r], g.dist[k]) += sums(r, k) / g.scale[k];
         for (int k = 0; k < dc; ++k) out(rr[r], g.carried[k]) += sums(r, dx + k);
         out(rr[r], dim_) += sums(r, dx + dc);
       }
@@ -253,8 +252,7 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
     if (nr == 0) return;
     if (!cache.built[slot]) {
       Eigen::MatrixXf x(data.size(), z.cols());
-      for (std::size_t i = 0; i < data.size(); ++i)
-        x.row(i) = z.row(data[i]).cwiseProduct(metric);
+      for (std::size_t i = 0; i < data.size(); ++i) x.row(i) = z.row(data[i]).cwiseProduct(metric);
       cache.trees[slot] = GaussianKdTree(params.gkdtree);
       cache.trees[slot].build(x);
       cache.trees[slot].splatBlur(Eigen::MatrixXf::Ones(x.rows(), 1), cache.weights[slot]);
@@ -262,8 +260,8 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
     }
     Eigen::MatrixXf qs(nr, z.cols());
     for (std::size_t r = 0; r < nr; ++r)
-      qs.row(r) = queries.row(all_queries ? static_cast<Eigen::Index>(r) : rows[r])
-                      .cwiseProduct(metric);
+      qs.row(r) =
+          queries.row(all_queries ? static_cast<Eigen::Index>(r) : rows[r]).cwiseProduct(metric);
     Eigen::MatrixXf res;
     cache.trees[slot].slice(cache.weights[slot], qs, res);
     for (std::size_t r = 0; r < nr; ++r)

@@ -1079,8 +1079,10 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   if (!device_sums) cpu_exact = std::make_unique<JointKernelSum>(space, values, exact_params, 0.5f);
   values.resize(0, 0);
   auto evaluate = [&](const std::vector<int>& rows, Eigen::MatrixXf& sums_out) {
-    if (device_sums) device_sums->evaluate(yg, rows, key_of, sums_out);
-    else cpu_exact->evaluate(yg, rows, key_of, sums_out);
+    if (device_sums)
+      device_sums->evaluate(yg, rows, key_of, sums_out);
+    else
+      cpu_exact->evaluate(yg, rows, key_of, sums_out);
   };
   auto forget = [&](const std::vector<int>& rows) {
     if (cpu_exact) cpu_exact->forget(rows);
@@ -1162,8 +1164,8 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
     std::fprintf(stderr,
                  "[mean shift] refinement: %d groups, %ld exact steps, %ld tree searches, %d "
                  "iterations, %zu not converged%s\n",
-                 g, evaluations, cpu_exact ? cpu_exact->searches() : 0L, iterations,
-                 active.size(), device_sums ? " (sums on the device)" : "");
+                 g, evaluations, cpu_exact ? cpu_exact->searches() : 0L, iterations, active.size(),
+                 device_sums ? " (sums on the device)" : "");
 }
 
 /** Starting points of the Gaussian kd-tree backend (Sect. 3.3): the cells of the filter's tree
@@ -1227,8 +1229,10 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   timer.restart();
   auto evaluate = [&](const Eigen::MatrixXf& q, const std::vector<int>& rows,
                       const std::vector<char>& q_key, Eigen::MatrixXf& out) {
-    if (device_sums) device_sums->evaluate(q, rows, q_key, out);
-    else sums_out->evaluate(q, rows, q_key, out);
+    if (device_sums)
+      device_sums->evaluate(q, rows, q_key, out);
+    else
+      sums_out->evaluate(q, rows, q_key, out);
   };
   const bool cells = params.backend == MeanShiftBackend::GaussianKdTree && params.iterate_cells;
   std::vector<int> start_of, cell_start;

@@ -1,6 +1,7 @@
 // The exact Gauss transform on the GPU (gpu::GaussTransform) against sums in double on the CPU,
 // the device's exact sums with the keypoint pair rule (MeanShiftBackend::exactSums), and the
 // exact backend of the mean-shift stage on the device against the CPU's. Skips without a GPU.
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/gpu/device.h>
@@ -8,8 +9,6 @@
 #include <pcl_animseg/gpu/mean_shift_backend.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
 #include <pcl_animseg/synth/articulated.h>
-
-#include <gtest/gtest.h>
 
 #include <cmath>
 #include <cstdio>
@@ -89,10 +88,10 @@ TEST(GpuGaussTransform, MatchesDoubleSumsOnTheCpu) {
       ASSERT_EQ(got.cols(), d + 1);
       const double err = worstError(got, ref, q);
       const auto& st = gt.lastStats();
-      std::printf("d=%d queries=%d: worst relative error %.2e, splits %d, tiles visited %lld, "
-                  "skipped %lld, min weight sum %.3f\n",
-                  d, nq, err, st.splits, st.tiles_visited, st.tiles_skipped,
-                  ref.col(d).minCoeff());
+      std::printf(
+          "d=%d queries=%d: worst relative error %.2e, splits %d, tiles visited %lld, "
+          "skipped %lld, min weight sum %.3f\n",
+          d, nq, err, st.splits, st.tiles_visited, st.tiles_skipped, ref.col(d).minCoeff());
       EXPECT_LT(err, 1e-5);
       EXPECT_GT(ref.col(d).minCoeff(), 0.5);  // every query has terms: the test sums something
       EXPECT_GT(st.tiles_skipped, 0);
@@ -172,8 +171,7 @@ TEST(GpuGaussTransform, ExactSumsFollowThePairRule) {
     Eigen::VectorXd ref = Eigen::VectorXd::Zero(d + 1);
     for (int j = 0; j < n; ++j) {
       const Eigen::RowVectorXf& m = qkey[r] && key[j] ? pair : plain;
-      const double d2 =
-          (q.row(r) - z.row(j)).cwiseProduct(m).cast<double>().squaredNorm();
+      const double d2 = (q.row(r) - z.row(j)).cwiseProduct(m).cast<double>().squaredNorm();
       if (!(d2 < 9.0)) continue;
       const double w = std::exp(-0.5 * d2);
       ref.head(d) += w * z.row(j).transpose().cast<double>();

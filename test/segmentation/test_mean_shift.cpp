@@ -460,8 +460,7 @@ class ExactSumsDevice : public seg::MeanShiftDeviceBackend {
   }
   void density(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric,
                const Eigen::RowVectorXf&, const std::vector<char>&, const seg::MeanShiftParams&,
-               const Eigen::MatrixXf& q, const std::vector<char>&,
-               Eigen::VectorXf& out) override {
+               const Eigen::MatrixXf& q, const std::vector<char>&, Eigen::VectorXf& out) override {
     int ignored = 0;
     BruteForceSums sums(z, metric, &ignored);
     std::vector<int> rows(q.rows());

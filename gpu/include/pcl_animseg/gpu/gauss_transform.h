@@ -28,7 +28,6 @@
  * Every CUDA failure throws pcl_animseg::Error.
  */
 #include <Eigen/Core>
-
 #include <cstddef>
 #include <memory>
 
