@@ -90,6 +90,7 @@ struct GaussTransform::Data {
   mutable DeviceArray<int> order;
   mutable DeviceArray<double> partial;
   mutable DeviceArray<unsigned long long> counters;
+  mutable std::vector<float> host_rows, host_sorted;
 };
 
 GaussTransform::GaussTransform() = default;
@@ -167,7 +168,13 @@ void GaussTransform::setData(const Eigen::MatrixXf& x, const Eigen::MatrixXf& ca
   data_ = std::move(d);
 }
 
-void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) const {
+void GaussTransform::evaluate(const Eigen::Ref<const Eigen::MatrixXf>& q,
+                              Eigen::MatrixXf& out) const {
+  if (data_) out.resize(q.rows(), data_->dx + data_->dc + 1);
+  evaluate(q, out.data());
+}
+
+void GaussTransform::evaluate(const Eigen::Ref<const Eigen::MatrixXf>& q, float* out) const {
   if (!data_) throw Error("GPU Gauss transform: setData() must be called before evaluate()");
   const Data& d = *data_;
   if (q.cols() != d.dx)
@@ -178,16 +185,19 @@ void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) co
   const auto start = Clock::now();
   const int nq = static_cast<int>(q.rows());
   const int s = d.stride;
-  out.resize(nq, d.dx + d.dc + 1);
   stats_ = GaussTransformStats();
   stats_.queries = nq;
   if (nq == 0) return;
-  std::vector<float> rows(static_cast<std::size_t>(nq) * s, 0.0f);
+  // Host buffers kept between calls (fresh pages for 100 MB a call cost more than filling them).
+  // Only the distance coordinates of a row are ever written: the rest stay 0.
+  std::vector<float>& rows = d.host_rows;
+  rows.resize(static_cast<std::size_t>(nq) * s, 0.0f);
 #pragma omp parallel for schedule(static)
   for (int r = 0; r < nq; ++r)
     for (int k = 0; k < d.dx; ++k) rows[static_cast<std::size_t>(r) * s + k] = q(r, k);
   const std::vector<int> order = kdOrder(rows.data(), nq, s, d.dx, detail::kGaussTile);
-  std::vector<float> sorted(rows.size());
+  std::vector<float>& sorted = d.host_sorted;
+  sorted.resize(static_cast<std::size_t>(nq) * s);
 #pragma omp parallel for schedule(static)
   for (int r = 0; r < nq; ++r)
     std::copy_n(rows.data() + static_cast<std::size_t>(order[r]) * s, s,
@@ -198,7 +208,7 @@ void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) co
   const std::size_t row_bytes = static_cast<std::size_t>(nq) * (s + 1) * sizeof(double);
   const int by_memory = static_cast<int>(std::max<std::size_t>(1, kPartialBytes / row_bytes));
   const int splits = std::max(1, std::min({wanted, std::max(1, d.tiles / 4), by_memory}));
-  d.q.upload(sorted);
+  d.q.upload(sorted.data(), static_cast<std::size_t>(nq) * s);
   d.order.upload(order);
   d.partial.create(static_cast<std::size_t>(splits) * nq * (s + 1));
   d.counters.setZero();
@@ -211,7 +221,7 @@ void GaussTransform::evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) co
   d.sums.create(static_cast<std::size_t>(nq) * (width + 1));
   detail::gaussTransformFinish(d.partial.ptr(), nq, s, splits, d.order.ptr(), width, d.sums.ptr());
   stats_.kernel_seconds = clock.seconds();
-  d.sums.download(out.data());  // column-major, in the caller's row order
+  d.sums.download(out);  // column-major, in the caller's row order
   unsigned long long counts[2] = {0, 0};
   d.counters.download(counts);
   stats_.tiles_visited = static_cast<long long>(counts[0]);

@@ -54,17 +54,25 @@ class ExactSums : public segmentation::DeviceExactSums {
     for (int r : rows) out.row(r).setZero();
     std::vector<int> plain_rows, key_rows;
     for (int r : rows) (!query_key.empty() && query_key[r] ? key_rows : plain_rows).push_back(r);
-    Eigen::MatrixXf sums;
     for (const Group& g : groups_) {
       const std::vector<int>& rr =
           g.applies_to == 0 ? rows : (g.applies_to == 1 ? plain_rows : key_rows);
       if (rr.empty()) continue;
       const int dx = static_cast<int>(g.dist.size());
-      Eigen::MatrixXf qs(rr.size(), dx);
+      // Buffers kept between calls (fresh pages for their 100 MB a call cost more than the
+      // copies).
+      const int dc = static_cast<int>(g.carried.size());
+      const Eigen::Index nr = static_cast<Eigen::Index>(rr.size());
+      if (queries_scaled_.size() < static_cast<std::size_t>(nr) * dx)
+        queries_scaled_.resize(static_cast<std::size_t>(nr) * dx);
+      if (sums_.size() < static_cast<std::size_t>(nr) * (dx + dc + 1))
+        sums_.resize(static_cast<std::size_t>(nr) * (dx + dc + 1));
+      Eigen::Map<Eigen::MatrixXf> qs(queries_scaled_.data(), nr, dx);
+      const Eigen::Map<const Eigen::MatrixXf> sums(sums_.data(), nr, dx + dc + 1);
 #pragma omp parallel for schedule(static)
       for (std::size_t r = 0; r < rr.size(); ++r)
         for (int k = 0; k < dx; ++k) qs(r, k) = q(rr[r], g.dist[k]) * g.scale[k];
-      g.transform.evaluate(qs, sums);
+      g.transform.evaluate(qs, sums_.data());
       const GaussTransformStats& st = g.transform.lastStats();
       ++calls_;
       queries_ += st.queries;
@@ -72,7 +80,6 @@ class ExactSums : public segmentation::DeviceExactSums {
       skipped_ += st.tiles_skipped;
       kernel_s_ += st.kernel_seconds;
       call_s_ += st.seconds;
-      const int dc = static_cast<int>(g.carried.size());
 #pragma omp parallel for schedule(static)
       for (std::size_t r = 0; r < rr.size(); ++r) {
         // Back from the metric's units to the raw coordinates (the values of Eq. 10).
@@ -117,6 +124,7 @@ class ExactSums : public segmentation::DeviceExactSums {
 
   int dim_ = 0;
   std::vector<Group> groups_;
+  std::vector<float> queries_scaled_, sums_;
   long calls_ = 0;
   long long queries_ = 0, visited_ = 0, skipped_ = 0;
   double kernel_s_ = 0.0, call_s_ = 0.0;

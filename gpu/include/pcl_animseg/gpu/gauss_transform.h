@@ -58,7 +58,10 @@ class GaussTransform {
                float cutoff = 3.0f);
   /** \brief out (Q x (dx + dc + 1)) = the sums above at the rows of q (Q x dx, the distance
    * coordinates). Throws Error before setData or on a bad width or non-finite queries. */
-  void evaluate(const Eigen::MatrixXf& q, Eigen::MatrixXf& out) const;
+  void evaluate(const Eigen::Ref<const Eigen::MatrixXf>& q, Eigen::MatrixXf& out) const;
+  /** \brief The same into `out`: Q x (dx + dc + 1) floats, column-major (a buffer the caller
+   * keeps between calls). */
+  void evaluate(const Eigen::Ref<const Eigen::MatrixXf>& q, float* out) const;
 
   std::size_t size() const;  ///< N
   int distanceDims() const;  ///< dx
