@@ -98,7 +98,7 @@ struct MeanShiftParams {
    * exact backend's at its borders too (ARI 0.99 on the agreement test against 0.83-0.87
    * without), at the exact method's cost for the border points: on the paper method's clusters,
    * which interleave at the scale of a point's neighbours, that is most points (200k points at
-   * w = 0.3: 165 s instead of 1.7 s on 2 cores; 800k on a device with exactSums: 7.1 s, ARI 0.97
+   * w = 0.3: 165 s instead of 1.7 s on 2 cores; 800k on a device with exactSums: 6.2 s, ARI 0.97
    * to the exact backend on all points; docs/mean_shift_experiments.md). false: the filter's
    * borders. */
   bool exact_borders = false;
