@@ -12,6 +12,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <numeric>
 #include <vector>
 
 namespace pcl_animseg {
@@ -168,6 +169,7 @@ struct MeanShiftBackend::DensityCache {
   GaussianKdTree trees[3];
   Eigen::MatrixXf weights[3];
   bool built[3] = {false, false, false};
+  std::unique_ptr<ExactSums> exact;  // the exact backend's sums (params.backend == Exact)
 };
 
 namespace {
@@ -227,13 +229,28 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
     throw Error("GPU density: query flags must have one entry per query");
   out.setZero(q);
   if (q == 0) return;
+  // The trees and blurred weights (or the exact sums' data) are kept for the next call on the
+  // same data (the same values as making them again: they do not depend on the queries).
+  const std::uint64_t key_now = densityKey(z, metric_plain, metric_key, keypoint, params.gkdtree);
+  if (!density_cache_ || density_cache_->key != key_now) {
+    density_cache_.reset();  // the old trees' device memory first
+    density_cache_ = std::make_shared<DensityCache>();
+    density_cache_->key = key_now;
+  }
+  DensityCache& cache = *density_cache_;
   if (params.backend == segmentation::MeanShiftBackend::Exact) {
-    ExactSums sums(z, metric_plain, metric_key, keypoint);
-    std::vector<int> rows(static_cast<std::size_t>(q));
-    for (Eigen::Index r = 0; r < q; ++r) rows[r] = static_cast<int>(r);
-    Eigen::MatrixXf res(q, z.cols() + 1);
-    sums.evaluate(queries, rows, keypoint.empty() ? std::vector<char>() : query_key, res);
-    out = res.col(z.cols());
+    try {
+      if (!cache.exact)
+        cache.exact = std::make_unique<ExactSums>(z, metric_plain, metric_key, keypoint);
+      std::vector<int> rows(static_cast<std::size_t>(q));
+      std::iota(rows.begin(), rows.end(), 0);
+      Eigen::MatrixXf res(q, z.cols() + 1);
+      cache.exact->evaluate(queries, rows, query_key, res);
+      out = res.col(z.cols());
+    } catch (...) {
+      density_cache_.reset();
+      throw;
+    }
     return;
   }
   // Groups as on the CPU: non-keypoints for every query under the plain metric; keypoints under
@@ -243,15 +260,6 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
   std::vector<Eigen::Index> qplain, qkey;
   for (Eigen::Index r = 0; r < q; ++r)
     (!keypoint.empty() && !query_key.empty() && query_key[r] ? qkey : qplain).push_back(r);
-  // The trees and blurred weights are kept for the next call on the same data (the same bits as
-  // building them again: the build and the blur do not depend on the queries).
-  const std::uint64_t key_now = densityKey(z, metric_plain, metric_key, keypoint, params.gkdtree);
-  if (!density_cache_ || density_cache_->key != key_now) {
-    density_cache_.reset();  // the old trees' device memory first
-    density_cache_ = std::make_shared<DensityCache>();
-    density_cache_->key = key_now;
-  }
-  DensityCache& cache = *density_cache_;
   auto add = [&](int slot, const std::vector<Eigen::Index>& data,
                  const std::vector<Eigen::Index>& rows, const Eigen::RowVectorXf& metric,
                  bool all_queries) {

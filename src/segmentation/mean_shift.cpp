@@ -753,10 +753,13 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
                 const Eigen::MatrixXf& f, SegmentationResult& result);
 }  // namespace
 
-void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
-                  const std::vector<int>& graph, int k, const JointKernelSum& sums,
-                  const Eigen::VectorXf& point_density, SegmentationResult& result) {
-  const int v = sums.valueCount();
+namespace {
+/** finishResult with the iteration's sums: evaluate(q, rows, query_key, out), v value columns
+ * (the last: the density). */
+template <typename Sums>
+void finishWithSums(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
+                    const std::vector<int>& graph, int k, Sums& sums, int v,
+                    const Eigen::VectorXf& point_density, SegmentationResult& result) {
   DensityFn dens = [&](const Eigen::MatrixXf& q, const std::vector<char>& qk, Eigen::MatrixXf& o) {
     std::vector<int> rows(q.rows());
     std::iota(rows.begin(), rows.end(), 0);
@@ -765,6 +768,21 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat, int num
     o = all.col(v - 1);
   };
   finishWith(space, flat, num_clusters, graph, k, true, dens, point_density, result);
+}
+}  // namespace
+
+void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
+                  const std::vector<int>& graph, int k, const JointKernelSum& sums,
+                  const Eigen::VectorXf& point_density, SegmentationResult& result) {
+  finishWithSums(space, flat, num_clusters, graph, k, sums, sums.valueCount(), point_density,
+                 result);
+}
+
+void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
+                  const std::vector<int>& graph, int k, DeviceExactSums& sums,
+                  const Eigen::VectorXf& point_density, SegmentationResult& result) {
+  finishWithSums(space, flat, num_clusters, graph, k, sums, static_cast<int>(space.z.cols()) + 1,
+                 point_density, result);
 }
 
 void finishResult(const JointSpace& space, const std::vector<int>& flat, int num_clusters,
@@ -1490,7 +1508,8 @@ std::vector<int> exactBorderRound(const JointSpace& space, const std::vector<int
 void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
               const MeanShiftParams& params, MeanShiftDeviceBackend* device, std::vector<int>& flat,
               Eigen::MatrixXf& modes, int& num_clusters, std::unique_ptr<JointKernelSum>& sums,
-              Eigen::VectorXf& point_density, Progress* progress) {
+              std::unique_ptr<DeviceExactSums>& device_sums, Eigen::VectorXf& point_density,
+              Progress* progress) {
   const Eigen::Index n = space.z.rows();
   const int dim = static_cast<int>(space.z.cols());
   const std::vector<char> no_keys;
@@ -1498,9 +1517,10 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   Eigen::MatrixXf y;
   Eigen::VectorXf end_density;
   const bool gkd = params.backend == MeanShiftBackend::GaussianKdTree;
-  // The exact sums on the device, where it offers them: the exact backend's iteration, the
-  // refinement's exact steps and the border rounds'.
-  std::unique_ptr<DeviceExactSums> device_sums;
+  // The exact sums on the device, where it offers them: the exact backend's iteration (and its
+  // result's densities: kept for the caller), the refinement's exact steps and the border
+  // rounds'.
+  device_sums.reset();
   if (device && (!gkd || params.refine_iterations > 0 || params.exact_borders)) {
     StageTimer upload_timer;
     device_sums = device->exactSums(space.z, space.metric_plain, space.metric_key, keys);
@@ -1520,7 +1540,7 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
     seekModesCpu(space, params, y, end_density, sums, point_density, progress, device_sums.get());
   }
   groupAndAbsorb(space, graph, k, params, y, end_density, flat, modes, num_clusters);
-  if (params.exact_borders && params.backend == MeanShiftBackend::GaussianKdTree) {
+  if (params.exact_borders && gkd) {
     // The filter's labels are right but at the borders of its basins: exact trajectories for
     // the border points move a border by a ring of neighbours at a time, so rounds follow it
     // until it settles (each round runs only points that have not run yet: at most n in all).
@@ -1562,6 +1582,7 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
       progress->end(std::to_string(total) + " of " + std::to_string(n) + " points, " +
                     std::to_string(rounds) + " rounds");
   }
+  if (gkd) device_sums.reset();  // the filter's densities come from the device's filter
 }
 
 }  // namespace
@@ -1603,20 +1624,25 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     // The CPU iteration leaves its kernel sums and the density at the points for the densities
     // of the result (no second filter over the data).
     std::unique_ptr<detail::JointKernelSum> sums;
+    std::unique_ptr<DeviceExactSums> device_sums;  // the exact backend's, on the device
     Eigen::VectorXf point_density;
     guarded([&](MeanShiftDeviceBackend* d) {
       Eigen::MatrixXf modes;
-      runPaper(space, graph, k, params_, d, flat, modes, num_clusters, sums, point_density,
-               progress_);
+      runPaper(space, graph, k, params_, d, flat, modes, num_clusters, sums, device_sums,
+               point_density, progress_);
       result.modes = modes;
       // What ran: the device's filter, the CPU's (0 from the exact backend's sums), or none.
       result.sampling_factor = d ? d->samplingFactor() : sums ? sums->samplingFactor() : 0.0;
     });
     timer.restart();
     guarded([&](MeanShiftDeviceBackend* d) {
-      // The CPU's sums where they ran (on the CPU, or its fall-back): the densities reuse them.
+      // The iteration's sums where they ran (on the CPU, or its fall-back, or the exact
+      // backend's on the device): the densities reuse them and the density at the points.
       if (sums) {
         detail::finishResult(space, flat, num_clusters, graph, k, *sums, point_density,
+                             result);
+      } else if (d && device_sums) {
+        detail::finishResult(space, flat, num_clusters, graph, k, *device_sums, point_density,
                              result);
       } else {
         detail::finishResult(space, flat, num_clusters, graph, k, params_, true, result, d);

@@ -99,6 +99,10 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, 
 void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, int num_clusters,
                   const std::vector<int>& graph, int k, const JointKernelSum& sums,
                   const Eigen::VectorXf& point_density, SegmentationResult& result);
+/** The same with the exact backend's sums on a device (their columns: z, then the density). */
+void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, int num_clusters,
+                  const std::vector<int>& graph, int k, DeviceExactSums& sums,
+                  const Eigen::VectorXf& point_density, SegmentationResult& result);
 
 /** The motion method; fills result.labels, num_clusters and merges. `tracking` (nullptr: the
  * CPU) fits the tracked samples' poses. */
