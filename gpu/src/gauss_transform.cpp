@@ -23,12 +23,14 @@ namespace {
 constexpr float kFar = 1e18f;  // padding rows: beyond any cutoff, and their square still finite
 constexpr std::size_t kPartialBytes = std::size_t{256} << 20;  // the split sums of one call
 
-/** The rows of x (row-major, `stride` floats a row, the first `dims` compared) ordered so that
- * every run of `leaf` consecutive rows (from 0) is a cell of a kd-tree: each cell is halved at a
- * multiple of `leaf` rows by the median of its widest coordinate, the widths measured on at most
- * kWidthSample of its rows (the order only decides which tiles a block can skip, not the sums;
- * every row of every cell made the queries' order cost four times the device's sums). */
-std::vector<int> kdOrder(const float* x, int n, int stride, int dims, int leaf) {
+/** The rows 0..n-1 of a matrix (its coordinate k of row i: at(i, k); the first `dims` compared)
+ * ordered so that every run of `leaf` consecutive rows (from 0) is a cell of a kd-tree: each
+ * cell is halved at a multiple of `leaf` rows by the median of its widest coordinate, the widths
+ * measured on at most kWidthSample of its rows (the order only decides which tiles a block can
+ * skip, not the sums; every row of every cell made the queries' order cost four times the
+ * device's sums). */
+template <typename At>
+std::vector<int> kdOrder(const At& at, int n, int dims, int leaf) {
   std::vector<int> order(n);
   std::iota(order.begin(), order.end(), 0);
   std::vector<std::pair<int, int>> level{{0, n}}, next;
@@ -40,26 +42,22 @@ std::vector<int> kdOrder(const float* x, int n, int stride, int dims, int leaf) 
       if (hi - lo <= leaf) continue;
       constexpr int kWidthSample = 256;
       const int step = std::max(1, (hi - lo) / kWidthSample);
-      std::vector<float> a(x + static_cast<std::size_t>(order[lo]) * stride,
-                           x + static_cast<std::size_t>(order[lo]) * stride + dims);
-      std::vector<float> b = a;
-      for (int i = lo + step; i < hi; i += step) {
-        const float* row = x + static_cast<std::size_t>(order[i]) * stride;
+      std::vector<float> a(dims), b(dims);
+      for (int k = 0; k < dims; ++k) a[k] = b[k] = at(order[lo], k);
+      for (int i = lo + step; i < hi; i += step)
         for (int k = 0; k < dims; ++k) {
-          a[k] = std::min(a[k], row[k]);
-          b[k] = std::max(b[k], row[k]);
+          a[k] = std::min(a[k], at(order[i], k));
+          b[k] = std::max(b[k], at(order[i], k));
         }
-      }
       int best = 0;
       for (int k = 1; k < dims; ++k)
         if (b[k] - a[k] > b[best] - a[best]) best = k;
       const int cells = (hi - lo + leaf - 1) / leaf;
       const int mid = lo + cells / 2 * leaf;
       std::nth_element(order.begin() + lo, order.begin() + mid, order.begin() + hi,
-                       [&](int a, int b) {
-                         const float va = x[static_cast<std::size_t>(a) * stride + best];
-                         const float vb = x[static_cast<std::size_t>(b) * stride + best];
-                         return va < vb || (va == vb && a < b);
+                       [&](int i, int j) {
+                         const float vi = at(i, best), vj = at(j, best);
+                         return vi < vj || (vi == vj && i < j);
                        });
       next[2 * c] = {lo, mid};
       next[2 * c + 1] = {mid, hi};
@@ -90,7 +88,7 @@ struct GaussTransform::Data {
   mutable DeviceArray<int> order;
   mutable DeviceArray<double> partial;
   mutable DeviceArray<unsigned long long> counters;
-  mutable std::vector<float> host_rows, host_sorted;
+  mutable std::vector<float> host_sorted;
 };
 
 GaussTransform::GaussTransform() = default;
@@ -129,13 +127,8 @@ void GaussTransform::setData(const Eigen::MatrixXf& x, const Eigen::MatrixXf& ca
   const int s = d->stride;
   const int tile = detail::kGaussTile;
   d->tiles = static_cast<int>((n + tile - 1) / tile);
-  std::vector<float> rows(static_cast<std::size_t>(n) * s, 0.0f);
-  for (Eigen::Index i = 0; i < n; ++i) {
-    float* row = rows.data() + static_cast<std::size_t>(i) * s;
-    for (int k = 0; k < dx; ++k) row[k] = x(i, k);
-    for (int k = 0; k < dc; ++k) row[dx + k] = carried(i, k);
-  }
-  const std::vector<int> order = kdOrder(rows.data(), d->n, s, dx, tile);
+  const std::vector<int> order =
+      kdOrder([&](int i, int k) { return x(i, k); }, d->n, dx, tile);
   std::vector<float> tiled(static_cast<std::size_t>(d->tiles) * tile * s, 0.0f);
   std::vector<float> lo(static_cast<std::size_t>(d->tiles) * s, 0.0f), hi(lo.size(), 0.0f);
 #pragma omp parallel for schedule(static)
@@ -153,12 +146,13 @@ void GaussTransform::setData(const Eigen::MatrixXf& x, const Eigen::MatrixXf& ca
         for (int k = 0; k < dx; ++k) dst[k] = kFar;
         continue;
       }
-      const float* src = rows.data() + static_cast<std::size_t>(order[i]) * s;
-      std::copy(src, src + s, dst);
+      const Eigen::Index src = order[i];
       for (int k = 0; k < dx; ++k) {
-        blo[k] = std::min(blo[k], src[k]);
-        bhi[k] = std::max(bhi[k], src[k]);
+        dst[k] = x(src, k);
+        blo[k] = std::min(blo[k], dst[k]);
+        bhi[k] = std::max(bhi[k], dst[k]);
       }
+      for (int k = 0; k < dc; ++k) dst[dx + k] = carried(src, k);
     }
   }
   d->x.upload(tiled);
@@ -188,20 +182,18 @@ void GaussTransform::evaluate(const Eigen::Ref<const Eigen::MatrixXf>& q, float*
   stats_ = GaussTransformStats();
   stats_.queries = nq;
   if (nq == 0) return;
-  // Host buffers kept between calls (fresh pages for 100 MB a call cost more than filling them).
-  // Only the distance coordinates of a row are ever written: the rest stay 0.
-  std::vector<float>& rows = d.host_rows;
-  rows.resize(static_cast<std::size_t>(nq) * s, 0.0f);
-#pragma omp parallel for schedule(static)
-  for (int r = 0; r < nq; ++r)
-    for (int k = 0; k < d.dx; ++k) rows[static_cast<std::size_t>(r) * s + k] = q(r, k);
-  const std::vector<int> order = kdOrder(rows.data(), nq, s, d.dx, detail::kGaussTile);
+  const std::vector<int> order =
+      kdOrder([&](int i, int k) { return q(i, k); }, nq, d.dx, detail::kGaussTile);
+  // The queries in that order, `s` floats a row (0 past the distance coordinates), in a host
+  // buffer kept between calls (fresh pages for 100 MB a call cost more than filling them).
   std::vector<float>& sorted = d.host_sorted;
   sorted.resize(static_cast<std::size_t>(nq) * s);
 #pragma omp parallel for schedule(static)
-  for (int r = 0; r < nq; ++r)
-    std::copy_n(rows.data() + static_cast<std::size_t>(order[r]) * s, s,
-                sorted.data() + static_cast<std::size_t>(r) * s);
+  for (int r = 0; r < nq; ++r) {
+    float* row = sorted.data() + static_cast<std::size_t>(r) * s;
+    for (int k = 0; k < d.dx; ++k) row[k] = q(order[r], k);
+    std::fill(row + d.dx, row + s, 0.0f);
+  }
   // Enough blocks to fill the device: few queries spread the data over more of them.
   const int blocks = (nq + detail::kGaussTile - 1) / detail::kGaussTile;
   const int wanted = (8 * d.multiprocessors + blocks - 1) / blocks;
