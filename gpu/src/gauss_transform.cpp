@@ -127,8 +127,7 @@ void GaussTransform::setData(const Eigen::MatrixXf& x, const Eigen::MatrixXf& ca
   const int s = d->stride;
   const int tile = detail::kGaussTile;
   d->tiles = static_cast<int>((n + tile - 1) / tile);
-  const std::vector<int> order =
-      kdOrder([&](int i, int k) { return x(i, k); }, d->n, dx, tile);
+  const std::vector<int> order = kdOrder([&](int i, int k) { return x(i, k); }, d->n, dx, tile);
   std::vector<float> tiled(static_cast<std::size_t>(d->tiles) * tile * s, 0.0f);
   std::vector<float> lo(static_cast<std::size_t>(d->tiles) * s, 0.0f), hi(lo.size(), 0.0f);
 #pragma omp parallel for schedule(static)
