@@ -5,6 +5,7 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "tracking_kernels.h"
 
@@ -15,6 +16,13 @@ namespace detail {
 /** A tree's nodes, their indices made global (an inner node's children + node0, a leaf's points
  * + point0), into nodes[0 ..], and its points in leaf order as (x, y, z, 0) into points[0 ..]. */
 void packTree(const FlatKdTree3& tree, int node0, int point0, TrackNode* nodes, float* points);
+
+/** Packs `trees` side by side, the trees in parallel: each tree's nodes (packTree) into
+ * `nodes`, its points into `points`, its root node (-1 when empty) into `root`. Returns each
+ * tree's first point, with the total last (trees.size() + 1 entries). Every tree must be set. */
+std::vector<int> packTrees(const std::vector<const FlatKdTree3*>& trees,
+                           std::vector<TrackNode>& nodes, std::vector<float>& points,
+                           std::vector<int>& root);
 
 /** Packs `frames` for upload (host work only, no CUDA call); throws Error (naming items as
  * `what` + index) on a frame without a tree or with a normal count that does not match. */

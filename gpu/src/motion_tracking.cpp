@@ -8,6 +8,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <string>
+#include <vector>
 
 #include "frame_packing.h"
 #include "tracking_kernels.h"
@@ -80,30 +81,54 @@ void packTree(const FlatKdTree3& tree, int node0, int point0, TrackNode* nodes, 
   }
 }
 
+std::vector<int> packTrees(const std::vector<const FlatKdTree3*>& trees,
+                           std::vector<TrackNode>& nodes, std::vector<float>& points,
+                           std::vector<int>& root) {
+  const int n = static_cast<int>(trees.size());
+  std::vector<int> node0(n + 1, 0), point0(n + 1, 0);
+  for (int t = 0; t < n; ++t) {
+    node0[t + 1] = node0[t] + static_cast<int>(trees[t]->nodes().size());
+    point0[t + 1] = point0[t] + static_cast<int>(trees[t]->size());
+  }
+  nodes.resize(node0[n]);
+  points.resize(4 * static_cast<std::size_t>(point0[n]));
+  root.resize(n);
+  // The trees side by side (one after the other, the motion method's 48 frames at 800k took
+  // 0.07 s of a GPU run).
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < n; ++t) {
+    packTree(*trees[t], node0[t], point0[t], &nodes[node0[t]],
+             &points[4 * static_cast<std::size_t>(point0[t])]);
+    root[t] = trees[t]->nodes().empty() ? -1 : node0[t];
+  }
+  return point0;
+}
+
 FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::string& what) {
   FrameArrays a;
   a.frames = static_cast<int>(in.frames.size());
   a.normal_cos = in.normal_cos;
   a.clip = in.clip;
+  std::vector<const FlatKdTree3*> trees(in.frames.size());
   for (std::size_t t = 0; t < in.frames.size(); ++t) {
     const segmentation::DeviceFrames::Frame& f = in.frames[t];
     if (!f.tree) throw Error(what + " " + std::to_string(t) + " has no tree");
-    const int node0 = static_cast<int>(a.nodes.size());
-    const int point0 = static_cast<int>(a.points.size() / 4);
-    const std::vector<float>& xyz = f.tree->leafPoints();
-    if (f.leaf_normals.size() != xyz.size())
+    if (f.leaf_normals.size() != 3 * f.tree->size())
       throw Error(what + " " + std::to_string(t) + " has one normal per point expected");
-    a.nodes.resize(a.nodes.size() + f.tree->nodes().size());
-    a.points.resize(a.points.size() + 4 * f.tree->size());
-    packTree(*f.tree, node0, point0, &a.nodes[node0],
-             &a.points[4 * static_cast<std::size_t>(point0)]);
-    a.root.push_back(f.tree->nodes().empty() ? -1 : node0);
-    for (std::size_t i = 0; i < xyz.size(); i += 3) {
-      for (int k = 0; k < 3; ++k) a.normals.push_back(f.leaf_normals[i + k]);
-      a.normals.push_back(0.0f);
-    }
+    trees[t] = f.tree;
     a.spacing.push_back(f.spacing);
     a.unoriented.push_back(f.unoriented ? 1 : 0);
+  }
+  const std::vector<int> point0 = packTrees(trees, a.nodes, a.points, a.root);
+  a.normals.resize(4 * static_cast<std::size_t>(point0.back()));
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < a.frames; ++t) {
+    const std::vector<float>& nrm = in.frames[t].leaf_normals;
+    float* out = &a.normals[4 * static_cast<std::size_t>(point0[t])];
+    for (std::size_t i = 0; i < nrm.size() / 3; ++i) {
+      for (int k = 0; k < 3; ++k) out[4 * i + k] = nrm[3 * i + k];
+      out[4 * i + 3] = 0.0f;
+    }
   }
   return a;
 }

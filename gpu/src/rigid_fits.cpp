@@ -138,27 +138,17 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
   const int n_trees = static_cast<int>(trees.size());
   for (int t : tree_of)
     if (t < 0 || t >= n_trees) throw Error("GPU k-NN: a query's tree out of range");
-  detail::KnnTrees packed;
-  // Each tree's first node and point, then the trees packed side by side.
-  std::vector<int> node0(n_trees + 1, 0), point0(n_trees + 1, 0);
-  for (int t = 0; t < n_trees; ++t) {
+  for (int t = 0; t < n_trees; ++t)
     if (!trees[t]) throw Error("GPU k-NN: a tree is missing");
-    node0[t + 1] = node0[t] + static_cast<int>(trees[t]->nodes().size());
-    point0[t + 1] = point0[t] + static_cast<int>(trees[t]->size());
-  }
-  packed.nodes.resize(node0[n_trees]);
-  packed.root.resize(n_trees);
+  detail::KnnTrees packed;
+  const std::vector<int> point0 = detail::packTrees(trees, packed.nodes, packed.points, packed.root);
   packed.size.resize(n_trees);
-  packed.points.resize(4 * static_cast<std::size_t>(point0[n_trees]));
-  packed.rows.resize(point0[n_trees]);
+  packed.rows.resize(point0.back());
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < n_trees; ++t) {
-    const FlatKdTree3& tree = *trees[t];
-    detail::packTree(tree, node0[t], point0[t], &packed.nodes[node0[t]],
-                     &packed.points[4 * static_cast<std::size_t>(point0[t])]);
-    packed.root[t] = tree.nodes().empty() ? -1 : node0[t];
-    packed.size[t] = static_cast<int>(tree.size());
-    std::copy(tree.leafRows().begin(), tree.leafRows().end(), packed.rows.begin() + point0[t]);
+    packed.size[t] = static_cast<int>(trees[t]->size());
+    std::copy(trees[t]->leafRows().begin(), trees[t]->leafRows().end(),
+              packed.rows.begin() + point0[t]);
   }
   requireGpu();
   detail::runKnn(packed, k, queries, tree_of, rows, count);

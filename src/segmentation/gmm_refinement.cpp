@@ -57,6 +57,33 @@ pcl::PointXYZ toXYZ(const Eigen::Vector3d& p) {
                        static_cast<float>(p.z()));
 }
 
+// The motions an input came with (SegmentationResult::motions) as PartMotions, valid where the
+// part has min_points points in frame 0 and in frame t, as RigidMotionEstimation decides (its
+// rms is not measured: 0 where valid, -1 elsewhere, as there).
+std::vector<PartMotion> givenMotions(const std::vector<std::vector<Eigen::Isometry3d>>& motions,
+                                     const std::vector<std::vector<int>>& labels, int num_labels,
+                                     int min_points) {
+  const std::size_t frames = labels.size();
+  std::vector<std::vector<int>> count(num_labels, std::vector<int>(frames, 0));
+  for (std::size_t t = 0; t < frames; ++t)
+    for (int l : labels[t])
+      if (l >= 0) ++count[l][t];
+  std::vector<PartMotion> parts(num_labels);
+  for (int l = 0; l < num_labels; ++l) {
+    parts[l].part = l;
+    parts[l].points_frame0 = static_cast<std::size_t>(count[l][0]);
+    parts[l].frames.resize(frames);
+    for (std::size_t t = 0; t < frames; ++t) {
+      RigidTransform& r = parts[l].frames[t];
+      r.rotation = motions[l][t].linear();
+      r.translation = motions[l][t].translation();
+      r.valid = count[l][0] >= min_points && count[l][t] >= min_points;
+      r.rms = r.valid ? 0.0 : -1.0;
+    }
+  }
+  return parts;
+}
+
 // Evenly spread subset of at most `cap` of the given indices (deterministic).
 std::vector<int> subsample(const std::vector<int>& idx, int cap) {
   if (static_cast<int>(idx.size()) <= cap) return idx;
@@ -353,7 +380,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   const bool pool = p.pool_frames && frames > 1;
   const bool check_motion = p.motion_check && frames > 1;
   std::vector<PartMotion> parts;
-  if (pool || check_motion) {
+  const bool given = p.input_motions && input.motions.size() == static_cast<std::size_t>(num_labels) &&
+                     std::all_of(input.motions.begin(), input.motions.end(),
+                                 [&](const auto& m) { return m.size() == frames; });
+  if ((pool || check_motion) && given) {
+    parts = givenMotions(input.motions, labels, num_labels, RigidMotionParams().min_points);
+  } else if (pool || check_motion) {
     RigidMotionEstimation motion;
     RigidMotionParams mp;
     // 500 points per part are plenty for a rigid fit: against 1500, the 800k-point humanoid's
@@ -365,10 +397,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     motion.setDevice(device_);
     motion.setSpacings(spacing);
     parts = motion.compute(labels, num_labels);
-    if (pool)
-      for (int l = 0; l < num_labels; ++l)
-        for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
   }
+  if (pool)
+    for (int l = 0; l < num_labels && !parts.empty(); ++l)
+      for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
   timer.lap("motions");
   motions_ = parts;
   // Motion residual of point j of frame t under part l's rigid motion: the point is carried to
@@ -387,15 +419,20 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     }
   }
   // The moved copies of point j of frame t under part l's motion: (u, y) for every scored frame
-  // u but t where the motion is valid.
-  auto movedCopies = [&](int l, int t, int j, std::vector<std::pair<int, Eigen::Vector3d>>& out) {
-    out.clear();
-    const Eigen::Vector3d x0 = parts[l].frames[t].inverse().apply(
-        (*sequence_->frame(t))[j].getVector3fMap().cast<double>());
+  // u but t where the motion is valid, written to frame[0 ..] and pos[0 ..] (both null: only
+  // counted); returns how many.
+  auto movedCopies = [&](int l, int t, int j, int* frame, Eigen::Vector3d* pos) {
+    const Eigen::Vector3d x0 =
+        pos ? parts[l].frames[t].inverse().apply(
+                  (*sequence_->frame(t))[j].getVector3fMap().cast<double>())
+            : Eigen::Vector3d::Zero();
+    std::size_t n = 0;
     for (std::size_t u : scored) {
       if (static_cast<int>(u) == t || !parts[l].frames[u].valid) continue;
-      out.emplace_back(static_cast<int>(u), parts[l].frames[u].apply(x0));
+      if (pos) frame[n] = static_cast<int>(u), pos[n] = parts[l].frames[u].apply(x0);
+      ++n;
     }
+    return n;
   };
   // A copy's term: y against its nearest point `k` of frame u (a cloud index, -1: none).
   auto copyTerm = [&](int u, const Eigen::Vector3d& y, int k, double& sum, int& n) {
@@ -737,51 +774,60 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // points of 1.6 M copies at 800k, three quarters of this step on the cores): with a device
     // that offers them, all copies' nearest points in one call (FlatKdTree3::knn with k = 1,
     // the same points), the terms on the CPU either way.
+    timer.lap("reassignment: verdicts");
     std::vector<std::vector<std::array<float, 2>>> motion_res(frames);
     if (check_motion) {
       std::vector<std::size_t> first(frames + 1, 0);  // each frame's first residual (2 a verdict)
       for (std::size_t t = 0; t < frames; ++t) first[t + 1] = first[t] + 2 * verdict[t].size();
-      std::vector<std::vector<std::pair<int, Eigen::Vector3d>>> copies(first[frames]);
+      // Residual r's copies are at[r] .. at[r + 1] - 1 of the flat arrays (counted first, then
+      // written: one allocation each instead of a vector per residual).
+      std::vector<std::size_t> at(first[frames] + 1, 0);
 #pragma omp parallel for schedule(dynamic)
       for (int t = 0; t < static_cast<int>(frames); ++t)
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
           for (int k = 0; k < 2; ++k)
-            movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], copies[first[t] + 2 * v + k]);
-      // Each residual's first copy, then every copy's nearest point (a cloud index, -1: none).
-      std::vector<std::size_t> at(copies.size() + 1, 0);
-      for (std::size_t r = 0; r < copies.size(); ++r) at[r + 1] = at[r] + copies[r].size();
+            at[first[t] + 2 * v + k + 1] = movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0],
+                                                       nullptr, nullptr);
+      for (std::size_t r = 0; r + 1 < at.size(); ++r) at[r + 1] += at[r];
+      std::vector<int> copy_frame(at.back());
+      std::vector<Eigen::Vector3d> copy_pos(at.back());
+#pragma omp parallel for schedule(dynamic)
+      for (int t = 0; t < static_cast<int>(frames); ++t)
+        for (std::size_t v = 0; v < verdict[t].size(); ++v)
+          for (int k = 0; k < 2; ++k) {
+            const std::size_t c = at[first[t] + 2 * v + k];
+            movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], &copy_frame[c], &copy_pos[c]);
+          }
+      // Every copy's nearest point (a cloud index, -1: none).
       std::vector<int> nearest(at.back(), -1);
       bool searched = false;
       if (device_ && at.back() > 0) {
         std::vector<float> queries(3 * at.back());
-        std::vector<int> tree_of(at.back());
-#pragma omp parallel for schedule(dynamic, 256)
-        for (long r = 0; r < static_cast<long>(copies.size()); ++r)
-          for (std::size_t c = 0; c < copies[r].size(); ++c) {
-            const std::size_t q = at[r] + c;
-            const Eigen::Vector3f y = copies[r][c].second.cast<float>();
-            queries[3 * q] = y.x(), queries[3 * q + 1] = y.y(), queries[3 * q + 2] = y.z();
-            tree_of[q] = copies[r][c].first;
-          }
+#pragma omp parallel for schedule(static)
+        for (long q = 0; q < static_cast<long>(at.back()); ++q) {
+          const Eigen::Vector3f y = copy_pos[q].cast<float>();
+          queries[3 * q] = y.x(), queries[3 * q + 1] = y.y(), queries[3 * q + 2] = y.z();
+        }
         std::vector<int> rows, count;
-        if (device_->knn(flat, 1, queries, tree_of, rows, count)) {
-          if (count.size() != tree_of.size() || rows.size() != tree_of.size())
+        if (device_->knn(flat, 1, queries, copy_frame, rows, count)) {
+          if (count.size() != copy_frame.size() || rows.size() != copy_frame.size())
             throw Error("refinement: the device's nearest points do not match their queries");
-          for (std::size_t q = 0; q < tree_of.size(); ++q)
-            if (count[q] > 0) nearest[q] = trees[tree_of[q]].cloudIndex(rows[q]);
+#pragma omp parallel for schedule(static)
+          for (long q = 0; q < static_cast<long>(copy_frame.size()); ++q)
+            if (count[q] > 0) nearest[q] = trees[copy_frame[q]].cloudIndex(rows[q]);
           searched = true;
         }
       }
       if (!searched) {
-#pragma omp parallel for schedule(dynamic, 256)
-        for (long r = 0; r < static_cast<long>(copies.size()); ++r) {
+#pragma omp parallel
+        {
           std::vector<int> idx(1);
           std::vector<float> d2(1);
-          for (std::size_t c = 0; c < copies[r].size(); ++c) {
-            const auto& [u, y] = copies[r][c];
-            pcl::PointNormal q;
-            q.getVector3fMap() = y.cast<float>();
-            if (trees[u].nearestKSearch(q, 1, idx, d2) > 0) nearest[at[r] + c] = idx[0];
+#pragma omp for schedule(dynamic, 4096)
+          for (long q = 0; q < static_cast<long>(at.back()); ++q) {
+            pcl::PointNormal y;
+            y.getVector3fMap() = copy_pos[q].cast<float>();
+            if (trees[copy_frame[q]].nearestKSearch(y, 1, idx, d2) > 0) nearest[q] = idx[0];
           }
         }
       }
@@ -793,12 +839,13 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
             const std::size_t r = first[t] + 2 * v + k;
             double sum = 0.0;
             int n = 0;
-            for (std::size_t c = 0; c < copies[r].size(); ++c)
-              copyTerm(copies[r][c].first, copies[r][c].second, nearest[at[r] + c], sum, n);
+            for (std::size_t c = at[r]; c < at[r + 1]; ++c)
+              copyTerm(copy_frame[c], copy_pos[c], nearest[c], sum, n);
             motion_res[t][v][k] = residualOf(sum, n);
           }
       }
     }
+    timer.lap("reassignment: motion residuals");
     // 3c. The motion check (the other part's motion must explain the point about as well as its
     // own) and the fold check, in band order.
 #pragma omp parallel for schedule(dynamic)

@@ -104,11 +104,11 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, 
                   const std::vector<int>& graph, int k, DeviceExactSums& sums,
                   const Eigen::VectorXf& point_density, SegmentationResult& result);
 
-/** The motion method; fills result.labels, num_clusters and merges. `tracking` (nullptr: the
- * CPU) fits the tracked samples' poses. */
+/** The motion method; fills the flat labels, num_clusters, merges and the parts' motions from
+ * frame 0 (segmentByTracking). `tracking` (nullptr: the CPU) fits the tracked samples' poses. */
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, MotionDevice* tracking,
                std::vector<int>& flat_labels, int& num_clusters, std::vector<ClusterMerge>& merges,
-               Progress* progress);
+               std::vector<std::vector<Eigen::Isometry3d>>& motions, Progress* progress);
 
 }  // namespace detail
 }  // namespace segmentation

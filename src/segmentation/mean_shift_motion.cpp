@@ -34,17 +34,18 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
 
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, MotionDevice* tracking,
                std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
-               Progress* progress) {
+               std::vector<std::vector<Eigen::Isometry3d>>& motions, Progress* progress) {
   if (!(sequenceScale(seq) > 0.0)) {
     // Every point of every frame coincides: one part, nothing to track (and no point spacing).
     flat.assign(seq.totalPoints(), 0);
     num_clusters = 1;
     merges.clear();
+    motions.assign(1, std::vector<Eigen::Isometry3d>(seq.size(), Eigen::Isometry3d::Identity()));
     return;
   }
   MotionTrackingParams mp = motionTrackingParams(params);
   mp.device = tracking;
-  segmentByTracking(seq, mp, flat, num_clusters, merges, progress);
+  segmentByTracking(seq, mp, flat, num_clusters, merges, progress, &motions);
 }
 
 }  // namespace detail

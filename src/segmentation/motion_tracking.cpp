@@ -112,7 +112,8 @@ DeviceFrames deviceFrames(const std::vector<Frame>& frames) {
   out.normal_cos = kNormalCos;
   out.clip = kClip;
   out.frames.resize(frames.size());
-  for (std::size_t t = 0; t < frames.size(); ++t) {
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < static_cast<int>(frames.size()); ++t) {
     const Frame& f = frames[t];
     DeviceFrames::Frame& d = out.frames[t];
     d.tree = &f.tree.flatTree();
@@ -2463,10 +2464,13 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
 
 void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams& params,
                        std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
-                       Progress* progress) {
+                       Progress* progress, std::vector<std::vector<Eigen::Isometry3d>>* part_motions) {
   // The frames (kd-tree and spacing of each) are built once for the three steps.
+  detail::StageTimer ftimer;
   const std::vector<Frame> frames = makeFrames(seq);
+  ftimer.lap("frames: trees and spacings");
   if (params.device) params.device->setFrames(deviceFrames(frames));
+  ftimer.lap("frames: device packing");
   const SampleTracks tr = trackSamplesOn(seq, frames, params, progress);
   if (progress) progress->begin("clustering trajectories", 0);
   const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);
@@ -2602,6 +2606,15 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     const int lo = std::min(m.a, m.b);
     if (a >= 0 && b >= 0) merges.push_back({std::min(a, b), std::max(a, b), m.cost});
     rep_id[lo] = a >= 0 ? (b >= 0 ? std::min(a, b) : a) : b;
+  }
+  // The parts' motions from frame 0 (they were tracked from the reference frame).
+  if (part_motions) {
+    part_motions->assign(num_clusters, std::vector<Eigen::Isometry3d>(T));
+    for (int c = 0; c < nc; ++c) {
+      if (id[c] < 0) continue;
+      const Pose from0 = motion[c][0].inverse();
+      for (int t = 0; t < T; ++t) (*part_motions)[id[c]][t] = motion[c][t] * from0;
+    }
   }
   if (progress) progress->end(std::to_string(num_clusters) + " parts");
 }

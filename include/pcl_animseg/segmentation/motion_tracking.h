@@ -169,10 +169,12 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
                                        const MotionTrackingParams& params);
 
 /** \brief All steps: flattened labels of every point of every frame (0..num_clusters-1), the part
- * count and the coarser merges. */
+ * count and the coarser merges; with `part_motions`, also each part's motion from frame 0 to
+ * every frame ((*part_motions)[c][t], the articulated motions the labels were made with). */
 void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams& params,
                        std::vector<int>& flat_labels, int& num_clusters,
-                       std::vector<ClusterMerge>& merges, Progress* progress = nullptr);
+                       std::vector<ClusterMerge>& merges, Progress* progress = nullptr,
+                       std::vector<std::vector<Eigen::Isometry3d>>* part_motions = nullptr);
 
 }  // namespace segmentation
 }  // namespace pcl_animseg

@@ -1,6 +1,7 @@
 #pragma once
 /** \file segmentation_result.h What the mean shift stage hands to refinement and hierarchy. */
 #include <Eigen/Core>
+#include <Eigen/Geometry>
 
 #include <vector>
 
@@ -51,6 +52,10 @@ struct SegmentationResult {
    * of its tree over the non-keypoint points (Sect. 3.3; the paper used 1024-8192; the pair
    * rule's small keypoint trees are left out). 0 when no filter ran. */
   double sampling_factor = 0.0;
+  /** Motion method: each cluster's rigid motion from frame 0 to every frame, motions[c][t]
+   * (x_t ~ motions[c][t] * x_0), the articulated part motions its labels were made with; empty
+   * for the paper's method. The refinement can use them (RefinementParams::input_motions). */
+  std::vector<std::vector<Eigen::Isometry3d>> motions;
 };
 
 }  // namespace segmentation
