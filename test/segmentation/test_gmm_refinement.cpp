@@ -214,6 +214,19 @@ TEST(GMMRefinement, RejectsInconsistentInput) {
   bad.max_iterations = 0;
   refine.setParams(bad);
   EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error);
+  // Model knobs that would fail only after the bands (or divide by a zero patch size).
+  for (int which = 0; which < 7; ++which) {
+    bad = RefinementParams();
+    if (which == 0) bad.components = 0;
+    if (which == 1) bad.components = 65;
+    if (which == 2) bad.gmm_regularization = 0.0;
+    if (which == 3) bad.patch_size = 0.0;
+    if (which == 4) bad.patch_radius = -1.0;
+    if (which == 5) bad.max_training_points = -1;
+    if (which == 6) bad.min_training_points = 0;
+    refine.setParams(bad);
+    EXPECT_THROW(refine.refine(in, out), pcl_animseg::Error) << which;
+  }
   // A single part has no boundary: nothing changes.
   for (auto& f : in.labels) std::fill(f.begin(), f.end(), 0);
   in.num_clusters = 1;
