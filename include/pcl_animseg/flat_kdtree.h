@@ -31,14 +31,18 @@ class FlatKdTree3 {
    * finite). The data are copied. */
   void build(const float* xyz, std::size_t n) {
     nodes_.clear();
-    rows_.resize(n);
-    std::iota(rows_.begin(), rows_.end(), 0);
-    // The splits permute rows_ into leaf order; the points are then copied in that order.
-    nodes_.reserve(2 * (n / kLeafSize + 1));
-    if (n > 0) buildNode(xyz, 0, static_cast<int>(n));
-    pts_.resize(3 * n);
+    // The splits permute the points (each with its row) into leaf order.
+    std::vector<BuildPoint> work(n);
     for (std::size_t i = 0; i < n; ++i)
-      for (int d = 0; d < 3; ++d) pts_[3 * i + d] = xyz[3 * static_cast<std::size_t>(rows_[i]) + d];
+      work[i] = BuildPoint{{xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]}, static_cast<int>(i)};
+    nodes_.reserve(2 * (n / kLeafSize + 1));
+    if (n > 0) buildNode(work.data(), 0, static_cast<int>(n));
+    rows_.resize(n);
+    pts_.resize(3 * n);
+    for (std::size_t i = 0; i < n; ++i) {
+      rows_[i] = work[i].row;
+      for (int d = 0; d < 3; ++d) pts_[3 * i + d] = work[i].p[d];
+    }
   }
 
   std::size_t size() const { return rows_.size(); }
@@ -251,9 +255,18 @@ class FlatKdTree3 {
     }
   }
 
-  /** Node over rows_[begin, end) (indices into `xyz`, the points in input order); returns its
-   * index. Split on the widest side of the points' box, at the median. */
-  int buildNode(const float* xyz, int begin, int end) {
+  /** A point while the tree is built: its coordinates and its input row. */
+  struct BuildPoint {
+    float p[3];
+    int row;
+  };
+
+  /** Node over work[begin, end) (the points, permuted into leaf order as the splits go); returns
+   * its index. Split on the widest side of the points' box, at the median. The points move with
+   * their rows, so that the box and the selection read contiguous memory: the same comparisons
+   * on the same sequence as selecting the rows by their coordinates, so the same leaf order
+   * (48 trees of 16k points: 139-145 ms -> 121-123 ms). */
+  int buildNode(BuildPoint* work, int begin, int end) {
     const int id = static_cast<int>(nodes_.size());
     nodes_.emplace_back();
     if (end - begin <= kLeafSize) {
@@ -262,10 +275,10 @@ class FlatKdTree3 {
       return id;
     }
     float lo[3], hi[3];
-    for (int d = 0; d < 3; ++d) lo[d] = hi[d] = xyz[3 * rows_[begin] + d];
+    for (int d = 0; d < 3; ++d) lo[d] = hi[d] = work[begin].p[d];
     for (int i = begin + 1; i < end; ++i)
       for (int d = 0; d < 3; ++d) {
-        const float v = xyz[3 * rows_[i] + d];
+        const float v = work[i].p[d];
         lo[d] = std::min(lo[d], v);
         hi[d] = std::max(hi[d], v);
       }
@@ -274,15 +287,14 @@ class FlatKdTree3 {
       if (hi[d] - lo[d] > hi[dim] - lo[dim]) dim = d;
     const int mid = begin + (end - begin) / 2;
     // Ties broken by row: the same tree on every platform.
-    std::nth_element(rows_.begin() + begin, rows_.begin() + mid, rows_.begin() + end,
-                     [&](int x, int y) {
-                       const float vx = xyz[3 * x + dim], vy = xyz[3 * y + dim];
-                       return vx < vy || (vx == vy && x < y);
+    std::nth_element(work + begin, work + mid, work + end,
+                     [dim](const BuildPoint& x, const BuildPoint& y) {
+                       return x.p[dim] < y.p[dim] || (x.p[dim] == y.p[dim] && x.row < y.row);
                      });
     // Left holds coordinates <= split, right >= split: the plane bounds both sides.
-    const float split = xyz[3 * rows_[mid] + dim];
-    const int left = buildNode(xyz, begin, mid);
-    const int right = buildNode(xyz, mid, end);
+    const float split = work[mid].p[dim];
+    const int left = buildNode(work, begin, mid);
+    const int right = buildNode(work, mid, end);
     nodes_[id].dim = dim;
     nodes_[id].split = split;
     nodes_[id].a = left;
