@@ -637,41 +637,59 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // 2. Models per (group, pair, side). A group is the whole sequence when pooling, else a frame.
     const int groups = pool ? 1 : static_cast<int>(frames);
     std::vector<SideModel> models(static_cast<std::size_t>(groups) * num_pairs * 2);
-    auto model = [&](int g, int q, int side) -> SideModel& {
-      return models[(static_cast<std::size_t>(g) * num_pairs + q) * 2 + side];
+    auto modelIndex = [&](int g, int q, int side) {
+      return (static_cast<std::size_t>(g) * num_pairs + q) * 2 + side;
     };
+    auto model = [&](int g, int q, int side) -> SideModel& { return models[modelIndex(g, q, side)]; };
     auto canon = [&](int label, int t, const Eigen::Vector3d& x, const Eigen::Vector3d& n,
                      Eigen::Vector3d& cx, Eigen::Vector3d& cn) {
       const RigidTransform& r = to_ref[label][t];
       cx = r.apply(x);
       cn = r.rotation * n;
     };
-    for (std::size_t t = 0; t < frames; ++t) {
-      const int g = pool ? 0 : static_cast<int>(t);
+    // Each frame's boundary and training points in the reference frame, the frames side by
+    // side; then each model's, frame after frame (the order a serial loop gives them).
+    struct Placed {
+      int model;
+      bool train;  // a training point (position and normal); else a boundary point
+      Eigen::Vector3d pos, nrm;
+    };
+    std::vector<std::vector<Placed>> placed(frames);
+#pragma omp parallel for schedule(dynamic)
+    for (int t = 0; t < static_cast<int>(frames); ++t) {
+      const int g = pool ? 0 : t;
       const Cloud& cloud = *sequence_->frame(t);
+      std::vector<Placed>& out = placed[t];
       for (const auto& [j, a, b] : boundary[t]) {
         const int q = pair_id.at({a, b});
         Eigen::Vector3d cx, cn;
         const Eigen::Vector3d x = cloud[j].getVector3fMap().cast<double>();
         const Eigen::Vector3d n = cloud[j].getNormalVector3fMap().cast<double>();
-        canon(a, static_cast<int>(t), x, n, cx, cn);
-        model(g, q, 0).boundary_pos.push_back(cx);
-        canon(b, static_cast<int>(t), x, n, cx, cn);
-        model(g, q, 1).boundary_pos.push_back(cx);
+        canon(a, t, x, n, cx, cn);
+        out.push_back(Placed{static_cast<int>(modelIndex(g, q, 0)), false, cx, cn});
+        canon(b, t, x, n, cx, cn);
+        out.push_back(Placed{static_cast<int>(modelIndex(g, q, 1)), false, cx, cn});
       }
       for (const BandPoint& bp : band[t]) {
         if (bp.dist <= p.narrow_band || bp.dist < p.training_min_distance) continue;
-        SideModel& m = model(g, bp.pair, bp.side);
         Eigen::Vector3d cx, cn;
-        canon(labels[t][bp.index], static_cast<int>(t),
-              cloud[bp.index].getVector3fMap().cast<double>(),
+        canon(labels[t][bp.index], t, cloud[bp.index].getVector3fMap().cast<double>(),
               cloud[bp.index].getNormalVector3fMap().cast<double>(), cx, cn);
         const double len = cn.norm();
         if (!(len > 0.0)) continue;
-        m.train_pos.push_back(cx);
-        m.train_nrm.push_back(cn / len);
+        out.push_back(Placed{static_cast<int>(modelIndex(g, bp.pair, bp.side)), true, cx, cn / len});
       }
     }
+    for (std::size_t t = 0; t < frames; ++t)
+      for (const Placed& e : placed[t]) {
+        SideModel& m = models[e.model];
+        if (e.train) {
+          m.train_pos.push_back(e.pos);
+          m.train_nrm.push_back(e.nrm);
+        } else {
+          m.boundary_pos.push_back(e.pos);
+        }
+      }
     timer.lap("models: training points");
     const double patch = p.patch_size * mean_spacing;
     const float radius = static_cast<float>(p.patch_radius * mean_spacing);
