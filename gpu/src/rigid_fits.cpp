@@ -141,7 +141,8 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
   for (int t = 0; t < n_trees; ++t)
     if (!trees[t]) throw Error("GPU k-NN: a tree is missing");
   detail::KnnTrees packed;
-  const std::vector<int> point0 = detail::packTrees(trees, packed.nodes, packed.points, packed.root);
+  const std::vector<int> point0 =
+      detail::packTrees(trees, packed.nodes, packed.points, packed.root);
   packed.size.resize(n_trees);
   packed.rows.resize(point0.back());
 #pragma omp parallel for schedule(dynamic)

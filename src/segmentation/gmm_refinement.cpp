@@ -367,10 +367,11 @@ void validate(const RefinementParams& p) {
                 std::to_string(p.motion_frames) + ")");
   if (p.components < 1 || p.components > 64 || !(p.gmm_regularization > 0.0) ||
       p.gmm_max_iterations < 1)
-    throw Error("GMM refinement: need 1-64 components, a regularization > 0 and >= 1 EM iteration "
-                "(got " +
-                std::to_string(p.components) + ", " + std::to_string(p.gmm_regularization) + ", " +
-                std::to_string(p.gmm_max_iterations) + ")");
+    throw Error(
+        "GMM refinement: need 1-64 components, a regularization > 0 and >= 1 EM iteration "
+        "(got " +
+        std::to_string(p.components) + ", " + std::to_string(p.gmm_regularization) + ", " +
+        std::to_string(p.gmm_max_iterations) + ")");
   if (!(p.patch_size > 0.0) || !(p.patch_radius > 0.0) || p.min_training_points < 1 ||
       p.max_training_points < 1)
     throw Error("GMM refinement: need patch size and radius > 0 and training points >= 1 (got " +
@@ -429,7 +430,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   const bool pool = p.pool_frames && frames > 1;
   const bool check_motion = p.motion_check && frames > 1;
   std::vector<PartMotion> parts;
-  const bool given = p.input_motions && input.motions.size() == static_cast<std::size_t>(num_labels) &&
+  const bool given = p.input_motions &&
+                     input.motions.size() == static_cast<std::size_t>(num_labels) &&
                      std::all_of(input.motions.begin(), input.motions.end(),
                                  [&](const auto& m) { return m.size() == frames; });
   if ((pool || check_motion) && given) {
@@ -471,10 +473,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // u but t where the motion is valid, written to frame[0 ..] and pos[0 ..] (both null: only
   // counted); returns how many.
   auto movedCopies = [&](int l, int t, int j, int* frame, Eigen::Vector3d* pos) {
-    const Eigen::Vector3d x0 =
-        pos ? parts[l].frames[t].inverse().apply(
-                  (*sequence_->frame(t))[j].getVector3fMap().cast<double>())
-            : Eigen::Vector3d::Zero();
+    const Eigen::Vector3d x0 = pos ? parts[l].frames[t].inverse().apply(
+                                         (*sequence_->frame(t))[j].getVector3fMap().cast<double>())
+                                   : Eigen::Vector3d::Zero();
     std::size_t n = 0;
     for (std::size_t u : scored) {
       if (static_cast<int>(u) == t || !parts[l].frames[u].valid) continue;
@@ -640,7 +641,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     auto modelIndex = [&](int g, int q, int side) {
       return (static_cast<std::size_t>(g) * num_pairs + q) * 2 + side;
     };
-    auto model = [&](int g, int q, int side) -> SideModel& { return models[modelIndex(g, q, side)]; };
+    auto model = [&](int g, int q, int side) -> SideModel& {
+      return models[modelIndex(g, q, side)];
+    };
     auto canon = [&](int label, int t, const Eigen::Vector3d& x, const Eigen::Vector3d& n,
                      Eigen::Vector3d& cx, Eigen::Vector3d& cn) {
       const RigidTransform& r = to_ref[label][t];
@@ -677,7 +680,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
               cloud[bp.index].getNormalVector3fMap().cast<double>(), cx, cn);
         const double len = cn.norm();
         if (!(len > 0.0)) continue;
-        out.push_back(Placed{static_cast<int>(modelIndex(g, bp.pair, bp.side)), true, cx, cn / len});
+        out.push_back(
+            Placed{static_cast<int>(modelIndex(g, bp.pair, bp.side)), true, cx, cn / len});
       }
     }
     for (std::size_t t = 0; t < frames; ++t)
@@ -752,8 +756,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // Largest first (each fit has its own output): a few large fits started last kept the
     // other cores waiting.
     auto fitPoints = [&](const std::pair<int, int>& f) {
-      const std::size_t n = f.second < 0 ? models[f.first].train_nrm.size()
-                                         : patch_points[f.first][f.second].size();
+      const std::size_t n =
+          f.second < 0 ? models[f.first].train_nrm.size() : patch_points[f.first][f.second].size();
       return std::min(n, static_cast<std::size_t>(p.max_training_points));
     };
     std::stable_sort(fits.begin(), fits.end(),
@@ -864,8 +868,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (int t = 0; t < static_cast<int>(frames); ++t)
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
           for (int k = 0; k < 2; ++k)
-            at[first[t] + 2 * v + k + 1] = movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0],
-                                                       nullptr, nullptr);
+            at[first[t] + 2 * v + k + 1] =
+                movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], nullptr, nullptr);
       for (std::size_t r = 0; r + 1 < at.size(); ++r) at[r + 1] += at[r];
       std::vector<int> copy_frame(at.back());
       std::vector<Eigen::Vector3d> copy_pos(at.back());

@@ -2464,7 +2464,8 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
 
 void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams& params,
                        std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
-                       Progress* progress, std::vector<std::vector<Eigen::Isometry3d>>* part_motions) {
+                       Progress* progress,
+                       std::vector<std::vector<Eigen::Isometry3d>>* part_motions) {
   // The frames (kd-tree and spacing of each) are built once for the three steps.
   detail::StageTimer ftimer;
   const std::vector<Frame> frames = makeFrames(seq);

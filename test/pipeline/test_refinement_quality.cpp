@@ -162,7 +162,8 @@ TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
 // frame. With RefinementParams::input_motions the refinement takes them instead of fitting its
 // own, and still halves the boundary error (0.115 -> 0.060; 0.057 with its own fits).
 TEST(RefinementQuality, TheMotionMethodsOwnMotionsServeTheRefinement) {
-  const synth::SynthParams sp = animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6);
+  const synth::SynthParams sp =
+      animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6);
   const auto frames = synth::generate(sp);
   const pcl_animseg::PointCloudSequence seq = synth::toSequence(frames);
   std::vector<std::vector<int>> truth;
@@ -184,11 +185,15 @@ TEST(RefinementQuality, TheMotionMethodsOwnMotionsServeTheRefinement) {
     EXPECT_TRUE(in.motions[c][0].isApprox(Eigen::Isometry3d::Identity(), 1e-12)) << "part " << c;
     pcl::PointCloud<pcl::PointXYZ>::Ptr p0(new pcl::PointCloud<pcl::PointXYZ>);
     for (std::size_t j = 0; j < seq.frame(0)->size(); ++j)
-      if (in.labels[0][j] == c) p0->push_back(pcl::PointXYZ((*seq.frame(0))[j].x, (*seq.frame(0))[j].y, (*seq.frame(0))[j].z));
+      if (in.labels[0][j] == c)
+        p0->push_back(
+            pcl::PointXYZ((*seq.frame(0))[j].x, (*seq.frame(0))[j].y, (*seq.frame(0))[j].z));
     for (std::size_t t = 1; t < seq.size(); ++t) {
       pcl::PointCloud<pcl::PointXYZ>::Ptr pt(new pcl::PointCloud<pcl::PointXYZ>);
       for (std::size_t j = 0; j < seq.frame(t)->size(); ++j)
-        if (in.labels[t][j] == c) pt->push_back(pcl::PointXYZ((*seq.frame(t))[j].x, (*seq.frame(t))[j].y, (*seq.frame(t))[j].z));
+        if (in.labels[t][j] == c)
+          pt->push_back(
+              pcl::PointXYZ((*seq.frame(t))[j].x, (*seq.frame(t))[j].y, (*seq.frame(t))[j].z));
       if (p0->size() < 20 || pt->size() < 20) continue;
       pcl::KdTreeFLANN<pcl::PointXYZ> tree;
       tree.setInputCloud(pt);

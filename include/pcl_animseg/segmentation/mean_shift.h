@@ -25,14 +25,15 @@
  *    (k-means in position + normal, seeded by farthest-point sampling), track every patch through
  *    the sequence with point-to-plane ICP from frame to frame (initialised by the previous
  *    motion and by a constant-velocity prediction, the better fit kept), merge spatially adjacent
- *    patches agglomeratively while one rigid motion explains both in every frame (cost: the mean over
- *    frames of the RMS distance from the moved union to the frame's surface, in units of the point
- *    spacing), re-track the merged parts, move every reference point to the part whose motion
- *    fits it best, and transfer labels to every frame along the part motions (nearest moved
- *    reference point with a compatible normal). The merges beyond the stopping threshold are
- *    recorded as a hierarchy (SegmentationResult::merges).
- * Both fill every field of SegmentationResult; densities and saddles are the joint-space density
- * (Eq. 4) at the points, computed with the selected backend.
+ *    patches agglomeratively while one rigid motion explains both in every frame (cost: the
+ *    mean over frames of the RMS distance from the moved union to the frame's surface, in units
+ *    of the point spacing), re-track the merged parts, move every reference point to the part
+ *    whose motion fits it best, and transfer labels to every frame along the part motions
+ *    (nearest moved reference point with a compatible normal). The merges beyond the stopping
+ *    threshold are recorded as a hierarchy (SegmentationResult::merges), and the parts' motions
+ *    from frame 0 are kept (SegmentationResult::motions).
+ * Both fill every other field of SegmentationResult; densities and saddles are the joint-space
+ * density (Eq. 4) at the points, computed with the selected backend.
  */
 #include <pcl/PointIndices.h>
 #include <pcl_animseg/filters/gaussian_kdtree.h>

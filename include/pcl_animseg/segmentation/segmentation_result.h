@@ -2,7 +2,6 @@
 /** \file segmentation_result.h What the mean shift stage hands to refinement and hierarchy. */
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-
 #include <vector>
 
 namespace pcl_animseg {
