@@ -1044,6 +1044,16 @@ using detail::JointKernelSum;
 using detail::JointSpace;
 using detail::StageTimer;
 
+/** The values the kernel sums of Eq. 10 carry: each point's z and a 1 (homogeneous coordinates,
+ * so that the last column is the denominator of Eq. 8). */
+Eigen::MatrixXf homogeneousValues(const JointSpace& space) {
+  const int dim = static_cast<int>(space.z.cols());
+  Eigen::MatrixXf values(space.z.rows(), dim + 1);
+  values.leftCols(dim) = space.z;
+  values.col(dim).setOnes();
+  return values;
+}
+
 /** Hybrid ending of the Gaussian kd-tree backend: the approximate iteration leaves the end points
  * near the modes of the approximated density, whose small ripples (cells replaced by their means,
  * queries interpolated between nearby cells) add modes and stop points on slopes. The end points
@@ -1064,9 +1074,6 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   StageTimer timer;
   const Eigen::Index n = y.rows();  // end points: one per data point or per cell
   const int dim = static_cast<int>(y.cols());
-  Eigen::MatrixXf values(space.z.rows(), dim + 1);
-  values.leftCols(dim) = space.z;
-  values.col(dim).setOnes();
   const float cell = static_cast<float>(params.merge_radius / 10.0);
   std::unordered_map<std::string, int> cell_group;
   std::vector<int> group_of(n), rep;
@@ -1094,8 +1101,9 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   // 30-D tree search, not the sum over the ~50 points it finds, is what an exact step costs).
   // On a device the same sums run there instead.
   std::unique_ptr<JointKernelSum> cpu_exact;
-  if (!device_sums) cpu_exact = std::make_unique<JointKernelSum>(space, values, exact_params, 0.5f);
-  values.resize(0, 0);
+  if (!device_sums)
+    cpu_exact =
+        std::make_unique<JointKernelSum>(space, homogeneousValues(space), exact_params, 0.5f);
   auto evaluate = [&](const std::vector<int>& rows, Eigen::MatrixXf& sums_out) {
     if (device_sums)
       device_sums->evaluate(yg, rows, key_of, sums_out);
@@ -1237,12 +1245,8 @@ void seekModesCpu(const JointSpace& space, const MeanShiftParams& params, Eigen:
   // The exact backend's sums on a device (device_sums): the iteration below is the same, and
   // sums_out stays empty.
   if (params.backend != MeanShiftBackend::Exact) device_sums = nullptr;
-  if (!device_sums) {
-    Eigen::MatrixXf values(n, dim + 1);
-    values.leftCols(dim) = space.z;
-    values.col(dim).setOnes();
-    sums_out = std::make_unique<JointKernelSum>(space, values, params);
-  }
+  if (!device_sums)
+    sums_out = std::make_unique<JointKernelSum>(space, homogeneousValues(space), params);
   // The tree's build and blur report their own times: the walk's below starts here.
   timer.restart();
   auto evaluate = [&](const Eigen::MatrixXf& q, const std::vector<int>& rows,

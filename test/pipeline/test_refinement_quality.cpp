@@ -67,6 +67,7 @@ struct Refined {
   std::shared_ptr<pcl_animseg::PointCloudSequence> seq;
   std::vector<std::vector<int>> truth;
   seg::SegmentationResult in, out;
+  std::vector<seg::PartMotion> motions;  // the refinement's (GMMBoundaryRefinement::getMotions)
   int passes = 0;
   double error_before = 0.0, error_after = 0.0;  // boundary error (synthetic_parts.h)
   double ari_before = 0.0, ari_after = 0.0;      // pooled
@@ -88,6 +89,7 @@ Refined refineMotionLabels(const synth::SynthParams& sp, const seg::RefinementPa
   refine.setParams(rp);
   refine.refine(r.in, r.out);
   r.passes = refine.getStats().iterations;
+  r.motions = refine.getMotions();
   r.error_before = animseg_test::boundaryError(*r.seq, r.truth, toTruthIds(r.in.labels, r.truth));
   r.error_after = animseg_test::boundaryError(*r.seq, r.truth, toTruthIds(r.out.labels, r.truth));
   r.ari_before = pcl_animseg::evaluation::evaluate(r.in.labels, r.truth).pooled_ari;
@@ -162,20 +164,22 @@ TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
 // frame. With RefinementParams::input_motions the refinement takes them instead of fitting its
 // own, and still halves the boundary error (0.115 -> 0.060; 0.057 with its own fits).
 TEST(RefinementQuality, TheMotionMethodsOwnMotionsServeTheRefinement) {
-  const synth::SynthParams sp =
-      animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6);
-  const auto frames = synth::generate(sp);
-  const pcl_animseg::PointCloudSequence seq = synth::toSequence(frames);
-  std::vector<std::vector<int>> truth;
-  for (const auto& f : frames) truth.push_back(f.labels);
-  seg::MeanShiftSegmentation ms;
-  ms.setInputSequence(std::make_shared<pcl_animseg::PointCloudSequence>(seq));
-  seg::MeanShiftParams mp;
-  mp.target_clusters = synth::partCount(sp.plan);
-  ms.setParams(mp);
-  seg::SegmentationResult in;
-  ms.segment(in);
+  seg::RefinementParams rp;
+  rp.input_motions = true;
+  const Refined r = refineMotionLabels(
+      animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6), rp);
+  const pcl_animseg::PointCloudSequence& seq = *r.seq;
+  const seg::SegmentationResult& in = r.in;
   ASSERT_EQ(in.motions.size(), static_cast<std::size_t>(in.num_clusters));
+  // Part c's points of frame t.
+  auto partPoints = [&](int c, std::size_t t) {
+    pcl::PointCloud<pcl::PointXYZ>::Ptr out(new pcl::PointCloud<pcl::PointXYZ>);
+    for (std::size_t j = 0; j < seq.frame(t)->size(); ++j)
+      if (in.labels[t][j] == c)
+        out->push_back(
+            pcl::PointXYZ((*seq.frame(t))[j].x, (*seq.frame(t))[j].y, (*seq.frame(t))[j].z));
+    return out;
+  };
   // Mean distance, in spacings, of each part's frame-0 points carried to frame t from the
   // nearest point of the same part there.
   double worst = 0.0, sum = 0.0;
@@ -183,17 +187,9 @@ TEST(RefinementQuality, TheMotionMethodsOwnMotionsServeTheRefinement) {
   for (int c = 0; c < in.num_clusters; ++c) {
     ASSERT_EQ(in.motions[c].size(), seq.size());
     EXPECT_TRUE(in.motions[c][0].isApprox(Eigen::Isometry3d::Identity(), 1e-12)) << "part " << c;
-    pcl::PointCloud<pcl::PointXYZ>::Ptr p0(new pcl::PointCloud<pcl::PointXYZ>);
-    for (std::size_t j = 0; j < seq.frame(0)->size(); ++j)
-      if (in.labels[0][j] == c)
-        p0->push_back(
-            pcl::PointXYZ((*seq.frame(0))[j].x, (*seq.frame(0))[j].y, (*seq.frame(0))[j].z));
+    const auto p0 = partPoints(c, 0);
     for (std::size_t t = 1; t < seq.size(); ++t) {
-      pcl::PointCloud<pcl::PointXYZ>::Ptr pt(new pcl::PointCloud<pcl::PointXYZ>);
-      for (std::size_t j = 0; j < seq.frame(t)->size(); ++j)
-        if (in.labels[t][j] == c)
-          pt->push_back(
-              pcl::PointXYZ((*seq.frame(t))[j].x, (*seq.frame(t))[j].y, (*seq.frame(t))[j].z));
+      const auto pt = partPoints(c, t);
       if (p0->size() < 20 || pt->size() < 20) continue;
       pcl::KdTreeFLANN<pcl::PointXYZ> tree;
       tree.setInputCloud(pt);
@@ -217,28 +213,17 @@ TEST(RefinementQuality, TheMotionMethodsOwnMotionsServeTheRefinement) {
   EXPECT_LT(sum / n, 1.5);
   EXPECT_LT(worst, 3.0);
 
-  seg::RefinementParams rp;
-  rp.input_motions = true;
-  seg::GMMBoundaryRefinement refine;
-  refine.setInputSequence(&seq);
-  refine.setParams(rp);
-  seg::SegmentationResult out;
-  refine.refine(in, out);
-  const auto& used = refine.getMotions();
-  ASSERT_EQ(used.size(), in.motions.size());
-  for (std::size_t c = 0; c < used.size(); ++c)
+  ASSERT_EQ(r.motions.size(), in.motions.size());
+  for (std::size_t c = 0; c < r.motions.size(); ++c)
     for (std::size_t t = 0; t < seq.size(); ++t) {
-      EXPECT_EQ(used[c].frames[t].rotation, in.motions[c][t].linear()) << c << " " << t;
-      EXPECT_EQ(used[c].frames[t].translation, in.motions[c][t].translation()) << c << " " << t;
+      EXPECT_EQ(r.motions[c].frames[t].rotation, in.motions[c][t].linear()) << c << " " << t;
+      EXPECT_EQ(r.motions[c].frames[t].translation, in.motions[c][t].translation())
+          << c << " " << t;
     }
-  const double before = animseg_test::boundaryError(seq, truth, toTruthIds(in.labels, truth));
-  const double after = animseg_test::boundaryError(seq, truth, toTruthIds(out.labels, truth));
-  const double ari_before = pcl_animseg::evaluation::evaluate(in.labels, truth).pooled_ari;
-  const double ari_after = pcl_animseg::evaluation::evaluate(out.labels, truth).pooled_ari;
-  std::printf("input motions: boundary error %.4f -> %.4f, pooled ARI %.4f -> %.4f\n", before,
-              after, ari_before, ari_after);
-  EXPECT_LE(after, 0.7 * before);
-  EXPECT_GE(ari_after, ari_before - 0.001);
+  std::printf("input motions: boundary error %.4f -> %.4f, pooled ARI %.4f -> %.4f\n",
+              r.error_before, r.error_after, r.ari_before, r.ari_after);
+  EXPECT_LE(r.error_after, 0.7 * r.error_before);
+  EXPECT_GE(r.ari_after, r.ari_before - 0.001);
 }
 
 // The goal on every body plan (20 frames, 6000 points per frame, seeds 5 and 8): the
