@@ -166,8 +166,8 @@ TEST(RefinementQuality, HumanoidBordersDoNotDriftAcrossJoints) {
 TEST(RefinementQuality, TheMotionMethodsOwnMotionsServeTheRefinement) {
   seg::RefinementParams rp;
   rp.input_motions = true;
-  const Refined r = refineMotionLabels(
-      animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6), rp);
+  const Refined r =
+      refineMotionLabels(animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 20, 3000, 6), rp);
   const pcl_animseg::PointCloudSequence& seq = *r.seq;
   const seg::SegmentationResult& in = r.in;
   ASSERT_EQ(in.motions.size(), static_cast<std::size_t>(in.num_clusters));
