@@ -57,6 +57,8 @@ MotionTracking::~MotionTracking() {
 
 std::string MotionTracking::name() const { return deviceLabel(); }
 
+bool MotionTracking::starting() const { return probeState() == ProbeState::Running; }
+
 namespace detail {
 void reportCalls(const FrameStore& store, const char* owner) {
   if (!std::getenv("ANIMSEG_MS_TIMING")) return;

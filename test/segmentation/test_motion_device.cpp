@@ -3,6 +3,7 @@
 // its poses are what the rest of the method uses, and that a failing device either stops the
 // stage with its error or, with the fall-back on, leaves the CPU's result.
 #include <gtest/gtest.h>
+#include <omp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/icp_step.h>
@@ -38,8 +39,10 @@ pcl_animseg::PointCloudSequence::Ptr chain(int frames, int points, unsigned seed
 class RecordingDevice : public seg::MotionDevice {
  public:
   std::string name() const override { return "recording device"; }
+  bool starting() const override { return start; }
   void setFrames(const seg::DeviceFrames& f) override {
     ++frame_calls;
+    threads_at_frames = omp_get_max_threads();
     frames = f;
     leaf_of.assign(f.frames.size(), {});
     for (std::size_t t = 0; t < f.frames.size(); ++t) {
@@ -52,6 +55,8 @@ class RecordingDevice : public seg::MotionDevice {
                     std::vector<std::vector<Eigen::Isometry3d>>& poses,
                     std::vector<std::vector<double>>& residual) override {
     ++calls;
+    threads_at_tracking = omp_get_max_threads();
+    start = false;  // started by its first call
     const int T = static_cast<int>(frames.frames.size()), S = p.samples;
     // Every fit once, each after the fits its starts read: the same sample in the frame before
     // (and two before) and the sample's neighbours of lower level in its own frame.
@@ -202,6 +207,8 @@ class RecordingDevice : public seg::MotionDevice {
   int calls = 0, frame_calls = 0, batches = 0, cost_batches = 0, error_batches = 0;
   std::size_t jobs = 0;
   bool fail = false;
+  bool start = false;  // starting() until the first call
+  int threads_at_frames = 0, threads_at_tracking = 0;
   seg::DeviceFrames frames;
   std::vector<std::vector<int>> leaf_of;  // per frame: tree row -> leaf index
   std::vector<std::vector<Eigen::Isometry3d>> answer;
@@ -294,6 +301,33 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
   // The merges the device's run evaluated ahead, in batches, are the CPU's one at a time.
   EXPECT_EQ(got.merges, expected.merges);
+}
+
+TEST(MotionDevice, ADeviceStillStartingIsLeftACoreUntilItsFirstCall) {
+  const int threads = omp_get_max_threads();
+  omp_set_num_threads(4);
+  const auto seq = chain(6, 2500, 6);
+  const seg::SegmentationResult expected = segmentOnCpu(seq);
+  auto backend = std::make_shared<RecordingBackend>();
+  seg::MotionTrackingParams mp;
+  mp.point_neighbours = motionParams().neighbours;
+  backend->device.answer = seg::trackSamples(*seq, mp).poses;
+  backend->device.start = true;
+  seg::MeanShiftSegmentation dev;
+  dev.setInputSequence(seq);
+  dev.setParams(motionParams());
+  dev.setDeviceBackend(backend);
+  seg::SegmentationResult got;
+  dev.segment(got);
+  // The CPU work before the first call ran on one thread fewer; the calls, on every thread.
+  EXPECT_EQ(backend->device.threads_at_frames, 3);
+  EXPECT_EQ(backend->device.threads_at_tracking, 4);
+  EXPECT_EQ(omp_get_max_threads(), 4);
+  // The thread count does not change the result.
+  EXPECT_EQ(got.num_clusters, expected.num_clusters);
+  EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
+  EXPECT_EQ(got.merges, expected.merges);
+  omp_set_num_threads(threads);
 }
 
 TEST(MotionDevice, AFailingDeviceStopsTheStageOrFallsBackToTheCpu) {

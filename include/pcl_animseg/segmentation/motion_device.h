@@ -141,6 +141,10 @@ class MotionDevice {
   virtual ~MotionDevice() = default;
   /** \brief For logs, e.g. "gpu (NVIDIA H100 80GB HBM3)". */
   virtual std::string name() const = 0;
+  /** \brief Whether the device is still starting on a thread of its own (a GPU's driver and
+   * context start beside the first CPU work: 0.2-0.35 s on the H100 machine). The CPU work
+   * before the first call then leaves it a core. */
+  virtual bool starting() const { return false; }
   /** \brief Copies the frames to the device; the calls below use them until the next call. */
   virtual void setFrames(const DeviceFrames& frames) = 0;
   /** \brief Fits every task of every wave: poses[t][s] (reference -> frame t; the entries of the

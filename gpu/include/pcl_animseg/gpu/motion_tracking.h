@@ -34,6 +34,8 @@ class MotionTracking : public segmentation::MotionDevice {
   MotionTracking();
   ~MotionTracking() override;
   std::string name() const override;
+  /** \brief While the GPU's check (gpuAvailable) runs on another thread. */
+  bool starting() const override;
   /** \brief Throws Error on frames without a tree. The frames are packed here and uploaded by
    * the first call that needs them (which throws Error on a CUDA failure or when no usable GPU
    * is present, see requireGpu). */
