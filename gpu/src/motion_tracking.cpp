@@ -221,6 +221,12 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
   waves_ = static_cast<int>(problem.waves.size());
   std::vector<double> flat_poses, flat_res;
   device_seconds_ = detail::runTracking(*frames_, a, flat_poses, flat_res);
+  if (std::getenv("ANIMSEG_MS_TIMING")) {
+    std::size_t widest = 0;
+    for (const std::vector<int>& wave : problem.waves) widest = std::max(widest, wave.size());
+    std::fprintf(stderr, "[gpu tracking] sample poses: %d waves, %zu tasks (widest %zu), %.3f s\n",
+                 waves_, a.tasks.size(), widest, device_seconds_);
+  }
   poses.assign(uT, std::vector<Eigen::Isometry3d>(uS, Eigen::Isometry3d::Identity()));
   residual.assign(uT, std::vector<double>(uS, 0.0));
   for (std::size_t t = 0; t < uT; ++t)
