@@ -11,6 +11,7 @@
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <queue>
 #include <tuple>
 
@@ -91,6 +92,38 @@ std::vector<int> subsample(const std::vector<int>& idx, int cap) {
   for (int k = 0; k < cap; ++k) out[k] = idx[static_cast<std::size_t>(k) * idx.size() / cap];
   return out;
 }
+
+// A device for calls from two threads (the motions' fits beside the neighbour lists and the
+// first bands): each call under a lock. The calls are self-contained (a fit batch uses the
+// surfaces and sources set before it, which the k-NN does not touch).
+class LockedDevice : public RigidFitDevice {
+ public:
+  explicit LockedDevice(RigidFitDevice& device) : device_(device) {}
+  std::string name() const override { return device_.name(); }
+  void setSurfaces(const DeviceFrames& surfaces) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.setSurfaces(surfaces);
+  }
+  void setSources(const std::vector<const std::vector<double>*>& sources) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.setSources(sources);
+  }
+  void fit(const std::vector<RigidFitJob>& jobs, const RigidMotionParams& params,
+           std::vector<double>& poses, std::vector<double>& rms) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.fit(jobs, params, poses, rms);
+  }
+  bool knn(const std::vector<const FlatKdTree3*>& trees, int k, const std::vector<float>& queries,
+           const std::vector<int>& tree_of, std::vector<int>& rows,
+           std::vector<int>& count) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    return device_.knn(trees, k, queries, tree_of, rows, count);
+  }
+
+ private:
+  RigidFitDevice& device_;
+  std::mutex mutex_;
+};
 
 // Each labelled point's k nearest points of its frame (itself included, closest first), found
 // once: the boundary scan, the fold test of the reassignment and the fold snap all ask for them.
@@ -434,26 +467,6 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
                      input.motions.size() == static_cast<std::size_t>(num_labels) &&
                      std::all_of(input.motions.begin(), input.motions.end(),
                                  [&](const auto& m) { return m.size() == frames; });
-  if ((pool || check_motion) && given) {
-    parts = givenMotions(input.motions, labels, num_labels, RigidMotionParams().min_points);
-  } else if (pool || check_motion) {
-    RigidMotionEstimation motion;
-    RigidMotionParams mp;
-    // 500 points per part are plenty for a rigid fit: against 1500, the 800k-point humanoid's
-    // motions take 2.0 s instead of 4.1 s, and at 8000 points per frame (seed 3, four plans)
-    // the boundary errors and ARIs after refinement stay within 0.002 / 0.001.
-    mp.max_points = 500;
-    motion.setParams(mp);
-    motion.setInputSequence(sequence_);
-    motion.setDevice(device_);
-    motion.setSpacings(spacing);
-    parts = motion.compute(labels, num_labels);
-  }
-  if (pool)
-    for (int l = 0; l < num_labels && !parts.empty(); ++l)
-      for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
-  timer.lap("motions");
-  motions_ = parts;
   // Motion residual of point j of frame t under part l's rigid motion: the point is carried to
   // every other frame and scored by its distance to that frame's surface (point-to-plane, blind to
   // the different sampling of the frames, or what the point-to-point distance exceeds a spacing,
@@ -509,7 +522,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // points below).
   std::vector<const FlatKdTree3*> flat(frames);
   for (std::size_t t = 0; t < frames; ++t) flat[t] = &trees[t].flatTree();
-  if (device_ && p.max_iterations > 0) {
+  auto deviceLists = [&](RigidFitDevice& device) {
     const int k = p.boundary_k + 1;
     std::vector<std::size_t> first(frames + 1, 0);  // each frame's first query
     for (std::size_t t = 0; t < frames; ++t) {
@@ -532,21 +545,28 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     }
     auto lists = std::make_shared<NeighbourLists::DeviceLists>();
     lists->k = k;
-    if (device_->knn(flat, k, queries, tree_of, lists->rows, lists->count)) {
+    if (device.knn(flat, k, queries, tree_of, lists->rows, lists->count)) {
       if (lists->count.size() != tree_of.size() || lists->rows.size() != tree_of.size() * k)
         throw Error("refinement: the device's k-NN lists do not match their queries");
       for (std::size_t t = 0; t < frames; ++t)
         knn[t].view(lists, first[t], *sequence_->frame(t), trees[t], labels[t]);
     }
     timer.lap("neighbour lists (device)");
-  }
+  };
 
-  for (int iter = 0; iter < p.max_iterations; ++iter) {
-    // 1. Boundary points and bands, frame by frame (labels are joint, so pair ids agree).
-    std::map<std::pair<int, int>, int> pair_id;
-    std::vector<Pair> pairs;
-    std::vector<std::vector<BandPoint>> band(frames);
-    std::vector<std::vector<std::tuple<int, int, int>>> boundary(frames);  // (index, a, b)
+  // 1. Boundary points and bands, frame by frame (labels are joint, so pair ids agree); false
+  // when there is no boundary.
+  std::map<std::pair<int, int>, int> pair_id;
+  std::vector<Pair> pairs;
+  std::vector<std::vector<BandPoint>> band(frames);
+  std::vector<std::vector<std::tuple<int, int, int>>> boundary(frames);  // (index, a, b)
+  std::vector<std::vector<int>> pairs_of;                                // the pairs of each label
+  int num_pairs = 0;
+  auto findBands = [&]() {
+    pair_id.clear();
+    pairs.clear();
+    band.assign(frames, {});
+    boundary.assign(frames, {});
 #pragma omp parallel for schedule(dynamic)
     for (int t = 0; t < static_cast<int>(frames); ++t) {
       const Cloud& cloud = *sequence_->frame(t);
@@ -577,10 +597,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (const auto& [j, a, b] : boundary[t])
         if (pair_id.emplace(std::make_pair(a, b), static_cast<int>(pairs.size())).second)
           pairs.push_back(Pair{a, b});
-    if (pairs.empty()) break;
-    const int num_pairs = static_cast<int>(pairs.size());
+    if (pairs.empty()) return false;
+    num_pairs = static_cast<int>(pairs.size());
     // Pairs of each label, to look up only the boundaries a point could move across.
-    std::vector<std::vector<int>> pairs_of(num_labels);
+    pairs_of.assign(num_labels, {});
     for (int q = 0; q < num_pairs; ++q) {
       pairs_of[pairs[q].a].push_back(q);
       pairs_of[pairs[q].b].push_back(q);
@@ -635,6 +655,49 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     }
 
     timer.lap("bands");
+    return true;
+  };
+
+  // The parts' motions. Their fits on a device are a chain of calls (one frame after the other)
+  // that leaves the cores idle, and the neighbour lists and the first pass's bands do not need
+  // them: with a device, those run beside the fits (RigidMotionEstimation::computeBeside; the
+  // device's calls under a lock), the same results.
+  bool first_bands = false, have_pairs = false;
+  if ((pool || check_motion) && given) {
+    parts = givenMotions(input.motions, labels, num_labels, RigidMotionParams().min_points);
+  } else if (pool || check_motion) {
+    RigidMotionEstimation motion;
+    RigidMotionParams mp;
+    // 500 points per part are plenty for a rigid fit: against 1500, the 800k-point humanoid's
+    // motions take 2.0 s instead of 4.1 s, and at 8000 points per frame (seed 3, four plans)
+    // the boundary errors and ARIs after refinement stay within 0.002 / 0.001.
+    mp.max_points = 500;
+    motion.setParams(mp);
+    motion.setInputSequence(sequence_);
+    motion.setSpacings(spacing);
+    if (device_ && p.max_iterations > 0) {
+      LockedDevice locked(*device_);
+      motion.setDevice(&locked);
+      parts = motion.computeBeside(labels, num_labels, [&] {
+        deviceLists(locked);
+        have_pairs = findBands();
+        first_bands = true;
+      });
+    } else {
+      motion.setDevice(device_);
+      parts = motion.compute(labels, num_labels);
+    }
+  }
+  if (pool)
+    for (int l = 0; l < num_labels && !parts.empty(); ++l)
+      for (std::size_t t = 0; t < frames; ++t) to_ref[l][t] = parts[l].frames[t].inverse();
+  timer.lap("motions");
+  motions_ = parts;
+  if (device_ && p.max_iterations > 0 && !first_bands) deviceLists(*device_);
+
+  for (int iter = 0; iter < p.max_iterations; ++iter) {
+    if (iter > 0 || !first_bands) have_pairs = findBands();
+    if (!have_pairs) break;
     // 2. Models per (group, pair, side). A group is the whole sequence when pooling, else a frame.
     const int groups = pool ? 1 : static_cast<int>(frames);
     std::vector<SideModel> models(static_cast<std::size_t>(groups) * num_pairs * 2);

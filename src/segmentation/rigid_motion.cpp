@@ -14,10 +14,12 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <exception>
 #include <iomanip>
 #include <limits>
 #include <memory>
 #include <sstream>
+#include <thread>
 #include <tuple>
 
 #include "mean_shift_internal.h"
@@ -698,10 +700,53 @@ int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>&
   return num_parts > 0 ? num_parts : max_label + 1;
 }
 
+namespace {
+
+// fits() on a thread of its own with one OpenMP thread (a chain of device calls), and beside()
+// on the calling thread with one OpenMP thread fewer; both are waited for, then the first
+// exception (fits' first) is thrown.
+template <class Fits>
+void fitBeside(const std::function<void()>& beside, Fits fits) {
+  std::exception_ptr failed_fits, failed_beside;
+  std::thread worker([&] {
+    try {
+      omp_set_num_threads(1);
+      fits();
+    } catch (...) {
+      failed_fits = std::current_exception();
+    }
+  });
+  const int threads = omp_get_max_threads();
+  if (threads > 2) omp_set_num_threads(threads - 1);
+  try {
+    beside();
+  } catch (...) {
+    failed_beside = std::current_exception();
+  }
+  if (threads > 2) omp_set_num_threads(threads);
+  worker.join();
+  if (failed_fits) std::rethrow_exception(failed_fits);
+  if (failed_beside) std::rethrow_exception(failed_beside);
+}
+
+}  // namespace
+
 std::vector<PartMotion> RigidMotionEstimation::compute(const std::vector<std::vector<int>>& labels,
                                                        int num_parts) const {
   const int np = checkedPartCount(labels, num_parts);
   return computeParts({&labels}, {np}, {{}}, frameSpacings(), {frame0Counts(labels, np)}).front();
+}
+
+std::vector<PartMotion> RigidMotionEstimation::computeBeside(
+    const std::vector<std::vector<int>>& labels, int num_parts,
+    const std::function<void()>& beside) const {
+  const int np = checkedPartCount(labels, num_parts);
+  if (!device_) {
+    beside();
+    return compute(labels, np);
+  }
+  return computeParts({&labels}, {np}, {{}}, frameSpacings(), {frame0Counts(labels, np)}, &beside)
+      .front();
 }
 
 std::vector<double> RigidMotionEstimation::frameSpacings() const {
@@ -800,8 +845,8 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
 std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     const std::vector<const std::vector<std::vector<int>>*>& sets,
     const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit,
-    const std::vector<double>& spacing,
-    const std::vector<std::vector<std::size_t>>& frame0_points) const {
+    const std::vector<double>& spacing, const std::vector<std::vector<std::size_t>>& frame0_points,
+    const std::function<void()>* beside) const {
   std::vector<std::vector<PartMotion>> out(sets.size());
   // (labelling, part) pairs to fit: the parts of every labelling in one parallel loop, so that a
   // few large parts of several levels run side by side.
@@ -850,10 +895,16 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
       chained.push_back(std::make_unique<ChainedPart>(
           *sequence_, p, *sets[s], part, spacing, frame0_points[s][part], nullptr, out[s][part]));
     timer.lap("chains: targets");
-    fitChainedParts(chained, sequence_->size(), device_, p, false);
-    timer.lap("chains: fits");
+    if (beside) {
+      fitBeside(*beside, [&] { fitChainedParts(chained, sequence_->size(), device_, p, false); });
+      timer.lap("chains: fits, beside the caller's work");
+    } else {
+      fitChainedParts(chained, sequence_->size(), device_, p, false);
+      timer.lap("chains: fits");
+    }
     return out;
   }
+  if (beside) (*beside)();
 #pragma omp parallel for schedule(dynamic)
   for (std::size_t job = 0; job < jobs.size(); ++job) {
     const auto [s, part] = jobs[job];

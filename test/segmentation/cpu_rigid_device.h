@@ -7,6 +7,7 @@
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
 #include <string>
+#include <thread>
 #include <vector>
 
 namespace animseg_test {
@@ -31,6 +32,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
            std::vector<double>& rms) override {
     if (fail) throw pcl_animseg::Error("test device: kernel failed");
     ++batches;
+    fit_thread = std::this_thread::get_id();
     fits += static_cast<int>(jobs.size());
     poses.assign(12 * jobs.size(), 0.0);
     rms.assign(jobs.size(), 0.0);
@@ -48,6 +50,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
            std::vector<int>& rows, std::vector<int>& count) override {
     if (!offer_knn) return false;
     ++knn_calls;
+    knn_thread = std::this_thread::get_id();
     knn_k.push_back(k);
     std::vector<pcl_animseg::FlatKdTree3> copies;
     for (const auto* x : t) copies.push_back(*x);
@@ -70,6 +73,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
   std::vector<std::vector<double>> sources;
   int batches = 0, fits = 0, wide = 0;
   bool fail = false;
+  std::thread::id fit_thread, knn_thread;  // of the last fit and k-NN calls
 };
 
 }  // namespace animseg_test

@@ -5,6 +5,7 @@
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 
 #include <iostream>
+#include <thread>
 
 #include "cpu_rigid_device.h"
 #include "synthetic_parts.h"
@@ -279,6 +280,9 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   // Every frame's neighbour lists in one call, then the nearest points of the motion check's
   // moved copies in one.
   EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  // The motions' fits ran on a thread of their own, beside the lists on this one.
+  EXPECT_NE(dev.fit_thread, std::this_thread::get_id());
+  EXPECT_EQ(dev.knn_thread, std::this_thread::get_id());
   // A device without the k-NN: the lists on the CPU, the same result.
   animseg_test::CpuRigidDevice fits_only;
   fits_only.offer_knn = false;

@@ -11,6 +11,7 @@
 #include <fstream>
 #include <sstream>
 #include <string>
+#include <thread>
 
 #include "cpu_rigid_device.h"
 #include "synthetic_parts.h"
@@ -381,4 +382,44 @@ TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
 
   dev.fail = true;
   EXPECT_THROW(gpu_like.computeLevels(levels), pcl_animseg::Error);
+}
+
+// computeBeside: the caller's work runs on the calling thread while the fits run on a thread of
+// their own (with a device), the same motions as compute(); an exception of either is thrown
+// after both have ended; without a device the caller's work runs first.
+TEST(RigidMotion, WorkBesideTheDeviceFits) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 4000, false, 5);
+  RigidMotionEstimation cpu;
+  cpu.setInputSequence(&chain.sequence);
+  const auto expected = cpu.compute(chain.truth);
+  animseg_test::CpuRigidDevice dev;
+  RigidMotionEstimation on_device = cpu;
+  on_device.setDevice(&dev);
+  int calls = 0;
+  std::thread::id beside_thread;
+  const auto got = on_device.computeBeside(chain.truth, 0, [&] {
+    ++calls;
+    beside_thread = std::this_thread::get_id();
+  });
+  EXPECT_EQ(calls, 1);
+  EXPECT_EQ(beside_thread, std::this_thread::get_id());
+  EXPECT_GT(dev.batches, 0);
+  EXPECT_NE(dev.fit_thread, std::this_thread::get_id());  // the fits ran on another thread
+  ASSERT_EQ(got.size(), expected.size());
+  for (std::size_t p = 0; p < got.size(); ++p)
+    expectSameMotion(got[p], expected[p], "part " + std::to_string(p));
+  // Failures: the caller's work, the device's.
+  EXPECT_THROW(
+      on_device.computeBeside(chain.truth, 0, [] { throw pcl_animseg::Error("beside failed"); }),
+      pcl_animseg::Error);
+  dev.fail = true;
+  calls = 0;
+  EXPECT_THROW(on_device.computeBeside(chain.truth, 0, [&] { ++calls; }), pcl_animseg::Error);
+  EXPECT_EQ(calls, 1);
+  // Without a device: the caller's work, then the same motions.
+  calls = 0;
+  const auto plain = cpu.computeBeside(chain.truth, 0, [&] { ++calls; });
+  EXPECT_EQ(calls, 1);
+  for (std::size_t p = 0; p < plain.size(); ++p)
+    expectSameMotion(plain[p], expected[p], "part " + std::to_string(p) + " (CPU)");
 }

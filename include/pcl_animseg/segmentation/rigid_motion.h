@@ -17,6 +17,7 @@
 
 #include <Eigen/Core>
 #include <cmath>
+#include <functional>
 #include <memory>
 #include <string>
 #include <utility>
@@ -161,6 +162,16 @@ class RigidMotionEstimation {
   std::vector<PartMotion> compute(const std::vector<std::vector<int>>& labels,
                                   int num_parts = 0) const;
 
+  /** \brief compute(), with `beside()` run on the calling thread while the fits run. With a
+   * device, the parts' targets are built first (on every core); then the fits, a chain of
+   * device calls with little host work, run on a thread of their own (one OpenMP thread), and
+   * beside() runs meanwhile with one OpenMP thread fewer. Without one, beside() runs first. The
+   * same motions as compute(). beside() must not change the labels; a device used by both must
+   * take calls from two threads (the refinement serialises them with a lock). An exception of
+   * either is thrown once both have ended. */
+  std::vector<PartMotion> computeBeside(const std::vector<std::vector<int>>& labels, int num_parts,
+                                        const std::function<void()>& beside) const;
+
   /** \brief Motions of the parts of every level: levels[l][t][j] as in compute(); num_parts[l]
    * as compute()'s num_parts (empty: max label + 1 of each level). A part whose points are
    * exactly one part's of the level before (in every frame: a part no merge touched) takes that
@@ -190,7 +201,8 @@ class RigidMotionEstimation {
       const std::vector<const std::vector<std::vector<int>>*>& sets,
       const std::vector<int>& num_parts, const std::vector<std::vector<char>>& fit,
       const std::vector<double>& spacing,
-      const std::vector<std::vector<std::size_t>>& frame0_points) const;
+      const std::vector<std::vector<std::size_t>>& frame0_points,
+      const std::function<void()>* beside = nullptr) const;
 
   const PointCloudSequence* sequence_ = nullptr;
   RigidMotionParams params_;
