@@ -280,7 +280,8 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   // Every frame's neighbour lists in one call, then the nearest points of the motion check's
   // moved copies in one.
   EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
-  // The motions' fits ran on a thread of their own, beside the lists on this one.
+  // The motions' fits ran on a thread of their own (beside the first bands); the lists, on this
+  // one.
   EXPECT_NE(dev.fit_thread, std::this_thread::get_id());
   EXPECT_EQ(dev.knn_thread, std::this_thread::get_id());
   // A device without the k-NN: the lists on the CPU, the same result.
