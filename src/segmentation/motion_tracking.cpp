@@ -644,7 +644,7 @@ namespace {
 // While a device starts on a thread of its own (MotionDevice::starting), the OpenMP loops leave
 // it a core. With every core in the team, the start displaced one of the team's threads, and
 // each barrier of the whole-body ICPs waited for it: on the H100 machine's 16 cores the global
-// poses took 0.18-0.33 s beside the GPU's start, 0.13-0.14 s with 15 threads (and 0.14-0.15 s
+// poses took 0.165-0.33 s beside the GPU's start, 0.127-0.147 s with 15 threads (and 0.14-0.15 s
 // on the CPU alone). The thread count does not change the results.
 class SpareCoreWhileStarting {
  public:

@@ -741,10 +741,6 @@ std::vector<PartMotion> RigidMotionEstimation::computeBeside(
     const std::vector<std::vector<int>>& labels, int num_parts,
     const std::function<void()>& beside) const {
   const int np = checkedPartCount(labels, num_parts);
-  if (!device_) {
-    beside();
-    return compute(labels, np);
-  }
   return computeParts({&labels}, {np}, {{}}, frameSpacings(), {frame0Counts(labels, np)}, &beside)
       .front();
 }
@@ -904,7 +900,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     }
     return out;
   }
-  if (beside) (*beside)();
+  if (beside) (*beside)();  // on the CPU, before the fits: they keep every core busy
 #pragma omp parallel for schedule(dynamic)
   for (std::size_t job = 0; job < jobs.size(); ++job) {
     const auto [s, part] = jobs[job];

@@ -166,9 +166,9 @@ class RigidMotionEstimation {
    * device, the parts' targets are built first (on every core); then the fits, a chain of
    * device calls with little host work, run on a thread of their own (one OpenMP thread), and
    * beside() runs meanwhile with one OpenMP thread fewer. Without one, beside() runs first. The
-   * same motions as compute(). beside() must not change the labels; a device used by both must
-   * take calls from two threads (the refinement serialises them with a lock). An exception of
-   * either is thrown once both have ended. */
+   * same motions as compute(). beside() must not change the labels, nor call the device (it is
+   * not made for calls from two threads). An exception of either is thrown once both have
+   * ended. */
   std::vector<PartMotion> computeBeside(const std::vector<std::vector<int>>& labels, int num_parts,
                                         const std::function<void()>& beside) const;
 
