@@ -219,6 +219,31 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     a.wave_begin.push_back(static_cast<int>(a.tasks.size()));
   }
   waves_ = static_cast<int>(problem.waves.size());
+  // The device takes the tasks in this order and each waits for the poses its starts read, so
+  // every one of those must be a task earlier in the order (or the reference frame's): checked
+  // here, where a wrong order would otherwise leave the device waiting.
+  {
+    std::vector<int> at(static_cast<std::size_t>(TS), -1);
+    for (std::size_t k = 0; k < a.tasks.size(); ++k) {
+      if (at[a.tasks[k]] >= 0) throw Error("GPU tracking: a task twice");
+      at[a.tasks[k]] = static_cast<int>(k);
+    }
+    auto ready = [&](int t, int s, int k) {
+      return problem.before[t] < 0 || (at[static_cast<long long>(t) * S + s] >= 0 &&
+                                       at[static_cast<long long>(t) * S + s] < k);
+    };
+    for (std::size_t k = 0; k < a.tasks.size(); ++k) {
+      const int task = a.tasks[k], t = task / S, s = task % S, kk = static_cast<int>(k);
+      if (problem.two_before[t] >= T) throw Error("GPU tracking: a frame two before out of range");
+      bool ok = ready(problem.before[t], s, kk) &&
+                (problem.two_before[t] < 0 || ready(problem.two_before[t], s, kk));
+      const std::vector<int>& lev = problem.level[t];
+      for (int o : problem.graph[s])
+        if (!lev.empty() && lev[o] < lev[s]) ok = ok && ready(t, o, kk);
+      if (!ok)
+        throw Error("GPU tracking: the waves do not put every task after the poses it starts from");
+    }
+  }
   std::vector<double> flat_poses, flat_res;
   device_seconds_ = detail::runTracking(*frames_, a, flat_poses, flat_res);
   if (std::getenv("ANIMSEG_MS_TIMING")) {

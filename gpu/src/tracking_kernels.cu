@@ -272,9 +272,18 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
 // The start `c` of a task: 0 the previous pose, 1 the body's motion since the previous frame
 // applied to it, 2 (when there is a frame two before) a constant-velocity guess, then the poses
 // of the sample's graph neighbours of lower level in this frame (trackSamplesOn's order).
+// A pose another block wrote during this kernel (trackTasks): read from L2, past the SM's L1,
+// which may hold a line of it from before the write.
+__device__ Rigid loadWritten(const double* p) {
+  Rigid a;
+  for (int k = 0; k < 9; ++k) a.r[k] = __ldcg(p + k);
+  for (int k = 0; k < 3; ++k) a.t[k] = __ldcg(p + 9 + k);
+  return a;
+}
+
 __device__ Rigid start(const Dev& d, int t, int s, int c) {
   const int S = d.S, tp = d.before[t], tpp = d.two_before[t];
-  const Rigid prev = icp_step::load(d.poses + (static_cast<long long>(tp) * S + s) * kPoseDoubles);
+  const Rigid prev = loadWritten(d.poses + (static_cast<long long>(tp) * S + s) * kPoseDoubles);
   if (c == 0) return prev;
   if (c == 1)
     return icp_step::compose(
@@ -284,9 +293,9 @@ __device__ Rigid start(const Dev& d, int t, int s, int c) {
   if (tpp >= 0) {
     if (c == 2)
       return icp_step::compose(
-          icp_step::compose(prev,
-                            icp_step::inverse(icp_step::load(
-                                d.poses + (static_cast<long long>(tpp) * S + s) * kPoseDoubles))),
+          icp_step::compose(
+              prev, icp_step::inverse(loadWritten(d.poses + (static_cast<long long>(tpp) * S + s) *
+                                                                kPoseDoubles))),
           prev);
     --c;
   }
@@ -295,7 +304,7 @@ __device__ Rigid start(const Dev& d, int t, int s, int c) {
   for (int j = d.adj_begin[s]; j < d.adj_begin[s + 1]; ++j) {
     const int o = d.adj[j];
     if (lev[o] < lev[s] && c-- == 0)
-      return icp_step::load(d.poses + (static_cast<long long>(t) * S + o) * kPoseDoubles);
+      return loadWritten(d.poses + (static_cast<long long>(t) * S + o) * kPoseDoubles);
   }
   return prev;  // not reached: c < number of starts
 }
@@ -328,75 +337,104 @@ struct HalfBlock {
   }
 };
 
+// Waits (thread 0) until task i's pose is written (done[i] set after a fence by its block).
+__device__ void waitDone(const int* done, long long i) {
+  while (*reinterpret_cast<const volatile int*>(done + i) == 0) __nanosleep(64);
+}
+
+// Every task, each as soon as the poses its starts read are written: the blocks take the tasks
+// in the waves' order (a topological order) from a counter, and a block waits only for tasks
+// taken before its own, which running blocks hold, so the chain always moves. Before, each wave
+// was a kernel of its own and waited for its slowest task (349 waves at 800k).
 __global__ void __launch_bounds__(kTrackThreads)
-    trackWaveBlocks(Dev d, const int* __restrict__ tasks) {
+    trackTasks(Dev d, const int* __restrict__ order, int n, int* next, int* done) {
   __shared__ double rows[kTrackThreads][kCols];
   __shared__ double slot[2][kCols];
   __shared__ double scored[kTrackWarps];
   __shared__ int pick[2];
   __shared__ double fit_r[2];
   __shared__ double fit_pose[2][kPoseDoubles];
-  const int task = tasks[blockIdx.x];
-  const int S = d.S, t = task / S, s = task % S;
-  const int warp = threadIdx.x / kWarp, lane = threadIdx.x % kWarp;
-  const int* lev = d.level + static_cast<long long>(t) * S;
-  int starts = d.two_before[t] >= 0 ? 3 : 2;
-  for (int j = d.adj_begin[s]; j < d.adj_begin[s + 1]; ++j)
-    if (lev[d.adj[j]] < lev[s]) ++starts;
-  // 1. The starts on the probe, kTrackWarps at a time; thread 0 keeps the two best in start
-  //    order (ties to the earlier start).
-  const double* probe = d.probe + 6LL * d.probe_begin[s];
-  const int pm = d.probe_begin[s + 1] - d.probe_begin[s];
-  const WarpGroup wg(lane, *reinterpret_cast<Scratch*>(&rows[warp * kWarp][0]));
-  double s0 = DBL_MAX, s1 = DBL_MAX;
-  int i0 = -1, i1 = -1;
-  for (int base = 0; base < starts; base += kTrackWarps) {
-    const int c = base + warp;
-    if (c < starts) {
-      const double r = residual(d, t, probe, pm, start(d, t, s, c), wg);
-      if (lane == 0) scored[warp] = r;
+  __shared__ int taken;
+  for (;;) {
+    if (threadIdx.x == 0) taken = atomicAdd(next, 1);
+    __syncthreads();
+    const int k = taken;
+    __syncthreads();
+    if (k >= n) return;
+    const int task = order[k];
+    const int S = d.S, t = task / S, s = task % S;
+    if (threadIdx.x == 0) {
+      const int tp = d.before[t], tpp = d.two_before[t];
+      waitDone(done, static_cast<long long>(tp) * S + s);
+      if (tpp >= 0) waitDone(done, static_cast<long long>(tpp) * S + s);
+      const int* lv = d.level + static_cast<long long>(t) * S;
+      for (int j = d.adj_begin[s]; j < d.adj_begin[s + 1]; ++j)
+        if (lv[d.adj[j]] < lv[s]) waitDone(done, static_cast<long long>(t) * S + d.adj[j]);
+      __threadfence();
     }
     __syncthreads();
-    if (threadIdx.x == 0)
-      for (int w = 0; w < kTrackWarps && base + w < starts; ++w) {
-        const double r = scored[w];
-        const int c2 = base + w;
-        if (i0 < 0 || r < s0) {
-          s1 = s0, i1 = i0;
-          s0 = r, i0 = c2;
-        } else if (i1 < 0 || r < s1) {
-          s1 = r, i1 = c2;
-        }
+    const int warp = threadIdx.x / kWarp, lane = threadIdx.x % kWarp;
+    const int* lev = d.level + static_cast<long long>(t) * S;
+    int starts = d.two_before[t] >= 0 ? 3 : 2;
+    for (int j = d.adj_begin[s]; j < d.adj_begin[s + 1]; ++j)
+      if (lev[d.adj[j]] < lev[s]) ++starts;
+    // 1. The starts on the probe, kTrackWarps at a time; thread 0 keeps the two best in start
+    //    order (ties to the earlier start).
+    const double* probe = d.probe + 6LL * d.probe_begin[s];
+    const int pm = d.probe_begin[s + 1] - d.probe_begin[s];
+    const WarpGroup wg(lane, *reinterpret_cast<Scratch*>(&rows[warp * kWarp][0]));
+    double s0 = DBL_MAX, s1 = DBL_MAX;
+    int i0 = -1, i1 = -1;
+    for (int base = 0; base < starts; base += kTrackWarps) {
+      const int c = base + warp;
+      if (c < starts) {
+        const double r = residual(d, t, probe, pm, start(d, t, s, c), wg);
+        if (lane == 0) scored[warp] = r;
       }
+      __syncthreads();
+      if (threadIdx.x == 0)
+        for (int w = 0; w < kTrackWarps && base + w < starts; ++w) {
+          const double r = scored[w];
+          const int c2 = base + w;
+          if (i0 < 0 || r < s0) {
+            s1 = s0, i1 = i0;
+            s0 = r, i0 = c2;
+          } else if (i1 < 0 || r < s1) {
+            s1 = r, i1 = c2;
+          }
+        }
+      __syncthreads();
+    }
+    if (threadIdx.x == 0) pick[0] = i0, pick[1] = i1;
     __syncthreads();
-  }
-  if (threadIdx.x == 0) pick[0] = i0, pick[1] = i1;
-  __syncthreads();
-  // 2. The ICP from each of the two best starts and its residual, side by side.
-  const double* src = d.source + 6LL * d.source_begin[s];
-  const int m = d.source_begin[s + 1] - d.source_begin[s];
-  const int half = threadIdx.x / HalfBlock::kSize;
-  const HalfBlock hb{static_cast<int>(threadIdx.x) % HalfBlock::kSize, half,
-                     &rows[half * HalfBlock::kSize], slot[half]};
-  const int mine = pick[half];
-  if (mine >= 0) {
-    const Rigid fit = icp(d, t, src, m, start(d, t, s, mine), 4.0 * d.spacing[t], hb);
-    const double r = residual(d, t, src, m, fit, hb);
-    if (hb.rank == 0) {
-      fit_r[half] = r;
-      icp_step::store(fit, fit_pose[half]);
+    // 2. The ICP from each of the two best starts and its residual, side by side.
+    const double* src = d.source + 6LL * d.source_begin[s];
+    const int m = d.source_begin[s + 1] - d.source_begin[s];
+    const int half = threadIdx.x / HalfBlock::kSize;
+    const HalfBlock hb{static_cast<int>(threadIdx.x) % HalfBlock::kSize, half,
+                       &rows[half * HalfBlock::kSize], slot[half]};
+    const int mine = pick[half];
+    if (mine >= 0) {
+      const Rigid fit = icp(d, t, src, m, start(d, t, s, mine), 4.0 * d.spacing[t], hb);
+      const double r = residual(d, t, src, m, fit, hb);
+      if (hb.rank == 0) {
+        fit_r[half] = r;
+        icp_step::store(fit, fit_pose[half]);
+      }
     }
-  }
-  __syncthreads();
-  if (threadIdx.x == 0) {
-    double best = DBL_MAX;
-    Rigid best_pose = start(d, t, s, pick[0]);
-    for (int k = 0; k < 2; ++k) {
-      if (pick[k] < 0) continue;
-      if (fit_r[k] < best) best = fit_r[k], best_pose = icp_step::load(fit_pose[k]);
+    __syncthreads();
+    if (threadIdx.x == 0) {
+      double best = DBL_MAX;
+      Rigid best_pose = start(d, t, s, pick[0]);
+      for (int k = 0; k < 2; ++k) {
+        if (pick[k] < 0) continue;
+        if (fit_r[k] < best) best = fit_r[k], best_pose = icp_step::load(fit_pose[k]);
+      }
+      icp_step::store(best_pose, d.poses + static_cast<long long>(task) * kPoseDoubles);
+      d.residual[task] = best;
+      __threadfence();
+      atomicExch(done + task, 1);
     }
-    icp_step::store(best_pose, d.poses + static_cast<long long>(task) * kPoseDoubles);
-    d.residual[task] = best;
   }
 }
 
@@ -1013,11 +1051,23 @@ double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vect
   d.residual = d_res.ptr();
   d.S = in.samples;
   d.iterations = in.iterations;
-  const int waves = static_cast<int>(in.wave_begin.size()) - 1;
-  for (int w = 0; w < waves; ++w) {
-    const int n = in.wave_begin[w + 1] - in.wave_begin[w];
-    if (n <= 0) continue;
-    trackWaveBlocks<<<n, kTrackThreads>>>(d, tasks.ptr() + in.wave_begin[w]);
+  // The tasks in the waves' order; a pose of the reference frame (no frame before) is done.
+  const int n = static_cast<int>(in.tasks.size());
+  if (n > 0) {
+    std::vector<int> done(static_cast<std::size_t>(TS), 0);
+    for (int t = 0; t < frames.frames; ++t)
+      if (in.before[t] < 0)
+        for (int s = 0; s < in.samples; ++s) done[static_cast<std::size_t>(t) * in.samples + s] = 1;
+    DeviceArray<int> d_done(done.data(), done.size());
+    DeviceArray<int> next(1);
+    next.setZero();
+    int device = 0, sms = 0, per_sm = 0;
+    cudaSafeCall(cudaGetDevice(&device));
+    cudaSafeCall(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+    cudaSafeCall(
+        cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, trackTasks, kTrackThreads, 0));
+    const int blocks = std::max(1, std::min(n, sms * std::max(per_sm, 1)));
+    trackTasks<<<blocks, kTrackThreads>>>(d, tasks.ptr(), n, next.ptr(), d_done.ptr());
     cudaCheckLaunch();
   }
   cudaSafeCall(cudaDeviceSynchronize());

@@ -2,6 +2,7 @@
 // arithmetic (segmentation/icp_step.h) with the same sums in the same order, so the same poses
 // bit for bit, and so the same labels. Skips when no usable GPU is present.
 #include <gtest/gtest.h>
+#include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/flat_kdtree.h>
 #include <pcl_animseg/gpu/device.h>
@@ -74,6 +75,44 @@ TEST(GpuTracking, PosesAreTheCpusBitForBit) {
     EXPECT_EQ(differ, 0);
     EXPECT_EQ(dev.residual, cpu.residual);
   }
+}
+
+// The device takes the tracking's tasks in the waves' order, each after the poses it starts
+// from: a problem whose waves put a task before one of those is refused with an error, not left
+// waiting.
+TEST(GpuTracking, WavesOutOfOrderAreAnError) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const auto seq = generated(synth::BodyPlan::Humanoid, 4, 3000, 7);
+  seg::MotionTrackingParams params;
+  gpu::MotionTracking device;
+  params.device = &device;
+  const seg::SampleTracks good = seg::trackSamples(*seq, params);  // sets the device's frames
+  const int S = static_cast<int>(good.sample_points.size());
+  seg::SampleTrackingProblem p;
+  p.samples = S;
+  for (int s = 0; s < S; ++s) {
+    p.source_p.push_back(Eigen::Matrix3Xd::Zero(3, 8));
+    p.source_n.push_back(Eigen::Matrix3Xd::Zero(3, 8));
+    p.probe_p.push_back(Eigen::Matrix3Xd::Zero(3, 2));
+    p.probe_n.push_back(Eigen::Matrix3Xd::Zero(3, 2));
+  }
+  p.graph.assign(S, {});
+  p.level.assign(seq->size(), {});
+  p.before = {-1, 0, 1, 2};
+  p.two_before = {-1, -1, 0, 1};
+  p.global.assign(seq->size(), Eigen::Isometry3d::Identity());
+  // Frame 2's tasks before frame 1's, which they start from.
+  std::vector<int> w1, w2, w3;
+  for (int s = 0; s < S; ++s)
+    w1.push_back(2 * S + s), w2.push_back(1 * S + s), w3.push_back(3 * S + s);
+  p.waves = {w1, w2, w3};
+  std::vector<std::vector<Eigen::Isometry3d>> poses;
+  std::vector<std::vector<double>> residual;
+  EXPECT_THROW(device.trackSamples(p, poses, residual), pcl_animseg::Error);
+  // In order, the same problem runs.
+  p.waves = {w2, w1, w3};
+  EXPECT_NO_THROW(device.trackSamples(p, poses, residual));
 }
 
 TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
