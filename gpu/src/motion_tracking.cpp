@@ -206,7 +206,6 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     }
     a.adjacency_begin.push_back(static_cast<int>(a.adjacency.size()));
   }
-  a.wave_begin.push_back(0);
   const long long TS = static_cast<long long>(T) * S;
   for (const std::vector<int>& wave : problem.waves) {
     for (int task : wave) {
@@ -216,7 +215,6 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
         throw Error("GPU tracking: a task in a frame without a frame before it");
       a.tasks.push_back(task);
     }
-    a.wave_begin.push_back(static_cast<int>(a.tasks.size()));
   }
   waves_ = static_cast<int>(problem.waves.size());
   // The device takes the tasks in this order and each waits for the poses its starts read, so

@@ -110,7 +110,7 @@ struct TrackingArrays {
   std::vector<int> level;                       // frames x samples
   std::vector<int> before, two_before;          // per frame
   std::vector<double> global;                   // frames x 12
-  std::vector<int> tasks, wave_begin;           // tasks t * samples + s by wave, CSR
+  std::vector<int> tasks;  // tasks t * samples + s, wave after wave (a topological order)
 };
 
 /** Fits every task; poses (frames x samples x 12, the reference frame's entries the identity)
