@@ -19,7 +19,6 @@
 #include <limits>
 #include <map>
 #include <numeric>
-#include <optional>
 #include <queue>
 #include <set>
 #include <string>
@@ -646,22 +645,31 @@ namespace {
 // each barrier of the whole-body ICPs waited for it: on the H100 machine's 16 cores the global
 // poses took 0.165-0.33 s beside the GPU's start, 0.127-0.147 s with 15 threads (and 0.14-0.15 s
 // on the CPU alone). The thread count does not change the results.
+// recheck() between steps gives the core back once the device has started.
 class SpareCoreWhileStarting {
  public:
-  explicit SpareCoreWhileStarting(const MotionDevice* device) {
+  explicit SpareCoreWhileStarting(const MotionDevice* device) : device_(device) { recheck(); }
+  ~SpareCoreWhileStarting() { release(); }
+  SpareCoreWhileStarting(const SpareCoreWhileStarting&) = delete;
+  SpareCoreWhileStarting& operator=(const SpareCoreWhileStarting&) = delete;
+
+  /** One thread fewer while the device is still starting, every thread once it has started. */
+  void recheck() {
+    release();
     const int threads = omp_get_max_threads();
-    if (device && threads > 2 && !omp_in_parallel() && device->starting()) {
+    if (device_ && threads > 2 && !omp_in_parallel() && device_->starting()) {
       saved_ = threads;
       omp_set_num_threads(threads - 1);
     }
   }
-  ~SpareCoreWhileStarting() {
+  /** Every thread again. */
+  void release() {
     if (saved_ > 0) omp_set_num_threads(saved_);
+    saved_ = 0;
   }
-  SpareCoreWhileStarting(const SpareCoreWhileStarting&) = delete;
-  SpareCoreWhileStarting& operator=(const SpareCoreWhileStarting&) = delete;
 
  private:
+  const MotionDevice* device_;
   int saved_ = 0;
 };
 
@@ -687,7 +695,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   if (!(params.sliver_fraction >= 0.0 && params.sliver_fraction < 1.0))
     throw Error("motion tracking: sliver fraction must be in [0, 1)");
   detail::StageTimer timer;
-  std::optional<SpareCoreWhileStarting> spare(std::in_place, params.device);
+  SpareCoreWhileStarting spare(params.device);
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
   const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, 1000);
@@ -747,8 +755,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   //    nearest points in parallel: done serially these ICPs were a quarter of the tracking on 16
   //    cores). It depends on no sample's pose.
   timer.lap("tracking: samples, graphs, sources");
-  spare.reset();  // the device may have started meanwhile
-  spare.emplace(params.device);
+  spare.recheck();  // the device may have started meanwhile
   std::vector<Pose> global(T, Pose::Identity());
   for (int t : frame_order) {
     const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
@@ -764,8 +771,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   // 2. Each frame's order of the samples: BFS levels over the sample graph from the sample best
   //    explained by the global pose (unreached components start from their own best sample).
   timer.lap("tracking: global poses");
-  spare.reset();
-  spare.emplace(params.device);
+  spare.recheck();
   std::vector<std::vector<int>> level_of(T);
 #pragma omp parallel for schedule(dynamic, 1)
   for (int k = 0; k < F; ++k) {
@@ -784,7 +790,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   //    frame, one after the other, left most of 16 cores waiting on their narrow first levels).
   //    Task k * S + s is sample s in frame_order[k].
   timer.lap("tracking: levels");
-  spare.reset();
+  spare.release();
   std::vector<std::vector<int>> successors;
   std::vector<long> priority;
   frameTaskGraph(frame_order, dir_of, tr.graph, [&](int t, int s) { return level_of[t][s]; },
@@ -1740,8 +1746,10 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   // Each group's neighbours (the keys of `edges` by group), so that a merge detaches its edges
   // without a scan of every edge (detachEdges: as much host time as the scan for the cheapest).
   std::vector<std::set<int>> adjacent(S);
-  for (const auto& [key, e] : edges) adjacent[key.first].insert(key.second);
-  for (const auto& [key, e] : edges) adjacent[key.second].insert(key.first);
+  for (const auto& [key, e] : edges) {
+    adjacent[key.first].insert(key.second);
+    adjacent[key.second].insert(key.first);
+  }
   // detachEdges(edges, a, b) by the neighbours: the same edges erased, the same set returned.
   auto detach = [&](int a, int b) {
     std::set<int> nbrs;
@@ -2539,14 +2547,13 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
                        std::vector<std::vector<Eigen::Isometry3d>>* part_motions) {
   // The frames (kd-tree and spacing of each) are built once for the three steps.
   detail::StageTimer ftimer;
-  std::optional<SpareCoreWhileStarting> spare(std::in_place, params.device);
+  SpareCoreWhileStarting spare(params.device);
   const std::vector<Frame> frames = makeFrames(seq);
   ftimer.lap("frames: trees and spacings");
-  spare.reset();
-  spare.emplace(params.device);
+  spare.recheck();
   if (params.device) params.device->setFrames(deviceFrames(frames));
   ftimer.lap("frames: device packing");
-  spare.reset();
+  spare.release();
   const SampleTracks tr = trackSamplesOn(seq, frames, params, progress);
   if (progress) progress->begin("clustering trajectories", 0);
   const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);
