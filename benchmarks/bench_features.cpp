@@ -3,6 +3,10 @@
 // same frames (one level) for comparison.
 #include <pcl_animseg/features/multiscale.h>
 #include <pcl_animseg/progress.h>
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+#include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/features.h>
+#endif
 
 #include <pcl/search/kdtree.h>
 #include <pcl/surface/mls.h>
@@ -48,6 +52,38 @@ void BM_Features(benchmark::State& state) {
   }
 }
 BENCHMARK(BM_Features)->Iterations(1)->Unit(benchmark::kSecond)->UseRealTime();
+
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+/** The same on the GPU (gpu::FeatureDevice: scale spaces and signatures there, the keypoints and
+ * their rows on the cores); skipped without a GPU. Run after BM_Features, so the GPU has started.
+ */
+void BM_FeaturesGpu(benchmark::State& state) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) {
+    state.SkipWithError(("no usable GPU: " + why).c_str());
+    return;
+  }
+  const PointCloudSequence& seq = sequence();
+  MultiscaleParams p;
+  for (auto _ : state) {
+    gpu::FeatureDevice device;
+    Progress progress(true);
+    SequenceFeatures f = computeSequenceFeatures(seq, p, &progress, &device);
+    benchmark::DoNotOptimize(f.signatures.data());
+    double total = 0.0;
+    for (const auto& s : progress.timings()) {
+      state.counters[s.first + "_s"] = s.second;
+      total += s.second;
+    }
+    std::size_t kp = 0;
+    for (const auto& k : f.keypoints) kp += k.size();
+    state.counters["total_s"] = total;
+    state.counters["keypoints"] = static_cast<double>(kp);
+    state.counters["peak_device_MiB"] = static_cast<double>(gpu::peakDeviceBytes()) / 1048576.0;
+  }
+}
+BENCHMARK(BM_FeaturesGpu)->Iterations(3)->Unit(benchmark::kSecond)->UseRealTime();
+#endif
 
 /** pcl::MovingLeastSquares (order 2, normals, radius 2h as our level 0) on `frames` frames. */
 void BM_PCLMovingLeastSquares(benchmark::State& state) {

@@ -56,6 +56,31 @@ struct CellGrid {
 
 }  // namespace
 
+NeighbourGrid neighbourGrid(const PointCloudSequence::Cloud& cloud, float radius) {
+  Eigen::Vector3f lo_corner = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
+  Eigen::Vector3f hi_corner = -lo_corner;
+  for (const auto& p : cloud.points)
+    if (p.getVector3fMap().allFinite()) {
+      lo_corner = lo_corner.cwiseMin(p.getVector3fMap());
+      hi_corner = hi_corner.cwiseMax(p.getVector3fMap());
+    }
+  if (!(hi_corner.array() >= lo_corner.array()).all())
+    lo_corner = hi_corner = Eigen::Vector3f::Zero();
+  NeighbourGrid g;
+  g.origin = lo_corner;
+  // Cells of the search radius, or coarser where a few far-off points stretch the frame to more
+  // than 1e6 cells per axis (keys stay in 64 bits; coarser cells are only slower).
+  const float extent = (hi_corner - lo_corner).maxCoeff();
+  const float cell = std::max(radius, std::isfinite(extent) ? extent * 1.0e-6f : radius);
+  g.inv_cell = 1.0f / cell;
+  const Eigen::Array3f ext = (hi_corner - lo_corner).array() * g.inv_cell;
+  g.ny = ext.allFinite() ? static_cast<std::int64_t>(ext(1)) + 3 : 3;
+  g.nz = ext.allFinite() ? static_cast<std::int64_t>(ext(2)) + 3 : 3;
+  // Keys of finite points are < (nx + 2) ny nz with nx = ny * nz cells per x slab.
+  g.cells = (static_cast<std::int64_t>(ext.allFinite() ? ext(0) : 0) + 3) * g.ny * g.nz;
+  return g;
+}
+
 Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, float radius,
                                     int max_neighbours) {
   if (!(radius > 0.0f)) throw Error("neighbourhood radius must be positive");
@@ -69,25 +94,12 @@ Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, floa
   // A uniform grid with cells of the search radius instead of a kd-tree: every neighbour of a
   // point lies in the 27 cells around it, and a fixed-radius search of ~30 neighbours per point
   // through pcl::KdTreeFLANN cost 7 us (allocations, copies), most of the scale space's time.
-  Eigen::Vector3f lo_corner = Eigen::Vector3f::Constant(std::numeric_limits<float>::max());
-  Eigen::Vector3f hi_corner = -lo_corner;
-  for (const auto& p : cloud.points)
-    if (p.getVector3fMap().allFinite()) {
-      lo_corner = lo_corner.cwiseMin(p.getVector3fMap());
-      hi_corner = hi_corner.cwiseMax(p.getVector3fMap());
-    }
-  if (!(hi_corner.array() >= lo_corner.array()).all())
-    lo_corner = hi_corner = Eigen::Vector3f::Zero();
+  const NeighbourGrid shape = neighbourGrid(cloud, radius);
   CellGrid grid;
-  grid.origin = lo_corner;
-  // Cells of the search radius, or coarser where a few far-off points stretch the frame to more
-  // than 1e6 cells per axis (keys stay in 64 bits; coarser cells are only slower).
-  const float extent = (hi_corner - lo_corner).maxCoeff();
-  const float cell = std::max(radius, std::isfinite(extent) ? extent * 1.0e-6f : radius);
-  grid.inv_cell = 1.0f / cell;
-  const Eigen::Array3f ext = (hi_corner - lo_corner).array() * grid.inv_cell;
-  grid.ny = ext.allFinite() ? static_cast<std::int64_t>(ext(1)) + 3 : 3;
-  grid.nz = ext.allFinite() ? static_cast<std::int64_t>(ext(2)) + 3 : 3;
+  grid.origin = shape.origin;
+  grid.inv_cell = shape.inv_cell;
+  grid.ny = shape.ny;
+  grid.nz = shape.nz;
   std::vector<char> finite(n);
   {
     std::vector<std::pair<std::int64_t, int>> kp(n);
@@ -113,9 +125,7 @@ Neighbourhoods radiusNeighbourhoods(const PointCloudSequence::Cloud& cloud, floa
       grid.z[i] = p.z;
     }
   }
-  // Keys of finite points are < (nx + 2) ny nz with nx = ny * nz cells per x slab.
-  const std::int64_t cells =
-      (static_cast<std::int64_t>(ext.allFinite() ? ext(0) : 0) + 3) * grid.ny * grid.nz;
+  const std::int64_t cells = shape.cells;
   if (cells <= 8 * static_cast<std::int64_t>(n) + 4096) {
     grid.start.assign(static_cast<std::size_t>(cells) + 1, 0);
     std::size_t a = 0;

@@ -123,7 +123,8 @@ std::vector<int> MLSScaleSpace::projectionCounts() const {
   return counts;
 }
 
-void MLSScaleSpace::compute(ScaleSpace& output) const {
+ScaleSpacePlan MLSScaleSpace::plan() const {
+  ScaleSpacePlan plan;
   if (!input_) throw Error("MLSScaleSpace: no input cloud set");
   if (!(h_ > 0.0) || !std::isfinite(h_))
     throw Error("scale space: h must be a positive number of point spacings (got " +
@@ -157,31 +158,24 @@ void MLSScaleSpace::compute(ScaleSpace& output) const {
     throw Error(os.str());
   }
 
-  const float step_radius = static_cast<float>(2.0 * h0);
+  plan.spacing = spacing;
+  plan.h0 = h0;
+  plan.step_radius = static_cast<float>(2.0 * h0);
   // 3 h0 at least: the keypoint tests (angular gap, quadratic fit of D) need ~30 neighbours even
   // on sparse random samples; a smaller row gives false open borders.
-  const float radius =
+  plan.radius =
       std::max(static_cast<float>(3.0 * h0), static_cast<float>(neighbourhood_radius_ * spacing));
-  auto nb = std::make_shared<Neighbourhoods>(radiusNeighbourhoods(in, radius));
-
-  // Support and Gaussian weights of one projection step, from the input distances (points move
-  // along their normals only, so these stay right to first order on every level).
-  std::vector<int> limit(n);
-  std::vector<float> weights(nb->indices.size());
-  const float inv_h2 = static_cast<float>(1.0 / (h0 * h0));
-  for (std::size_t j = 0; j < n; ++j) {
-    limit[j] = nb->countWithin(j, step_radius);
-    const float* d2 = nb->sqrRow(j);
-    float* w = weights.data() + nb->offsets[j];
-    for (int a = 0; a < nb->count(j); ++a) w[a] = std::exp(-d2[a] * inv_h2);
-  }
+  plan.inv_h2 = static_cast<float>(1.0 / (h0 * h0));
+  plan.counts = counts;
+  for (int c : counts) plan.scales.push_back(h0 * std::sqrt(static_cast<double>(c)));
 
   // Orientation reference for level 0: the input normals; missing ones point away from the
   // centroid (documented fall-back, right for closed shapes).
   Eigen::Vector3d centroid = Eigen::Vector3d::Zero();
   for (const auto& p : in.points) centroid += p.getVector3fMap().cast<double>();
   centroid /= static_cast<double>(n);
-  std::vector<Eigen::Vector3f> ref(n);
+  std::vector<Eigen::Vector3f>& ref = plan.ref;
+  ref.resize(n);
   for (std::size_t j = 0; j < n; ++j) {
     if (validNormal(in[j])) {
       ref[j] = in[j].getNormalVector3fMap().normalized();
@@ -190,6 +184,32 @@ void MLSScaleSpace::compute(ScaleSpace& output) const {
       ref[j] = d.squaredNorm() > 0.0f ? d.normalized() : Eigen::Vector3f::UnitZ();
     }
   }
+
+  return plan;
+}
+
+void MLSScaleSpace::compute(ScaleSpace& output) const {
+  ScaleSpacePlan plan = this->plan();
+  const Cloud& in = *input_;
+  const std::size_t n = in.size();
+  const float step_radius = plan.step_radius;
+  auto nb = std::make_shared<Neighbourhoods>(radiusNeighbourhoods(in, plan.radius));
+
+  // Support and Gaussian weights of one projection step, from the input distances (points move
+  // along their normals only, so these stay right to first order on every level).
+  std::vector<int> limit(n);
+  std::vector<float> weights(nb->indices.size());
+  const float inv_h2 = plan.inv_h2;
+  for (std::size_t j = 0; j < n; ++j) {
+    limit[j] = nb->countWithin(j, step_radius);
+    const float* d2 = nb->sqrRow(j);
+    float* w = weights.data() + nb->offsets[j];
+    for (int a = 0; a < nb->count(j); ++a) w[a] = std::exp(-d2[a] * inv_h2);
+  }
+  std::vector<Eigen::Vector3f>& ref = plan.ref;
+  const std::vector<int>& counts = plan.counts;
+  const double spacing = plan.spacing;
+  const double h0 = plan.h0;
 
   output.spacing = spacing;
   output.input = input_;

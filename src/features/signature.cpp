@@ -185,6 +185,14 @@ DiscSignature::DiscSignature(const SignatureLayout& layout) : layout_(layout) {
     }
 }
 
+std::vector<float> DiscSignature::tables() const {
+  std::vector<float> t;
+  for (const auto* v : {&a_, &b_, &aa_, &ab_, &bb_, &aaa_, &aab_, &abb_, &bbb_, &ang_cos_,
+                        &ang_sin_, &rad_cos_, &rad_sin_})
+    t.insert(t.end(), v->begin(), v->end());
+  return t;
+}
+
 void DiscSignature::compute(const PointCloudSequence::Cloud& pts, const int* idx, int count,
                             const Eigen::Vector3f& p, const Eigen::Vector3f& n,
                             const Eigen::Vector3f& u, double radius, float* out,

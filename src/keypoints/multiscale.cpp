@@ -22,9 +22,9 @@ namespace {
  * a loaded machine the threads spent a third of their time waiting in them. With fewer frames
  * (a single frame from a tool), frames run one after the other, parallel over points inside.
  * Errors name the frame; when several frames fail, the first frame's error is thrown. */
-template <typename Work, typename Detail>
+template <typename Work, typename Detail, typename Finish>
 void forEachFrame(const PointCloudSequence& seq, std::size_t first, std::size_t last,
-                  Progress* progress, const char* stage, Work work, Detail detail) {
+                  Progress* progress, const char* stage, Work work, Detail detail, Finish finish) {
   const std::size_t T = last - first;
   if (progress) progress->begin(stage, T);
   std::vector<std::string> errors(T);
@@ -60,20 +60,28 @@ void forEachFrame(const PointCloudSequence& seq, std::size_t first, std::size_t 
   }
   for (std::size_t t = 0; t < T; ++t)
     if (failed[t]) throw Error(errors[t]);
+  finish();
   if (progress) {
     progress->update(T);
     progress->end(detail());
   }
 }
 
+template <typename Work, typename Detail>
+void forEachFrame(const PointCloudSequence& seq, std::size_t first, std::size_t last,
+                  Progress* progress, const char* stage, Work work, Detail detail) {
+  forEachFrame(seq, first, last, progress, stage, work, detail, [] {});
+}
+
 void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t last,
                   const MultiscaleParams& p, double unit, std::vector<ScaleSpace>& spaces,
-                  std::vector<std::size_t>& kp_count, SequenceFeatures& out, Progress* progress);
+                  std::vector<std::size_t>& kp_count, SequenceFeatures& out, Progress* progress,
+                  FeatureDevice* device);
 
 }  // namespace
 
 SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const MultiscaleParams& p,
-                                         Progress* progress) {
+                                         Progress* progress, FeatureDevice* device) {
   if (seq.empty()) throw Error("the sequence has no frames");
   p.layout.validate();
   if (!(p.signature_h > 0.0)) throw Error("the signature scale must be positive");
@@ -102,7 +110,7 @@ SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const Mu
     std::size_t last = first, points = 0;
     while (last < T && (last == first || points + seq.frame(last)->size() <= p.block_points))
       points += seq.frame(last++)->size();
-    computeBlock(seq, first, last, p, unit, spaces, kp_count, out, progress);
+    computeBlock(seq, first, last, p, unit, spaces, kp_count, out, progress, device);
     first = last;
   }
   return out;
@@ -112,10 +120,13 @@ namespace {
 
 void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t last,
                   const MultiscaleParams& p, double unit, std::vector<ScaleSpace>& spaces,
-                  std::vector<std::size_t>& kp_count, SequenceFeatures& out, Progress* progress) {
+                  std::vector<std::size_t>& kp_count, SequenceFeatures& out, Progress* progress,
+                  FeatureDevice* device) {
   const bool detect = p.detect_keypoints;
 
-  // Stage 1: scale space of every frame.
+  // Stage 1: scale space of every frame (on the device: the frames are checked here, then the
+  // device computes the block's levels and signatures).
+  std::vector<ScaleSpacePlan> plans(device ? last - first : 0);
   forEachFrame(
       seq, first, last, progress, "scale_space",
       [&](std::size_t t) {
@@ -126,9 +137,15 @@ void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t 
         mls.setNumberOfLevels(p.levels);
         mls.setNeighbourhoodRadius(2.0 * p.signature_h);
         mls.setSpacing(unit);
-        mls.compute(spaces[t]);
+        if (device)
+          plans[t - first] = mls.plan();
+        else
+          mls.compute(spaces[t]);
       },
-      [&] { return std::to_string(p.levels) + " levels"; });
+      [&] { return std::to_string(p.levels) + " levels" + (device ? " (GPU)" : ""); },
+      [&] {
+        if (device) device->scaleSpaces(seq, first, last, plans, p, detect, spaces);
+      });
 
   // Stage 2: keypoints.
   forEachFrame(
@@ -167,13 +184,17 @@ void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t 
   forEachFrame(
       seq, first, last, progress, "signature",
       [&](std::size_t t) {
-        SignatureEstimation se;
-        se.setInputCloud(signatureInput(*seq.frame(t), *spaces[t].levels[0]));
-        se.setNeighbourhoods(spaces[t].neighbourhoods);
-        se.setScale(p.signature_h * spaces[t].spacing);
-        se.setLayout(p.layout);
-        se.setKeypoints(out.keypoints[t]);
-        se.compute(out.signatures[t]);
+        if (device) {
+          device->signature(t, out.signatures[t]);
+        } else {
+          SignatureEstimation se;
+          se.setInputCloud(signatureInput(*seq.frame(t), *spaces[t].levels[0]));
+          se.setNeighbourhoods(spaces[t].neighbourhoods);
+          se.setScale(p.signature_h * spaces[t].spacing);
+          se.setLayout(p.layout);
+          se.setKeypoints(out.keypoints[t]);
+          se.compute(out.signatures[t]);
+        }
         if (p.keep_smoothed) out.smoothed[t] = spaces[t].levels[0];
         spaces[t] = ScaleSpace();
       },

@@ -4,6 +4,7 @@
 
 #ifdef PCL_ANIMSEG_HAVE_CUDA
 #include <pcl_animseg/gpu/device.h>
+#include <pcl_animseg/gpu/features.h>
 #include <pcl_animseg/gpu/mean_shift_backend.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
 #endif
@@ -105,7 +106,35 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     r.notes.push_back(
         "features not computed: the motion method does not use them (--method paper does)");
   } else if (params.features) {
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+    // The scale spaces and signatures on the GPU where there is one (gpu: or an error; auto: a
+    // GPU that fails is a logged fall-back to the CPU, a missing one is noted with the mean shift's
+    // below).
+    std::unique_ptr<FeatureDevice> feature_device;
+    if (params.device != "cpu") {
+      std::string why;
+      if (gpu::gpuAvailable(&why))
+        feature_device = std::make_unique<gpu::FeatureDevice>();
+      else if (params.device == "gpu")
+        throw Error("--device gpu: no usable GPU: " + why);
+    }
+    try {
+      features = computeSequenceFeatures(seq, params.multiscale, &progress, feature_device.get());
+      if (feature_device) r.notes.push_back("scale space and signatures computed on the GPU");
+    } catch (const Error& e) {
+      // Errors of the input come before the device is called; the device's own start with "GPU".
+      if (!feature_device || params.device == "gpu" ||
+          std::string(e.what()).compare(0, 3, "GPU") != 0)
+        throw;
+      r.notes.push_back(std::string("the GPU failed in the features, the CPU was used: ") +
+                        e.what());
+      progress.info(std::string("warning: the GPU failed in the features, the CPU was used: ") +
+                    e.what());
+      features = computeSequenceFeatures(seq, params.multiscale, &progress);
+    }
+#else
     features = computeSequenceFeatures(seq, params.multiscale, &progress);
+#endif
     for (const auto& k : features.keypoints) {
       r.keypoints_per_frame.push_back(k.size());
       r.keypoints += k.size();

@@ -1,11 +1,11 @@
 #pragma once
 /** \file multiscale.h Section 3.1 in one call: scale space, keypoints and signatures of every
  * frame of a sequence (what the mean shift consumes). */
+#include <pcl_animseg/features/scale_space.h>
 #include <pcl_animseg/features/signature.h>
 #include <pcl_animseg/sequence.h>
 
 #include <Eigen/Core>
-
 #include <vector>
 
 namespace pcl_animseg {
@@ -63,12 +63,32 @@ struct SequenceFeatures {
   std::vector<PointCloudSequence::Cloud::Ptr> smoothed;  ///< level 0 per frame (may be empty)
 };
 
+/** \brief Somewhere else to compute the scale spaces and signatures of a block of frames: the
+ * CUDA module's (gpu/features.h). The keypoints stay on the CPU, on the levels it returns.
+ * Implementations follow MLSScaleSpace and SignatureEstimation point by point. */
+class FeatureDevice {
+ public:
+  virtual ~FeatureDevice() = default;
+  /** \brief The scale spaces of frames [first, last) of `seq` (`plans[t - first]` from their
+   * MLSScaleSpace, already checked), into spaces[t]: levels, scales, spacing and input, and the
+   * neighbourhoods when `rows` is set. It also computes the frames' signatures (`p`'s layout and
+   * signature_h), which signature() then hands out. Throws Error on a device failure. */
+  virtual void scaleSpaces(const PointCloudSequence& seq, std::size_t first, std::size_t last,
+                           const std::vector<ScaleSpacePlan>& plans, const MultiscaleParams& p,
+                           bool rows, std::vector<ScaleSpace>& spaces) = 0;
+  /** \brief Frame t's signatures (N_t x D), of the last scaleSpaces() call. Safe to call from
+   * several threads. */
+  virtual void signature(std::size_t t, Eigen::MatrixXf& out) const = 0;
+};
+
 /** \brief Runs MLSScaleSpace, DoGKeypoint and SignatureEstimation on every frame (frames one
  * after the other, OpenMP over points inside). Progress stages: "scale_space", "keypoints",
  * "signature" (their times are summed over frames). Throws Error naming the frame on bad input.
  * A keypoint index appears once per frame even when detected at several levels (the strongest
- * |response| is kept). */
+ * |response| is kept). With a `device`, the scale spaces and signatures are computed there (the
+ * "scale_space" stage then includes the signatures' time). */
 SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const MultiscaleParams& p,
-                                         Progress* progress = nullptr);
+                                         Progress* progress = nullptr,
+                                         FeatureDevice* device = nullptr);
 
 }  // namespace pcl_animseg

@@ -4,7 +4,9 @@
  * so the neighbourhoods of the input are valid on every level). */
 #include <pcl_animseg/sequence.h>
 
+#include <Eigen/Core>
 #include <cstddef>
+#include <cstdint>
 #include <vector>
 
 namespace pcl_animseg {
@@ -24,6 +26,19 @@ struct Neighbourhoods {
   /** \brief How many of row i's neighbours lie within radius r (rows are sorted). */
   int countWithin(std::size_t i, float r) const;
 };
+
+/** \brief The uniform grid that radiusNeighbourhoods searches: cells of the radius (coarser where
+ * a few far-off points stretch the frame to more than 1e6 cells an axis), from `origin`. A point
+ * p lies in cell c = floor((p - origin) * inv_cell), whose key is ((c_x + 1) ny + c_y + 1) nz +
+ * c_z + 1; keys are below `cells`. */
+struct NeighbourGrid {
+  Eigen::Vector3f origin = Eigen::Vector3f::Zero();
+  float inv_cell = 0.0f;
+  std::int64_t ny = 0, nz = 0, cells = 0;
+};
+
+/** \brief The grid of radiusNeighbourhoods(cloud, radius) (its finite points only). */
+NeighbourGrid neighbourGrid(const PointCloudSequence::Cloud& cloud, float radius);
 
 /** \brief Searches the neighbours of every point of `cloud` within `radius` (one kd-tree,
  * OpenMP over points). At most `max_neighbours` (the nearest) are kept per point, which bounds the

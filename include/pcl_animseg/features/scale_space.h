@@ -3,6 +3,7 @@
 #include <pcl_animseg/features/neighbourhood.h>
 #include <pcl_animseg/sequence.h>
 
+#include <Eigen/Core>
 #include <memory>
 #include <vector>
 
@@ -21,6 +22,21 @@ struct ScaleSpace {
   Cloud::ConstPtr input;
   /** Neighbourhoods of the input (rows sorted by distance), shared by the later stages. */
   std::shared_ptr<const Neighbourhoods> neighbourhoods;
+};
+
+/** \brief What MLSScaleSpace::compute derives from its parameters and the frame before it
+ * projects (MLSScaleSpace::plan). */
+struct ScaleSpacePlan {
+  double spacing = 0.0;        ///< the frame's spacing, world units
+  double h0 = 0.0;             ///< width of one projection, world units
+  float step_radius = 0.0f;    ///< support of one projection (2 h0)
+  float radius = 0.0f;         ///< radius of the shared neighbourhoods
+  float inv_h2 = 0.0f;         ///< 1 / h0^2 of the projection weights
+  std::vector<int> counts;     ///< projections n_i of each level
+  std::vector<double> scales;  ///< h_i of each level
+  /** Orientation reference of level 0's normals: the input normals, unit, or pointing away from
+   * the centroid where a normal is missing. */
+  std::vector<Eigen::Vector3f> ref;
 };
 
 /** \brief Builds the scale space of a frame by MLS projection (Sec. 3.1, "diffusion ... for point
@@ -71,6 +87,10 @@ class MLSScaleSpace {
 
   /** \brief Computes all levels. Throws Error on bad parameters or a frame too small. */
   void compute(ScaleSpace& output) const;
+
+  /** \brief Checks the parameters and the frame as compute() does (the same errors) and returns
+   * what its projections use; compute() itself starts with it, the GPU's features too. */
+  ScaleSpacePlan plan() const;
 
   /** \brief Projection counts n_i per level for the current h, k, levels (exposed for tests). */
   std::vector<int> projectionCounts() const;

@@ -58,6 +58,10 @@ class DiscSignature {
   void compute(const PointCloudSequence::Cloud& positions, const int* idx, int count,
                const Eigen::Vector3f& p, const Eigen::Vector3f& n, const Eigen::Vector3f& u,
                double radius, float* out, std::vector<std::complex<double>>& scratch) const;
+  /** \brief The sample and DFT tables, one after the other: the nine monomials a, b, a2, ab, b2,
+   * a3, a2b, ab2, b3 of the R S samples (q = k R + l), then the angular cosines and sines
+   * (S' x S each), then the radial ones (R' x R each). For the GPU's signature kernel. */
+  std::vector<float> tables() const;
 
  private:
   SignatureLayout layout_;
