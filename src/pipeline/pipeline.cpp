@@ -108,12 +108,13 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   } else if (params.features) {
 #ifdef PCL_ANIMSEG_HAVE_CUDA
     // The scale spaces and signatures on the GPU where there is one (gpu: or an error; auto: a
-    // GPU that fails is a logged fall-back to the CPU, a missing one is noted with the mean shift's
-    // below).
+    // GPU that fails is a logged fall-back to the CPU, a missing one is noted with the mean
+    // shift's below). A check still running (DeviceWarmUp) is not waited for: the device's first
+    // call waits for the GPU's start while the cores check the frames and search their rows.
     std::unique_ptr<FeatureDevice> feature_device;
     if (params.device != "cpu") {
       std::string why;
-      if (gpu::gpuAvailable(&why))
+      if (gpu::probeState() == gpu::ProbeState::Running || gpu::gpuAvailable(&why))
         feature_device = std::make_unique<gpu::FeatureDevice>();
       else if (params.device == "gpu")
         throw Error("--device gpu: no usable GPU: " + why);
@@ -123,13 +124,19 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       if (feature_device) r.notes.push_back("scale space and signatures computed on the GPU");
     } catch (const Error& e) {
       // Errors of the input come before the device is called; the device's own start with "GPU".
-      if (!feature_device || params.device == "gpu" ||
-          std::string(e.what()).compare(0, 3, "GPU") != 0)
+      if (!feature_device || std::string(e.what()).compare(0, 3, "GPU") != 0) throw;
+      std::string why;
+      const bool missing = !gpu::gpuAvailable(&why);
+      if (params.device == "gpu") {
+        if (missing) throw Error("--device gpu: no usable GPU: " + why);
         throw;
-      r.notes.push_back(std::string("the GPU failed in the features, the CPU was used: ") +
-                        e.what());
-      progress.info(std::string("warning: the GPU failed in the features, the CPU was used: ") +
-                    e.what());
+      }
+      if (!missing) {  // a missing GPU is noted with the mean shift's device below
+        r.notes.push_back(std::string("the GPU failed in the features, the CPU was used: ") +
+                          e.what());
+        progress.info(std::string("warning: the GPU failed in the features, the CPU was used: ") +
+                      e.what());
+      }
       features = computeSequenceFeatures(seq, params.multiscale, &progress);
     }
 #else
