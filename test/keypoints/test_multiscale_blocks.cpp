@@ -1,10 +1,11 @@
 // computeSequenceFeatures in blocks of frames (bounded scale-space memory): the result must not
 // depend on the block size, and each stage is recorded once with its time summed over blocks.
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/features/multiscale.h>
+#include <pcl_animseg/features/scale_space.h>
+#include <pcl_animseg/features/signature.h>
 #include <pcl_animseg/progress.h>
-
-#include <gtest/gtest.h>
 
 #include "features/bumpy_surface.h"
 
@@ -36,4 +37,82 @@ TEST(Multiscale, BlocksOfFramesGiveTheSameFeatures) {
   EXPECT_EQ(stages, (std::vector<std::string>{"scale_space", "keypoints", "signature"}));
   blocks.block_points = 0;
   EXPECT_THROW(computeSequenceFeatures(seq, blocks), Error);
+}
+
+namespace {
+
+/** A FeatureDevice that computes on the CPU with the library's own classes from the plans it is
+ * given, and records the blocks it saw: the wiring of computeSequenceFeatures to a device. */
+class CpuFeatureDevice : public FeatureDevice {
+ public:
+  std::vector<std::pair<std::size_t, std::size_t>> blocks;
+  void scaleSpaces(const PointCloudSequence& seq, std::size_t first, std::size_t last,
+                   const std::vector<ScaleSpacePlan>& plans, const MultiscaleParams& p, bool rows,
+                   std::vector<ScaleSpace>& spaces) override {
+    blocks.emplace_back(first, last);
+    ASSERT_EQ(plans.size(), last - first);
+    for (std::size_t t = first; t < last; ++t) {
+      MLSScaleSpace mls;
+      mls.setInputCloud(seq.frame(t));
+      mls.setScale(p.h);
+      mls.setScaleFactor(p.k);
+      mls.setNumberOfLevels(p.levels);
+      mls.setNeighbourhoodRadius(2.0 * p.signature_h);
+      mls.setSpacing(plans[t - first].spacing);
+      mls.compute(spaces[t]);
+      // What the plan says is what compute() used.
+      EXPECT_EQ(spaces[t].scales, plans[t - first].scales);
+      EXPECT_EQ(spaces[t].neighbourhoods->radius, plans[t - first].radius);
+      EXPECT_EQ(plans[t - first].ref.size(), seq.frame(t)->size());
+      if (!rows) spaces[t].neighbourhoods.reset();
+      SignatureEstimation se;
+      se.setInputCloud(signatureInput(*seq.frame(t), *spaces[t].levels[0]));
+      se.setNeighbourhoods(spaces[t].neighbourhoods);
+      se.setScale(p.signature_h * spaces[t].spacing);
+      se.setLayout(p.layout);
+      if (sig_.size() <= t) sig_.resize(t + 1);
+      se.compute(sig_[t]);
+    }
+  }
+  void signature(std::size_t t, Eigen::MatrixXf& out) const override { out = sig_.at(t); }
+
+ private:
+  std::vector<Eigen::MatrixXf> sig_;
+};
+
+}  // namespace
+
+TEST(Multiscale, AFeatureDeviceGetsEveryBlockAndItsResultsAreUsed) {
+  PointCloudSequence seq;
+  for (unsigned t = 0; t < 3; ++t)
+    seq.addFrame(test::bumpySphere(3000 + 500 * t, 60 + t), "f" + std::to_string(t));
+  MultiscaleParams p;
+  p.block_points = 7000;  // blocks {0, 1} and {2}
+  p.keep_smoothed = true;
+  const SequenceFeatures cpu = computeSequenceFeatures(seq, p);
+  CpuFeatureDevice device;
+  Progress progress(true);
+  const SequenceFeatures dev = computeSequenceFeatures(seq, p, &progress, &device);
+  EXPECT_EQ(device.blocks, (std::vector<std::pair<std::size_t, std::size_t>>{{0, 2}, {2, 3}}));
+  for (std::size_t t = 0; t < 3; ++t) {
+    EXPECT_EQ(cpu.signatures[t], dev.signatures[t]) << "frame " << t;
+    EXPECT_EQ(cpu.keypoints[t], dev.keypoints[t]) << "frame " << t;
+    ASSERT_TRUE(dev.smoothed[t]);
+    EXPECT_EQ(dev.smoothed[t]->size(), seq.frame(t)->size());
+  }
+  std::size_t kp = 0;
+  for (const auto& k : dev.keypoints) kp += k.size();
+  EXPECT_GT(kp, 0u);
+  // A frame the scale space refuses is refused before the device is called, naming the frame.
+  PointCloudSequence bad = seq;
+  PointCloudSequence::Cloud::Ptr tiny(new PointCloudSequence::Cloud);
+  for (int i = 0; i < 10; ++i) tiny->push_back((*seq.frame(0))[i]);
+  bad.addFrame(tiny, "tiny");
+  CpuFeatureDevice unused;
+  try {
+    computeSequenceFeatures(bad, p, nullptr, &unused);
+    FAIL() << "a frame of 10 points was accepted";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("frame 'tiny'"), std::string::npos) << e.what();
+  }
 }
