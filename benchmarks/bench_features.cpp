@@ -32,22 +32,27 @@ const PointCloudSequence& sequence() {
   return seq;
 }
 
+/** Per-stage times, their total and the keypoints as the benchmark's counters. */
+void countStages(benchmark::State& state, const Progress& progress, const SequenceFeatures& f) {
+  benchmark::DoNotOptimize(f.signatures.data());
+  double total = 0.0;
+  for (const auto& s : progress.timings()) {
+    state.counters[s.first + "_s"] = s.second;
+    total += s.second;
+  }
+  std::size_t kp = 0;
+  for (const auto& k : f.keypoints) kp += k.size();
+  state.counters["total_s"] = total;
+  state.counters["keypoints"] = static_cast<double>(kp);
+}
+
 void BM_Features(benchmark::State& state) {
   const PointCloudSequence& seq = sequence();
   MultiscaleParams p;
   for (auto _ : state) {
     Progress progress(true);
     SequenceFeatures f = computeSequenceFeatures(seq, p, &progress);
-    benchmark::DoNotOptimize(f.signatures.data());
-    double total = 0.0;
-    for (const auto& s : progress.timings()) {
-      state.counters[s.first + "_s"] = s.second;
-      total += s.second;
-    }
-    std::size_t kp = 0;
-    for (const auto& k : f.keypoints) kp += k.size();
-    state.counters["total_s"] = total;
-    state.counters["keypoints"] = static_cast<double>(kp);
+    countStages(state, progress, f);
     state.counters["points"] = static_cast<double>(seq.totalPoints());
   }
 }
@@ -69,16 +74,7 @@ void BM_FeaturesGpu(benchmark::State& state) {
     gpu::FeatureDevice device;
     Progress progress(true);
     SequenceFeatures f = computeSequenceFeatures(seq, p, &progress, &device);
-    benchmark::DoNotOptimize(f.signatures.data());
-    double total = 0.0;
-    for (const auto& s : progress.timings()) {
-      state.counters[s.first + "_s"] = s.second;
-      total += s.second;
-    }
-    std::size_t kp = 0;
-    for (const auto& k : f.keypoints) kp += k.size();
-    state.counters["total_s"] = total;
-    state.counters["keypoints"] = static_cast<double>(kp);
+    countStages(state, progress, f);
     state.counters["peak_device_MiB"] = static_cast<double>(gpu::peakDeviceBytes()) / 1048576.0;
   }
 }

@@ -43,6 +43,16 @@ double sequenceSpacing(const PointCloudSequence& seq) {
   return median(sizes) / std::sqrt(median(counts));
 }
 
+void configureScaleSpace(MLSScaleSpace& mls, const PointCloudSequence::Cloud::ConstPtr& cloud,
+                         const MultiscaleParams& p, double unit) {
+  mls.setInputCloud(cloud);
+  mls.setScale(p.h);
+  mls.setScaleFactor(p.k);
+  mls.setNumberOfLevels(p.levels);
+  mls.setNeighbourhoodRadius(2.0 * p.signature_h);
+  mls.setSpacing(unit);
+}
+
 PointCloudSequence::Cloud::Ptr signatureInput(const PointCloudSequence::Cloud& frame,
                                               const PointCloudSequence::Cloud& level0) {
   PointCloudSequence::Cloud::Ptr out(new PointCloudSequence::Cloud(frame));

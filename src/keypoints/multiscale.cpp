@@ -131,12 +131,7 @@ void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t 
       seq, first, last, progress, "scale_space",
       [&](std::size_t t) {
         MLSScaleSpace mls;
-        mls.setInputCloud(seq.frame(t));
-        mls.setScale(p.h);
-        mls.setScaleFactor(p.k);
-        mls.setNumberOfLevels(p.levels);
-        mls.setNeighbourhoodRadius(2.0 * p.signature_h);
-        mls.setSpacing(unit);
+        configureScaleSpace(mls, seq.frame(t), p, unit);
         if (device)
           plans[t - first] = mls.plan();
         else

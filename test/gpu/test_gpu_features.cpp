@@ -65,12 +65,7 @@ TEST(GpuFeatures, RowsAndLevelsAgreeWithTheCpu) {
   std::vector<pcl_animseg::ScaleSpace> cpu(seq.size()), dev(seq.size());
   for (std::size_t t = 0; t < seq.size(); ++t) {
     pcl_animseg::MLSScaleSpace mls;
-    mls.setInputCloud(seq.frame(t));
-    mls.setScale(p.h);
-    mls.setScaleFactor(p.k);
-    mls.setNumberOfLevels(p.levels);
-    mls.setNeighbourhoodRadius(2.0 * p.signature_h);
-    mls.setSpacing(unit);
+    pcl_animseg::configureScaleSpace(mls, seq.frame(t), p, unit);
     plans.push_back(mls.plan());
     mls.compute(cpu[t]);
   }

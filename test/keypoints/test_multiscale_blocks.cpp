@@ -53,12 +53,7 @@ class CpuFeatureDevice : public FeatureDevice {
     ASSERT_EQ(plans.size(), last - first);
     for (std::size_t t = first; t < last; ++t) {
       MLSScaleSpace mls;
-      mls.setInputCloud(seq.frame(t));
-      mls.setScale(p.h);
-      mls.setScaleFactor(p.k);
-      mls.setNumberOfLevels(p.levels);
-      mls.setNeighbourhoodRadius(2.0 * p.signature_h);
-      mls.setSpacing(plans[t - first].spacing);
+      configureScaleSpace(mls, seq.frame(t), p, plans[t - first].spacing);
       mls.compute(spaces[t]);
       // What the plan says is what compute() used.
       EXPECT_EQ(spaces[t].scales, plans[t - first].scales);

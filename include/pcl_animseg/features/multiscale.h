@@ -49,6 +49,11 @@ struct MultiscaleParams {
  * points all coincide. */
 double sequenceSpacing(const PointCloudSequence& seq);
 
+/** \brief Sets up `mls` for frame `cloud` as computeSequenceFeatures does: p's h, k and levels,
+ * neighbourhoods wide enough for the signature disc, lengths in the sequence's `unit`. */
+void configureScaleSpace(MLSScaleSpace& mls, const PointCloudSequence::Cloud::ConstPtr& cloud,
+                         const MultiscaleParams& p, double unit);
+
 /** \brief The cloud the signature is computed on: the frame's own points and normals (the most
  * accurate normals there are: the level-0 MLS normals are noisier on sparse random samples), with
  * level 0's normals where the frame has none (missing-normal fall-back). */
