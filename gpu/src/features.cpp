@@ -95,7 +95,6 @@ void FeatureDevice::scaleSpaces(const PointCloudSequence& seq, std::size_t first
     const NeighbourGrid grid = neighbourGrid(cloud, pl.radius);
     detail::FeatureFrame& ff = args.frames[f];
     ff.begin = static_cast<int>(b);
-    ff.end = static_cast<int>(d.begin[f + 1]);
     ff.ox = grid.origin.x();
     ff.oy = grid.origin.y();
     ff.oz = grid.origin.z();

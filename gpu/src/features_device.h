@@ -13,7 +13,7 @@ namespace detail {
 
 /** One frame of a block, as the CPU's MLSScaleSpace and SignatureEstimation see it. */
 struct FeatureFrame {
-  int begin = 0, end = 0;  ///< the frame's points in the block
+  int begin = 0;  ///< the frame's first point in the block (the next frame's begins its end)
   // The uniform grid of radiusNeighbourhoods (neighbourhood.cpp): origin, 1 / cell, the cells
   // along y and z, and the first key of this frame (frames' keys do not overlap).
   float ox = 0.0f, oy = 0.0f, oz = 0.0f, inv_cell = 0.0f;

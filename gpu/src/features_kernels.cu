@@ -4,6 +4,8 @@
 // file is compiled without fused multiply-adds), so the rows are the CPU's bit for bit and the
 // levels and signatures agree to the last bits of the library functions (exp, atan2, cos, sin:
 // the CPU's and CUDA's differ in the last bit now and then).
+#include <pcl_animseg/features/mls_projection.h>
+
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
@@ -26,11 +28,6 @@ constexpr int kRowBuffer = 256;  // a warp's sort buffer: the cap of a row (rows
 constexpr int kMaxD = 64;        // signature dimension R' S'
 constexpr int kMaxS = 32;        // directions S
 constexpr int kMaxSp = 16;       // angular frequencies S'
-
-template <typename V>
-__device__ inline bool finite3(const V& v) {
-  return isfinite(v(0)) && isfinite(v(1)) && isfinite(v(2));
-}
 
 __device__ inline int frameOf(const FeatureFrame* frames, int nframes, int i) {
   int lo = 0, hi = nframes - 1;
@@ -217,7 +214,8 @@ __global__ void rowsKernel(int n, const float* xyz, const FeatureFrame* frames, 
 }
 
 // ---------------------------------------------------------------------------------------------
-// One MLS diffusion step (scale_space.cpp: projectOnce), one thread a point.
+// One MLS diffusion step (scale_space.cpp: projectOnce, both through mls::project), one thread a
+// point. `curvature` may be null (steps whose curvature no level keeps).
 
 __global__ void projectKernel(int n, const FeatureFrame* frames, int nframes,
                               const long long* offsets, const int* rows, const float* sqr,
@@ -226,78 +224,23 @@ __global__ void projectKernel(int n, const FeatureFrame* frames, int nframes,
   const int j = blockIdx.x * blockDim.x + threadIdx.x;
   if (j >= n) return;
   const FeatureFrame& f = frames[frameOf(frames, nframes, j)];
-  const Eigen::Vector3f xj(src[3 * j], src[3 * j + 1], src[3 * j + 2]);
   const long long off = offsets[j];
   const int count = static_cast<int>(offsets[j + 1] - off);
-  const int* row = rows + off;
   const float* d2 = sqr + off;
   const float step_r2 = f.step_radius * f.step_radius;
-  int m = 0;
+  int m = 0;  // the row's entries inside the step's support (the CPU's countWithin)
   while (m < count && d2[m] <= step_r2) ++m;
-  float sw_f = 0.0f, sx = 0.0f, sy = 0.0f, sz = 0.0f;
-  float sxx = 0.0f, sxy = 0.0f, sxz = 0.0f, syy = 0.0f, syz = 0.0f, szz = 0.0f;
-  for (int a = 0; a < m; ++a) {
-    const float* q = src + 3 * row[a];
-    const float dx = q[0] - xj.x(), dy = q[1] - xj.y(), dz = q[2] - xj.z();
-    const float wa = static_cast<float>(exp(static_cast<double>(-d2[a] * f.inv_h2)));
-    sw_f += wa;
-    const float wx = wa * dx, wy = wa * dy, wz = wa * dz;
-    sx += wx;
-    sy += wy;
-    sz += wz;
-    sxx += wx * dx;
-    sxy += wx * dy;
-    sxz += wx * dz;
-    syy += wy * dy;
-    syz += wy * dz;
-    szz += wz * dz;
-  }
-  const double sw = sw_f;
-  const Eigen::Vector3d s1(sx, sy, sz);
-  Eigen::Matrix3d s2;
-  s2 << sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz;
-  Eigen::Vector3f nref(ref[3 * j], ref[3 * j + 1], ref[3 * j + 2]);
-  Eigen::Vector3f x_out = xj;
-  Eigen::Vector3f n_out = nref;
-  float c_out = 0.0f;
-  if (m >= 3 && sw > 0.0) {
-    const double inv_sw = 1.0 / sw;
-    const Eigen::Vector3d c = s1 * inv_sw;
-    const Eigen::Matrix3d cov = s2 * inv_sw - c * c.transpose();
-    const double tr = cov.trace();
-    Eigen::Vector3d nn;
-    double lmin = 0.0;
-    bool ok = tr > 0.0;
-    if (ok && exact) {
-      Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-      es.computeDirect(cov);
-      const Eigen::Vector3d ev = es.eigenvalues();
-      ok = ev(1) > 1e-10 * fmax(ev(2), 1e-300) && ev(2) > 0.0;
-      nn = es.eigenvectors().col(0);
-      lmin = ev(0);
-    } else if (ok) {
-      const Eigen::Matrix3d M = Eigen::Matrix3d::Identity() - cov * (1.0 / tr);
-      nn = nref.cast<double>();
-      for (int it = 0; it < 4; ++it) nn = M * nn;
-      nn.normalize();
-      lmin = nn.dot(cov * nn);
-      const double rest = tr - lmin;
-      const Eigen::Vector3d a = nn.unitOrthogonal(), b = nn.cross(a);
-      const double caa = a.dot(cov * a), cbb = b.dot(cov * b), cab = a.dot(cov * b);
-      ok = rest > 0.0 && (caa * cbb - cab * cab) > 1e-10 * rest * rest && finite3(nn);
-    }
-    if (ok) {
-      if (nn.cast<float>().dot(nref) < 0.0f) nn = -nn;
-      x_out = xj + (c.dot(nn) * nn).cast<float>();
-      n_out = nn.normalized().cast<float>();
-      c_out = static_cast<float>(lmin / tr);
-    }
-  }
+  const float inv_h2 = f.inv_h2;
+  // The CPU's weights are expf of the same float argument: exp in double, rounded.
+  const mls::Projection r = mls::project(
+      src, 3, j, rows + off, m,
+      [d2, inv_h2](int a) { return static_cast<float>(exp(static_cast<double>(-d2[a] * inv_h2))); },
+      Eigen::Vector3f(ref[3 * j], ref[3 * j + 1], ref[3 * j + 2]), exact);
   for (int k = 0; k < 3; ++k) {
-    dst[3 * j + k] = x_out(k);
-    dst_normals[3 * j + k] = n_out(k);
+    dst[3 * j + k] = r.x(k);
+    dst_normals[3 * j + k] = r.n(k);
   }
-  curvature[j] = c_out;
+  if (curvature) curvature[j] = r.curvature;
 }
 
 /** Level l of the block: positions and normals, 6 floats a point. */
@@ -321,7 +264,7 @@ __global__ void signatureNormalsKernel(int n, const float* normals, const float*
   if (j >= n) return;
   const Eigen::Vector3f nv(normals[3 * j], normals[3 * j + 1], normals[3 * j + 2]);
   Eigen::Vector3f r;
-  if (!finite3(nv) || nv.squaredNorm() < 0.25f)
+  if (!(mls::finite(nv(0)) && mls::finite(nv(1)) && mls::finite(nv(2))) || nv.squaredNorm() < 0.25f)
     r = Eigen::Vector3f(level0[6 * j + 3], level0[6 * j + 4], level0[6 * j + 5]);
   else
     r = nv.normalized();
@@ -731,7 +674,6 @@ void FeatureBlock::launch(const FeatureBlockArgs& args) {
     DeviceArray<float> cur(3 * static_cast<std::size_t>(n)), next(3 * static_cast<std::size_t>(n));
     DeviceArray<float> ref(3 * static_cast<std::size_t>(n)),
         next_ref(3 * static_cast<std::size_t>(n));
-    DeviceArray<float> curv(n);
     d.xyz.copyTo(cur);
     d.ref.copyTo(ref);
     int done = 0;
@@ -741,7 +683,7 @@ void FeatureBlock::launch(const FeatureBlockArgs& args) {
         projectKernel<<<blocksFor(n, tb), tb>>>(n, d.frames.ptr(), nframes, d.offsets.ptr(),
                                                 d.rows.ptr(), d.sqr.ptr(), cur.ptr(), ref.ptr(),
                                                 done == 0, next.ptr(), next_ref.ptr(),
-                                                done == 0 ? d.curvature0.ptr() : curv.ptr());
+                                                done == 0 ? d.curvature0.ptr() : nullptr);
         cudaCheckLaunch();
         std::swap(cur, next);
         std::swap(ref, next_ref);

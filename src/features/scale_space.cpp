@@ -1,8 +1,8 @@
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/features/mls_projection.h>
 #include <pcl_animseg/features/scale_space.h>
 
 #include <Eigen/Eigenvalues>
-
 #include <algorithm>
 #include <cmath>
 #include <sstream>
@@ -24,89 +24,21 @@ void projectOnce(const Cloud& src, const Neighbourhoods& nb, const std::vector<i
                  const std::vector<float>& weights, const std::vector<Eigen::Vector3f>& ref,
                  bool exact, Cloud& dst) {
   const long n = static_cast<long>(src.size());
+  // Point q's position is the first three floats of src[q] (pcl::PointNormal: 12 floats a point).
+  const float* xyz = reinterpret_cast<const float*>(src.points.data());
+  constexpr int stride = sizeof(pcl::PointNormal) / sizeof(float);
 #pragma omp parallel for schedule(dynamic, 512)
   for (long jl = 0; jl < n; ++jl) {
     const std::size_t j = static_cast<std::size_t>(jl);
-    const Eigen::Vector3f xj = src[j].getVector3fMap();
-    const int* row = nb.row(j);
     const float* w = weights.data() + nb.offsets[j];
-    const int m = limit[j];
-    // Moments in float, relative to x_j (so that positions far from the origin lose no
-    // precision; the offsets are a few spacings, a few dozen terms): the upper triangle only.
-    // The double 3x3 outer products were most of a diffusion step.
-    float sw_f = 0.0f, sx = 0.0f, sy = 0.0f, sz = 0.0f;
-    float sxx = 0.0f, sxy = 0.0f, sxz = 0.0f, syy = 0.0f, syz = 0.0f, szz = 0.0f;
-    for (int a = 0; a < m; ++a) {
-      const float* q = src[row[a]].data;
-      const float dx = q[0] - xj.x(), dy = q[1] - xj.y(), dz = q[2] - xj.z();
-      const float wa = w[a];
-      sw_f += wa;
-      const float wx = wa * dx, wy = wa * dy, wz = wa * dz;
-      sx += wx;
-      sy += wy;
-      sz += wz;
-      sxx += wx * dx;
-      sxy += wx * dy;
-      sxz += wx * dz;
-      syy += wy * dy;
-      syz += wy * dz;
-      szz += wz * dz;
-    }
-    const double sw = sw_f;
-    const Eigen::Vector3d s1(sx, sy, sz);
-    Eigen::Matrix3d s2;
-    s2 << sxx, sxy, sxz, sxy, syy, syz, sxz, syz, szz;
+    const mls::Projection r = mls::project(
+        xyz, stride, static_cast<int>(j), nb.row(j), limit[j], [w](int a) { return w[a]; }, ref[j],
+        exact);
     pcl::PointNormal& out = dst[j];
     out = src[j];
-    Eigen::Vector3f nref = ref[j];
-    bool projected = false;
-    if (m >= 3 && sw > 0.0) {
-      const double inv_sw = 1.0 / sw;
-      const Eigen::Vector3d c = s1 * inv_sw;
-      const Eigen::Matrix3d cov = s2 * inv_sw - c * c.transpose();
-      const double tr = cov.trace();
-      Eigen::Vector3d nn;
-      double lmin = 0.0;
-      bool ok = tr > 0.0;
-      if (ok && exact) {
-        Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> es;
-        es.computeDirect(cov);
-        const Eigen::Vector3d ev = es.eigenvalues();
-        // A plane needs two clearly non-zero spreads; on a line or a single spot keep the point.
-        ok = ev(1) > 1e-10 * std::max(ev(2), 1e-300) && ev(2) > 0.0;
-        nn = es.eigenvectors().col(0);
-        lmin = ev(0);
-      } else if (ok) {
-        // Diffusion steps after the first: the normal moves little per step, so a few power
-        // iterations on tr(C) I - C from the previous normal replace a full eigensolver (which
-        // was most of the scale space's time); errors do not accumulate since each step
-        // restarts from the last estimate.
-        // M = I - C / tr has eigenvalues in [0, 1] with the largest >= 2/3, so the iterates
-        // neither overflow nor underflow and one normalisation at the end suffices (divisions
-        // and square roots per iteration were the step's bottleneck).
-        const Eigen::Matrix3d M = Eigen::Matrix3d::Identity() - cov * (1.0 / tr);
-        nn = nref.cast<double>();
-        for (int it = 0; it < 4; ++it) nn = M * nn;
-        nn.normalize();
-        lmin = nn.dot(cov * nn);
-        const double rest = tr - lmin;  // spread in the plane: must not be a line or a spot
-        const Eigen::Vector3d a = nn.unitOrthogonal(), b = nn.cross(a);
-        const double caa = a.dot(cov * a), cbb = b.dot(cov * b), cab = a.dot(cov * b);
-        ok = rest > 0.0 && (caa * cbb - cab * cab) > 1e-10 * rest * rest && nn.allFinite();
-      }
-      if (ok) {
-        if (nn.cast<float>().dot(nref) < 0.0f) nn = -nn;
-        const Eigen::Vector3f x = xj + (c.dot(nn) * nn).cast<float>();
-        out.getVector3fMap() = x;
-        out.getNormalVector3fMap() = nn.normalized().cast<float>();
-        out.curvature = static_cast<float>(lmin / tr);
-        projected = true;
-      }
-    }
-    if (!projected) {
-      out.getNormalVector3fMap() = nref;
-      out.curvature = 0.0f;
-    }
+    out.getVector3fMap() = r.x;
+    out.getNormalVector3fMap() = r.n;
+    out.curvature = r.curvature;
   }
 }
 
@@ -208,10 +140,7 @@ void MLSScaleSpace::compute(ScaleSpace& output) const {
   }
   std::vector<Eigen::Vector3f>& ref = plan.ref;
   const std::vector<int>& counts = plan.counts;
-  const double spacing = plan.spacing;
-  const double h0 = plan.h0;
-
-  output.spacing = spacing;
+  output.spacing = plan.spacing;
   output.input = input_;
   output.neighbourhoods = nb;
   output.scales.clear();
@@ -227,8 +156,8 @@ void MLSScaleSpace::compute(ScaleSpace& output) const {
       ++done;
     }
     output.levels.push_back(cur);
-    output.scales.push_back(h0 * std::sqrt(static_cast<double>(counts[i])));
   }
+  output.scales = plan.scales;
 }
 
 }  // namespace pcl_animseg
