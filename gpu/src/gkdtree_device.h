@@ -62,6 +62,19 @@ void meanShiftUpdate(float* y, const float* out, int d, const int* rows, int nro
                      const float* metric, const unsigned char* key, float tolerance,
                      int* next_plain, int* next_key, int* counters, int& n_plain, int& n_key);
 
+/** rows x cols row-major `src` -> cols x rows row-major `dst` (so a column-major Eigen matrix
+ * n x d, which is d x n row-major, becomes n x d row-major with rows = d, cols = n). */
+void transpose(const float* src, int rows, int cols, float* dst);
+
+/** Rows idx[0 .. ni) of src (row-major, d columns) into raw (when given) and, multiplied by
+ * metric[k] (one rounded float multiply, as Eigen's cwiseProduct on the CPU), into scaled (when
+ * given); both ni x d row-major. */
+void gatherRows(const float* src, int d, const int* idx, int ni, const float* metric, float* raw,
+                float* scaled);
+
+/** dst[i] = src[i * v + c] for i < n. */
+void column(const float* src, int n, int v, int c, float* dst);
+
 }  // namespace detail
 }  // namespace gpu
 }  // namespace pcl_animseg

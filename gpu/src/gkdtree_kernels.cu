@@ -395,6 +395,39 @@ __global__ void updateKernel(float* __restrict__ y, const float* __restrict__ ou
   }
 }
 
+// rows x cols row-major -> cols x rows row-major, 32 x 32 tiles through shared memory.
+__global__ void transposeKernel(const float* __restrict__ src, int rows, int cols,
+                                float* __restrict__ dst) {
+  __shared__ float tile[32][33];
+  const int c0 = blockIdx.x * 32, r0 = blockIdx.y * 32;
+  for (int i = threadIdx.y; i < 32; i += blockDim.y) {
+    const int r = r0 + i, c = c0 + threadIdx.x;
+    if (r < rows && c < cols) tile[i][threadIdx.x] = src[static_cast<long long>(r) * cols + c];
+  }
+  __syncthreads();
+  for (int i = threadIdx.y; i < 32; i += blockDim.y) {
+    const int c = c0 + i, r = r0 + threadIdx.x;
+    if (r < rows && c < cols) dst[static_cast<long long>(c) * rows + r] = tile[threadIdx.x][i];
+  }
+}
+
+__global__ void gatherRowsKernel(const float* __restrict__ src, int d, const int* __restrict__ idx,
+                                 int ni, const float* __restrict__ metric, float* __restrict__ raw,
+                                 float* __restrict__ scaled) {
+  const long long e = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
+  if (e >= static_cast<long long>(ni) * d) return;
+  const int i = static_cast<int>(e / d), k = static_cast<int>(e % d);
+  const float x = src[static_cast<long long>(idx[i]) * d + k];
+  if (raw) raw[e] = x;
+  if (scaled) scaled[e] = __fmul_rn(x, metric[k]);
+}
+
+__global__ void columnKernel(const float* __restrict__ src, int n, int v, int c,
+                             float* __restrict__ dst) {
+  const long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
+  if (i < n) dst[i] = src[i * v + c];
+}
+
 }  // namespace
 
 void buildTree(const float* points, int n, int d, const filters::GaussianKdTreeParams& params,
@@ -671,6 +704,28 @@ void meanShiftUpdate(float* y, const float* out, int d, const int* rows, int nro
   cudaSafeCall(cudaMemcpy(h, counters, 2 * sizeof(int), cudaMemcpyDeviceToHost));
   n_plain = h[0];
   n_key = h[1];
+}
+
+void transpose(const float* src, int rows, int cols, float* dst) {
+  if (rows <= 0 || cols <= 0) return;
+  const dim3 grid(static_cast<unsigned>(blocksFor(cols, 32)),
+                  static_cast<unsigned>(blocksFor(rows, 32)));
+  transposeKernel<<<grid, dim3(32, 8)>>>(src, rows, cols, dst);
+  cudaCheckLaunch();
+}
+
+void gatherRows(const float* src, int d, const int* idx, int ni, const float* metric, float* raw,
+                float* scaled) {
+  const long long e = static_cast<long long>(ni) * d;
+  if (e == 0) return;
+  gatherRowsKernel<<<blocksFor(e, 256), 256>>>(src, d, idx, ni, metric, raw, scaled);
+  cudaCheckLaunch();
+}
+
+void column(const float* src, int n, int v, int c, float* dst) {
+  if (n <= 0) return;
+  columnKernel<<<blocksFor(n, 256), 256>>>(src, n, v, c, dst);
+  cudaCheckLaunch();
 }
 
 }  // namespace detail

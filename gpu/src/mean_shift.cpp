@@ -32,12 +32,47 @@ struct Group {
   DeviceArray<float> metric;  // the metric its data and queries are scaled by
   int applies_to = 0;         // 0: every query, 1: plain queries, 2: keypoint queries
 };
+
+/** out (rows listed, nrows of them: np plain then nk keypoint queries; n x (d + 1) row-major) =
+ * the kernel sums of every group that applies to each query, added in group order. */
+void evaluateGroups(const std::vector<std::unique_ptr<Group>>& groups,
+                    const filters::GaussianKdTreeParams& gp, int v, const float* queries,
+                    const int* rows, int np, int nk, float* out) {
+  for (const auto& g : groups) {
+    const int* r = rows;
+    int nr = np + nk;
+    if (g->applies_to == 1) nr = np;
+    if (g->applies_to == 2) r = rows + np, nr = nk;
+    detail::slice(g->tree, gp, g->sample_values.ptr(), v, queries, g->metric.ptr(), r, nr, true,
+                  out);
+  }
+}
+
+/** A column-major host matrix (n x d) as n x d row-major on the device. */
+void uploadRows(const Eigen::MatrixXf& m, DeviceArray<float>& rows) {
+  const int n = static_cast<int>(m.rows()), d = static_cast<int>(m.cols());
+  DeviceArray<float> cols(m.data(), m.size());
+  rows.create(m.size());
+  detail::transpose(cols.ptr(), d, n, rows.ptr());
+}
 }  // namespace
+
+struct MeanShift::State {
+  int d = 0;
+  filters::GaussianKdTreeParams gkdtree;
+  std::vector<std::unique_ptr<Group>> groups;
+};
+
+MeanShift::MeanShift() = default;
+MeanShift::~MeanShift() = default;
+MeanShift::MeanShift(MeanShift&&) noexcept = default;
+MeanShift& MeanShift::operator=(MeanShift&&) noexcept = default;
 
 void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
                     const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint,
                     Eigen::MatrixXf& y, Eigen::VectorXf& density) {
   stats_ = MeanShiftStats();
+  state_.reset();
   const int n = static_cast<int>(z.rows());
   const int d = static_cast<int>(z.cols());
   if (n == 0 || d == 0) throw Error("GPU mean shift: no points");
@@ -58,8 +93,9 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
   resetPeakDeviceBytes();
 
   auto t0 = Clock::now();
-  const RowMatrix zr = z;
-  DeviceArray<float> d_z(zr.data(), zr.size());  // raw features: the values [z, 1] (Eq. 10)
+  // The features go up as they are (column-major) and are put in rows on the device.
+  DeviceArray<float> d_z;  // raw features: the values [z, 1] (Eq. 10)
+  uploadRows(z, d_z);
   DeviceArray<float> d_y;
   d_z.copyTo(d_y);
   // Active list: plain queries first, then keypoint queries (the groups slice sub-ranges).
@@ -80,28 +116,27 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
   DeviceArray<float> out(static_cast<std::size_t>(n) * v);
   stats_.upload_s = since(t0);
 
-  // The groups of the CPU's JointKernelSum.
-  std::vector<std::unique_ptr<Group>> groups;
+  // The groups of the CPU's JointKernelSum; their data gathered and scaled on the device.
+  auto state = std::make_unique<State>();
+  state->d = d;
+  state->gkdtree = gp;
   auto make = [&](const std::vector<int>& idx, bool key_metric, int applies) {
     if (idx.empty()) return;
     auto tb = Clock::now();
     const Eigen::RowVectorXf& m = key_metric ? metric_key : metric_plain;
     const int ni = static_cast<int>(idx.size());
-    RowMatrix x(ni, d), raw(ni, d);
-    for (int i = 0; i < ni; ++i) {
-      raw.row(i) = zr.row(idx[i]);
-      x.row(i) = raw.row(i).cwiseProduct(m);
-    }
     auto g = std::make_unique<Group>();
     g->applies_to = applies;
     g->metric.upload(m.data(), d);
+    DeviceArray<int> d_idx(idx.data(), idx.size());
+    DeviceArray<float> draw(static_cast<std::size_t>(ni) * d);
     {
-      DeviceArray<float> dx(x.data(), x.size());
+      DeviceArray<float> dx(static_cast<std::size_t>(ni) * d);
+      detail::gatherRows(d_z.ptr(), d, d_idx.ptr(), ni, g->metric.ptr(), draw.ptr(), dx.ptr());
       detail::buildTree(dx.ptr(), ni, d, gp, g->tree);
     }
     stats_.build_s += since(tb);
     tb = Clock::now();
-    DeviceArray<float> draw(raw.data(), raw.size());
     detail::splatBlur(g->tree, nullptr, draw.ptr(), v, gp.blur_radius, g->sample_values);
     stats_.splat_blur_s += since(tb);
     stats_.num_samples += g->tree.m;
@@ -109,7 +144,7 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
       stats_.plain_points = static_cast<std::size_t>(ni);
       stats_.plain_samples = g->tree.m;
     }
-    groups.push_back(std::move(g));
+    state->groups.push_back(std::move(g));
   };
   make(plain, false, 0);
   make(key, false, 1);  // Eq. 6 between a keypoint and a non-keypoint query
@@ -117,14 +152,7 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
 
   auto evaluate = [&](const int* rows, int np, int nk) {
     out.setZero();
-    for (const auto& g : groups) {
-      const int* r = rows;
-      int nr = np + nk;
-      if (g->applies_to == 1) nr = np;
-      if (g->applies_to == 2) r = rows + np, nr = nk;
-      detail::slice(g->tree, gp, g->sample_values.ptr(), v, d_y.ptr(), g->metric.ptr(), r, nr,
-                    true, out.ptr());
-    }
+    evaluateGroups(state->groups, gp, v, d_y.ptr(), rows, np, nk, out.ptr());
   };
 
   t0 = Clock::now();
@@ -158,14 +186,49 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
   synchronize();
   stats_.density_s = since(t0);
 
+  // Down: the end points put back in columns on the device, and the density column alone.
   t0 = Clock::now();
-  RowMatrix yr(n, d), o(n, v);
-  d_y.download(yr.data());
-  out.download(o.data());
-  y = yr;
-  density = o.col(d);
+  {
+    DeviceArray<float> cols(static_cast<std::size_t>(n) * d);
+    detail::transpose(d_y.ptr(), n, d, cols.ptr());
+    y.resize(n, d);
+    cols.download(y.data());
+  }
+  {
+    DeviceArray<float> col(n);
+    detail::column(out.ptr(), n, v, d, col.ptr());
+    density.resize(n);
+    col.download(density.data());
+  }
   stats_.download_s = since(t0);
   stats_.peak_device_bytes = peakDeviceBytes();
+  state_ = std::move(state);
+}
+
+void MeanShift::density(const Eigen::MatrixXf& queries, const std::vector<char>& query_key,
+                        Eigen::VectorXf& out) const {
+  if (!state_) throw Error("GPU mean shift: density before a run");
+  const int q = static_cast<int>(queries.rows()), d = state_->d, v = d + 1;
+  if (queries.cols() != d) throw Error("GPU density: queries and data differ in dimension");
+  if (!query_key.empty() && query_key.size() != static_cast<std::size_t>(q))
+    throw Error("GPU density: query flags must have one entry per query");
+  out.setZero(q);
+  if (q == 0) return;
+  DeviceArray<float> d_q;
+  uploadRows(queries, d_q);
+  // Plain queries first, then keypoint queries, as the iteration lists them.
+  std::vector<int> rows, key_rows;
+  rows.reserve(static_cast<std::size_t>(q));
+  for (int r = 0; r < q; ++r) (!query_key.empty() && query_key[r] ? key_rows : rows).push_back(r);
+  const int np = static_cast<int>(rows.size()), nk = static_cast<int>(key_rows.size());
+  rows.insert(rows.end(), key_rows.begin(), key_rows.end());
+  DeviceArray<int> d_rows(rows.data(), rows.size());
+  DeviceArray<float> sums(static_cast<std::size_t>(q) * v);
+  sums.setZero();
+  evaluateGroups(state_->groups, state_->gkdtree, v, d_q.ptr(), d_rows.ptr(), np, nk, sums.ptr());
+  DeviceArray<float> col(q);
+  detail::column(sums.ptr(), q, v, d, col.ptr());
+  col.download(out.data());
 }
 
 void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain,

@@ -115,6 +115,7 @@ class ExactSums : public segmentation::DeviceExactSums {
     if (g.dist.empty()) throw Error("GPU exact sums: every weight of the metric is 0");
     const int dx = static_cast<int>(g.dist.size()), dc = static_cast<int>(g.carried.size());
     Eigen::MatrixXf x(idx.size(), dx), c(dc ? idx.size() : 0, dc);
+#pragma omp parallel for schedule(static)
     for (std::size_t i = 0; i < idx.size(); ++i) {
       for (int k = 0; k < dx; ++k) x(i, k) = z(idx[i], g.dist[k]) * metric[g.dist[k]];
       for (int k = 0; k < dc; ++k) c(i, k) = z(idx[i], g.carried[k]);
@@ -170,6 +171,9 @@ struct MeanShiftBackend::DensityCache {
   Eigen::MatrixXf weights[3];
   bool built[3] = {false, false, false};
   std::unique_ptr<ExactSums> exact;  // the exact backend's sums (params.backend == Exact)
+  // The iteration's trees and blurred values on the same data (seekModes): the same densities
+  // without building the trees again.
+  std::unique_ptr<MeanShift> iteration;
 };
 
 namespace {
@@ -204,14 +208,27 @@ void MeanShiftBackend::seekModes(const Eigen::MatrixXf& z, const Eigen::RowVecto
                                  const segmentation::MeanShiftParams& params, Eigen::MatrixXf& y,
                                  Eigen::VectorXf& density) {
   requireGpu();
-  MeanShift ms;
+  density_cache_.reset();  // the last data's device memory first
+  auto ms = std::make_unique<MeanShift>();
   MeanShiftParams p;
   p.gkdtree = params.gkdtree;
   p.max_iterations = params.max_iterations;
   p.convergence = params.convergence;
-  ms.setParams(p);
-  ms.run(z, metric_plain, metric_key, keypoint, y, density);
-  stats_ = ms.stats();
+  ms->setParams(p);
+  ms->run(z, metric_plain, metric_key, keypoint, y, density);
+  stats_ = ms->stats();
+  // Its trees stay for the densities on the same data (the end points' after the exact steps,
+  // the points', the border rounds').
+  auto cache = std::make_shared<DensityCache>();
+  cache->key = densityKey(z, metric_plain, metric_key, keypoint, params.gkdtree);
+  cache->iteration = std::move(ms);
+  density_cache_ = std::move(cache);
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(stderr,
+                 "[gpu mean shift] upload %.3f s, build %.3f s, splat + blur %.3f s, %d steps "
+                 "%.3f s, density %.3f s, download %.3f s\n",
+                 stats_.upload_s, stats_.build_s, stats_.splat_blur_s, stats_.iterations,
+                 stats_.iterate_s, stats_.density_s, stats_.download_s);
 }
 
 void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
@@ -251,6 +268,10 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
       density_cache_.reset();
       throw;
     }
+    return;
+  }
+  if (cache.iteration) {
+    cache.iteration->density(queries, query_key, out);
     return;
   }
   // Groups as on the CPU: non-keypoints for every query under the plain metric; keypoints under

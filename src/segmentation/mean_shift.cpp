@@ -1,14 +1,9 @@
-#include "mean_shift_internal.h"
-
-#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/union_find.h>
 
-#include <flann/flann.hpp>
-
 #include <Eigen/Eigenvalues>
-
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -16,12 +11,16 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <flann/flann.hpp>
 #include <functional>
+#include <future>
 #include <limits>
 #include <numeric>
 #include <queue>
 #include <sstream>
 #include <unordered_map>
+
+#include "mean_shift_internal.h"
 
 namespace pcl_animseg {
 namespace segmentation {
@@ -153,6 +152,8 @@ JointSpace buildJointSpace(const PointCloudSequence& seq, const std::vector<Eige
   const double s = js.scale > 0.0 ? js.scale : 1.0;
   js.z.resize(static_cast<Eigen::Index>(n), dim);
   js.keypoint.assign(n, 0);
+  // Frames in parallel: each writes its own rows.
+#pragma omp parallel for schedule(dynamic, 1)
   for (std::size_t t = 0; t < seq.size(); ++t) {
     const auto& cloud = *seq.frame(t);
     for (std::size_t j = 0; j < cloud.size(); ++j) {
@@ -720,18 +721,20 @@ void JointKernelSum::evaluate(const Eigen::MatrixXf& y, const std::vector<int>& 
 std::vector<int> knnGraph(const PointCloudSequence& seq, int k) {
   const auto offsets = seq.offsets();
   std::vector<int> graph(seq.totalPoints() * k, -1);
-  for (std::size_t t = 0; t < seq.size(); ++t) {
-    const auto& cloud = seq.frame(t);
-    if (cloud->size() < 2) continue;
-    pcl_animseg::KdTree<pcl::PointNormal> tree;
-    tree.setInputCloud(cloud);
-    const int kk = std::min<int>(k + 1, static_cast<int>(cloud->size()));
-    const int n = static_cast<int>(cloud->size());
+  // A frame a task (its tree built and searched by one thread): the trees' builds are serial,
+  // and a frame's searches are too few to share among many threads.
 #pragma omp parallel
-    {
-      std::vector<int> idx;
-      std::vector<float> d2;
-#pragma omp for schedule(static)
+  {
+    std::vector<int> idx;
+    std::vector<float> d2;
+#pragma omp for schedule(dynamic, 1)
+    for (std::size_t t = 0; t < seq.size(); ++t) {
+      const auto& cloud = seq.frame(t);
+      if (cloud->size() < 2) continue;
+      pcl_animseg::KdTree<pcl::PointNormal> tree;
+      tree.setInputCloud(cloud);
+      const int kk = std::min<int>(k + 1, static_cast<int>(cloud->size()));
+      const int n = static_cast<int>(cloud->size());
       for (int j = 0; j < n; ++j) {
         tree.nearestKSearch((*cloud)[j], kk, idx, d2);
         int c = 0;
@@ -947,6 +950,85 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
 
 }  // namespace detail
 
+namespace {
+
+/** The integer cells of the rows of y (n x d): cells[i * width + c] = floor(y(i, c) * metric[c] /
+ * cell) for c < d (the float expression the groupings always used), and, when width is d + 1, the
+ * row's flag in the last column (row_flag[i], 0 without flags). Rows in parallel, in blocks. */
+std::vector<int> cellCoordinates(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric,
+                                 float cell, const std::vector<char>& row_flag, int width) {
+  const Eigen::Index n = y.rows();
+  const int d = static_cast<int>(y.cols());
+  std::vector<int> cells(static_cast<std::size_t>(n) * width, 0);
+  constexpr Eigen::Index kBlock = 1024;
+  const Eigen::Index blocks = (n + kBlock - 1) / kBlock;
+#pragma omp parallel for schedule(static)
+  for (Eigen::Index b = 0; b < blocks; ++b) {
+    const Eigen::Index lo = b * kBlock, hi = std::min(n, lo + kBlock);
+    for (int c = 0; c < d; ++c) {
+      const float m = metric[c];
+      const float* col = y.data() + static_cast<std::size_t>(c) * n;
+      for (Eigen::Index i = lo; i < hi; ++i)
+        cells[static_cast<std::size_t>(i) * width + c] =
+            static_cast<int>(std::floor(col[i] * m / cell));
+    }
+    if (width > d && !row_flag.empty())
+      for (Eigen::Index i = lo; i < hi; ++i)
+        cells[static_cast<std::size_t>(i) * width + d] = row_flag[i];
+  }
+  return cells;
+}
+
+/** Groups equal rows of `cells` (n rows of `width` ints): group_of[i] is row i's group, groups
+ * numbered in the order of their first rows, which are returned. An open-addressing table of
+ * the rows' hashes (computed in parallel); the rows are then taken in order, so the numbering
+ * is the one a map filled row by row gives. */
+std::vector<int> groupEqualRows(const std::vector<int>& cells, int width,
+                                std::vector<int>& group_of) {
+  const std::size_t n = width > 0 ? cells.size() / static_cast<std::size_t>(width) : 0;
+  group_of.assign(n, 0);
+  std::vector<int> first;
+  if (n == 0) return first;
+  std::vector<std::uint64_t> hash(n);
+#pragma omp parallel for schedule(static)
+  for (std::ptrdiff_t i = 0; i < static_cast<std::ptrdiff_t>(n); ++i) {
+    const int* row = cells.data() + static_cast<std::size_t>(i) * width;
+    std::uint64_t h = 0x9e3779b97f4a7c15ull;
+    for (int c = 0; c < width; ++c) {
+      h = (h ^ static_cast<std::uint32_t>(row[c])) * 0xff51afd7ed558ccdull;
+      h ^= h >> 31;
+    }
+    hash[i] = h;
+  }
+  std::size_t size = 16;
+  while (size < 2 * n) size <<= 1;
+  const std::size_t mask = size - 1;
+  std::vector<int> slot(size, -1);  // the group in the slot
+  const std::size_t bytes = sizeof(int) * static_cast<std::size_t>(width);
+  for (std::size_t i = 0; i < n; ++i) {
+    const int* row = cells.data() + i * width;
+    std::size_t at = hash[i] & mask;
+    for (;;) {
+      const int g = slot[at];
+      if (g < 0) {
+        slot[at] = static_cast<int>(first.size());
+        group_of[i] = static_cast<int>(first.size());
+        first.push_back(static_cast<int>(i));
+        break;
+      }
+      const std::size_t f = static_cast<std::size_t>(first[g]);
+      if (hash[f] == hash[i] && std::memcmp(cells.data() + f * width, row, bytes) == 0) {
+        group_of[i] = g;
+        break;
+      }
+      at = (at + 1) & mask;
+    }
+  }
+  return first;
+}
+
+}  // namespace
+
 void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain,
                 const Eigen::VectorXf& density, double merge_radius, std::vector<int>& labels,
                 std::vector<int>& mode_rep) {
@@ -959,28 +1041,16 @@ void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain
   mode_rep.clear();
   if (n == 0) return;
   // 1. End points that coincide (cells of a fifth of the merge radius) form one group,
-  //    represented by its densest point. Hash of the integer cell coordinates: O(N d).
+  //    represented by its densest point (the first of them). Hash of the integer cell
+  //    coordinates: O(N d).
   using RowMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
-  const RowMatrix ys = y.array().rowwise() * metric_plain.array();
   const float cell = static_cast<float>(merge_radius / 5.0);
-  std::unordered_map<std::string, int> cell_group;
-  cell_group.reserve(static_cast<std::size_t>(n / 4 + 16));
-  std::vector<int> group_of(n);
-  std::vector<int> group_rep;
-  std::string key(sizeof(int) * dim, '\0');
+  std::vector<int> group_of;
+  std::vector<int> group_rep =
+      groupEqualRows(cellCoordinates(y, metric_plain, cell, {}, dim), dim, group_of);
   for (Eigen::Index i = 0; i < n; ++i) {
-    for (int c = 0; c < dim; ++c) {
-      const int q = static_cast<int>(std::floor(ys(i, c) / cell));
-      std::memcpy(&key[sizeof(int) * c], &q, sizeof(int));
-    }
-    auto it = cell_group.find(key);
-    if (it == cell_group.end()) {
-      it = cell_group.emplace(key, static_cast<int>(group_rep.size())).first;
-      group_rep.push_back(static_cast<int>(i));
-    } else if (density[i] > density[group_rep[it->second]]) {
-      group_rep[it->second] = static_cast<int>(i);
-    }
-    group_of[i] = it->second;
+    int& rep = group_rep[group_of[i]];
+    if (density[i] > density[rep]) rep = static_cast<int>(i);
   }
   const int ng = static_cast<int>(group_rep.size());
   std::vector<int> order(ng);
@@ -995,7 +1065,7 @@ void groupModes(const Eigen::MatrixXf& y, const Eigen::RowVectorXf& metric_plain
   //    group representatives (O(G log G) for the well-separated groups mean shift leaves, instead
   //    of O(G x modes), which did not finish at 800k points with ~10^4 unconverged groups).
   RowMatrix reps(ng, dim);
-  for (int g = 0; g < ng; ++g) reps.row(g) = ys.row(group_rep[g]);
+  for (int g = 0; g < ng; ++g) reps.row(g) = y.row(group_rep[g]).cwiseProduct(metric_plain);
   std::vector<int> group_mode(ng, -1);
   const float r2 = static_cast<float>(merge_radius * merge_radius);
   if (ng > 1) {
@@ -1075,19 +1145,10 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   const Eigen::Index n = y.rows();  // end points: one per data point or per cell
   const int dim = static_cast<int>(y.cols());
   const float cell = static_cast<float>(params.merge_radius / 10.0);
-  std::unordered_map<std::string, int> cell_group;
-  std::vector<int> group_of(n), rep;
+  std::vector<int> group_of;
+  const std::vector<int> rep = groupEqualRows(
+      cellCoordinates(y, space.metric_plain, cell, row_key, dim + 1), dim + 1, group_of);
   std::string key(sizeof(int) * dim + 1, '\0');
-  for (Eigen::Index i = 0; i < n; ++i) {
-    for (int c = 0; c < dim; ++c) {
-      const int q = static_cast<int>(std::floor(y(i, c) * space.metric_plain[c] / cell));
-      std::memcpy(&key[sizeof(int) * c], &q, sizeof(int));
-    }
-    key.back() = row_key.empty() ? 0 : row_key[i];
-    auto it = cell_group.emplace(key, static_cast<int>(rep.size())).first;
-    if (it->second == static_cast<int>(rep.size())) rep.push_back(static_cast<int>(i));
-    group_of[i] = it->second;
-  }
   const int g = static_cast<int>(rep.size());
   Eigen::MatrixXf yg(g, dim);
   std::vector<char> key_of(row_key.empty() ? 0 : g);
@@ -1186,6 +1247,7 @@ void refineEndPoints(const JointSpace& space, const MeanShiftParams& params,
   forget(active);
   for (int r = 0; r < g; ++r) yg.row(r) = yg.row(root(r)).eval();
   for (Eigen::Index i = 0; i < n; ++i) y.row(i) = yg.row(group_of[i]);
+  timer.lap("refinement: exact steps");
   if (timer.on())
     std::fprintf(stderr,
                  "[mean shift] refinement: %d groups, %ld exact steps, %ld tree searches, %d "
@@ -1525,19 +1587,35 @@ void runPaper(const JointSpace& space, const std::vector<int>& graph, int k,
   // result's densities: kept for the caller), the refinement's exact steps and the border
   // rounds'.
   device_sums.reset();
-  if (device && (!gkd || params.refine_iterations > 0 || params.exact_borders)) {
+  const bool need_sums = device && (!gkd || params.refine_iterations > 0 || params.exact_borders);
+  if (need_sums && !gkd) {
     StageTimer upload_timer;
     device_sums = device->exactSums(space.z, space.metric_plain, space.metric_key, keys);
     upload_timer.lap("exact sums: data to the device");
   }
   if (device && gkd) {
+    StageTimer timer;
+    // The exact sums' data (ordered on the host, then uploaded) are made on a thread of their
+    // own while the device iterates: the host mostly waits for the device there.
+    std::future<std::unique_ptr<DeviceExactSums>> pending;
+    if (need_sums)
+      pending = std::async(std::launch::async, [&] {
+        return device->exactSums(space.z, space.metric_plain, space.metric_key, keys);
+      });
     if (progress) progress->begin("mean shift on " + device->name(), 1);
     device->seekModes(space.z, space.metric_plain, space.metric_key, keys, params, y, end_density);
     if (progress) progress->end();
+    timer.lap("device iteration");
+    if (pending.valid()) {
+      device_sums = pending.get();
+      timer.lap("exact sums: data to the device (beside the iteration)");
+    }
     if (params.refine_iterations > 0) {
       refineEndPoints(space, params, keys, y, nullptr, device_sums.get());
+      timer.restart();
       device->density(space.z, space.metric_plain, space.metric_key, keys, params, y, keys,
                       end_density);
+      timer.lap("density at end points (device)");
     }
   } else {
     // The CPU's iteration; for the exact backend with its sums on the device when it has them.

@@ -201,3 +201,46 @@ TEST(GpuMeanShift, DensityKeepsItsTreesOnlyForTheSameData) {
   EXPECT_FALSE(f3 == f2);
   EXPECT_GT(f2.minCoeff(), 0.0f);
 }
+
+// After seekModes the backend answers densities on the same data from the iteration's own trees
+// and blurred values (their homogeneous column): the same bits as a fresh backend that builds
+// the density's trees, at the end points and at other queries, keypoint queries included; and
+// the iteration's end densities are those of its end points.
+TEST(GpuMeanShift, DensityFromTheIterationsTreesIsAFreshTreesDensity) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const auto sequence = synthSequence(pcl_animseg::synth::BodyPlan::Humanoid, 2500);
+  seg::MeanShiftParams mp;
+  Eigen::MatrixXf z;
+  Eigen::RowVectorXf metric;
+  jointSpace(*sequence, mp, z, metric);
+  std::vector<char> key(static_cast<std::size_t>(z.rows()), 0);
+  for (std::size_t i = 3; i < key.size(); i += 11) key[i] = 1;
+  Eigen::RowVectorXf pair = metric;
+  pair.tail(3) *= 1.5f;
+  gpu::MeanShiftBackend iterated;
+  Eigen::MatrixXf y;
+  Eigen::VectorXf end_density;
+  iterated.seekModes(z, metric, pair, key, mp, y, end_density);
+  ASSERT_EQ(y.rows(), z.rows());
+  ASSERT_EQ(y.cols(), z.cols());
+  // The end points are not the start points (the iteration moved them), in columns as given.
+  EXPECT_GT((y - z).cwiseAbs().maxCoeff(), 1e-3f);
+  auto fresh = [&](const Eigen::MatrixXf& q, const std::vector<char>& qk) {
+    gpu::MeanShiftBackend b;
+    Eigen::VectorXf f;
+    b.density(z, metric, pair, key, mp, q, qk, f);
+    return f;
+  };
+  Eigen::VectorXf at_end, at_points, plain_queries;
+  iterated.density(z, metric, pair, key, mp, y, key, at_end);
+  iterated.density(z, metric, pair, key, mp, z, key, at_points);
+  iterated.density(z, metric, pair, key, mp, z.topRows(900), {}, plain_queries);
+  const Eigen::VectorXf fresh_end = fresh(y, key);
+  EXPECT_TRUE(at_end == fresh_end);
+  EXPECT_TRUE(at_points == fresh(z, key));
+  EXPECT_TRUE(plain_queries == fresh(z.topRows(900), {}));
+  EXPECT_TRUE(end_density == fresh_end);
+  EXPECT_GT(at_points.minCoeff(), 0.0f);
+  EXPECT_FALSE(at_points == at_end);
+}

@@ -16,8 +16,8 @@
 #include <pcl_animseg/filters/gaussian_kdtree.h>
 
 #include <Eigen/Core>
-
 #include <cstddef>
+#include <memory>
 #include <vector>
 
 namespace pcl_animseg {
@@ -50,6 +50,11 @@ struct MeanShiftStats {
 
 class MeanShift {
  public:
+  MeanShift();
+  ~MeanShift();
+  MeanShift(MeanShift&&) noexcept;
+  MeanShift& operator=(MeanShift&&) noexcept;
+
   void setParams(const MeanShiftParams& params) { params_ = params; }
   const MeanShiftParams& getParams() const { return params_; }
 
@@ -68,9 +73,21 @@ class MeanShift {
 
   const MeanShiftStats& stats() const { return stats_; }
 
+  /** \brief The kernel sum of the last run's data (Eq. 4, the pair rule of Eq. 5 included) at
+   * the rows of `queries` (N x D raw coordinates), from the run's trees and blurred values kept
+   * on the device: the same values as a fresh Gaussian kd-tree over the same data (the blurred
+   * weights are the homogeneous column of the run's values, exact counts in both). query_key[r]
+   * says whether query r is a keypoint (empty: none is). Throws when no run has been made. */
+  void density(const Eigen::MatrixXf& queries, const std::vector<char>& query_key,
+               Eigen::VectorXf& out) const;
+  /** \brief Whether a run's trees are kept for density(). */
+  bool hasTrees() const { return state_ != nullptr; }
+
  private:
+  struct State;
   MeanShiftParams params_;
   MeanShiftStats stats_;
+  std::unique_ptr<State> state_;  // the last run's trees and blurred values, on the device
 };
 
 /** \brief Mode grouping of the CPU's paper method: forwards to segmentation::groupModes (host
