@@ -233,5 +233,22 @@ Neighbourhoods FeatureDevice::rows(std::size_t t) const {
   return nb;
 }
 
+void FeatureDevice::Refiner::refine(KeypointRefineJobs& jobs) const {
+  const std::size_t nk = jobs.scales.size();
+  if (jobs.disc_begin.size() != nk + 1 || jobs.frames.size() != 12 * nk ||
+      jobs.maximum.size() != nk || jobs.samples.size() != 4 * std::size_t{jobs.disc_begin.back()})
+    throw Error("GPU keypoints: inconsistent refinement jobs");
+  if (nk > static_cast<std::size_t>(INT_MAX)) throw Error("GPU keypoints: too many keypoints");
+  jobs.y.assign(2 * nk, 0.0f);
+  jobs.ok.assign(nk, 1);
+  if (nk == 0) return;
+  const std::vector<unsigned> begin(jobs.disc_begin.begin(), jobs.disc_begin.end());
+  const std::vector<unsigned char> maximum(jobs.maximum.begin(), jobs.maximum.end());
+  std::vector<unsigned char> ok(nk, 1);
+  detail::refineKeypoints(static_cast<int>(nk), jobs.h0, begin, jobs.samples, jobs.frames,
+                          jobs.scales, maximum, jobs.y.data(), ok.data());
+  for (std::size_t k = 0; k < nk; ++k) jobs.ok[k] = static_cast<char>(ok[k]);
+}
+
 }  // namespace gpu
 }  // namespace pcl_animseg

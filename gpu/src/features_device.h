@@ -65,6 +65,15 @@ class FeatureBlock {
   Impl* impl_;
 };
 
+/** DoGKeypoint's Newton steps (dog_keypoint.cpp: newtonSteps) for nk keypoints on the device:
+ * KeypointRefineJobs' arrays (samples 4 floats each, frames 12 floats a keypoint), results into
+ * y (2 a keypoint) and ok (1 a keypoint), host memory. Blocks until done; safe to call from
+ * several threads. */
+void refineKeypoints(int nk, double h0, const std::vector<unsigned>& disc_begin,
+                     const std::vector<float>& samples, const std::vector<float>& frames,
+                     const std::vector<float>& scales, const std::vector<unsigned char>& maximum,
+                     float* y, unsigned char* ok);
+
 }  // namespace detail
 }  // namespace gpu
 }  // namespace pcl_animseg

@@ -365,9 +365,11 @@ __device__ inline void monomialGrad(double a, double b, double* da, double* db) 
 }
 
 /** Eigen's LDLT with diagonal pivoting (Cholesky/LDLT.h, unblocked, lower), on an NC x NC
- * symmetric matrix M (full storage, overwritten), then the solve. Returns false where the CPU's
- * fitHeight rejects the fit: factorisation failed, not positive, or near-singular. */
-template <int NC>
+ * symmetric matrix M (full storage, overwritten), then the solve. With kFitChecks it returns
+ * false where the CPU's fitHeight rejects the fit: factorisation failed, not positive, or
+ * near-singular. Without, it is M.ldlt().solve(v) as it is (an all-zero matrix gives 0, a zero
+ * pivot a zero component) and returns true. */
+template <int NC, bool kFitChecks = true>
 __device__ bool ldltSolve(double (&M)[NC][NC], double (&v)[NC]) {
   int transp[NC];
   int sign = 0;  // 0 zero, 1 positive semi-definite, 2 negative, 3 indefinite
@@ -415,7 +417,11 @@ __device__ bool ldltSolve(double (&M)[NC][NC], double (&v)[NC]) {
     }
     const double akk = M[k][k];
     const bool valid = fabs(akk) > 0.0;
-    if (k == 0 && !valid) return false;  // all-zero diagonal: the CPU's fit fails (minCoeff test)
+    if (k == 0 && !valid) {
+      // All-zero diagonal: the CPU's fit fails (minCoeff test); Eigen's solve gives 0.
+      for (int i = 0; i < NC; ++i) v[i] = 0.0;
+      return !kFitChecks;
+    }
     if (valid)
       for (int r = k + 1; r < NC; ++r) M[r][k] /= akk;
     else
@@ -435,13 +441,15 @@ __device__ bool ldltSolve(double (&M)[NC][NC], double (&v)[NC]) {
         sign = 2;
     }
   }
-  if (!ret || !(sign == 1 || sign == 0)) return false;
-  double dmin = M[0][0], dmax = M[0][0];
-  for (int k = 1; k < NC; ++k) {
-    dmin = fmin(dmin, M[k][k]);
-    dmax = fmax(dmax, M[k][k]);
+  if (kFitChecks) {
+    if (!ret || !(sign == 1 || sign == 0)) return false;
+    double dmin = M[0][0], dmax = M[0][0];
+    for (int k = 1; k < NC; ++k) {
+      dmin = fmin(dmin, M[k][k]);
+      dmax = fmax(dmax, M[k][k]);
+    }
+    if (!(dmin > 1e-7 * dmax)) return false;
   }
-  if (!(dmin > 1e-7 * dmax)) return false;
   // x = P^T L^-T D^-1 L^-1 P v
   for (int k = 0; k < NC; ++k) {
     const double t = v[k];
@@ -459,8 +467,9 @@ __device__ bool ldltSolve(double (&M)[NC][NC], double (&v)[NC]) {
     v[k] = v[transp[k]];
     v[transp[k]] = t;
   }
-  for (int k = 0; k < NC; ++k)
-    if (!isfinite(v[k])) return false;
+  if (kFitChecks)
+    for (int k = 0; k < NC; ++k)
+      if (!isfinite(v[k])) return false;
   return true;
 }
 
@@ -583,6 +592,166 @@ __global__ void signatureKernel(SignatureArgs s) {
   const double norm = 1.0 / (static_cast<double>(R) * S);
   for (int d = 0; d < D; ++d)
     out[d] = static_cast<float>(sqrt(acc_re[d] * acc_re[d] + acc_im[d] * acc_im[d]) * norm);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Keypoint refinement (dog_keypoint.cpp: newtonSteps), a block per keypoint. Each Newton step
+// evaluates R on the 3 x 3 grid one grid point at a time: the block's threads add the disc's
+// moments (the CPU's float and double expressions per sample), a tree of partial sums adds the
+// threads' (so the sums' order differs from the CPU's), thread 0 solves and steps.
+
+constexpr int kRefineThreads = 128;
+constexpr double kInnerScaleD = 1.6817928305074290;  // 2^(3/4), as dog_keypoint.cpp
+constexpr int kNewtonStepsD = 6;
+constexpr double kConvergedD = 0.025;
+
+__device__ double interceptOf(const double* m) {
+  double M[3][3] = {{m[0], m[1], m[2]}, {m[1], m[3], m[4]}, {m[2], m[4], m[5]}};
+  double v[3] = {m[6], m[7], m[8]};
+  ldltSolve<3, false>(M, v);
+  return v[0];
+}
+
+__global__ void __launch_bounds__(kRefineThreads)
+    refineKernel(int nk, double h0, const unsigned* disc_begin, const float4* samples,
+                 const float* frames, const float* scales, const unsigned char* maximum,
+                 float* y_out, unsigned char* ok_out) {
+  const int k = blockIdx.x;
+  if (k >= nk) return;
+  __shared__ double s_part[kRefineThreads / 32][18];
+  __shared__ double s_val[9];
+  __shared__ float s_y[2];
+  __shared__ float s_step;
+  __shared__ int s_go;
+  const int tid = threadIdx.x, lane = tid & 31, warp = tid >> 5;
+  const unsigned b0 = disc_begin[k], b1 = disc_begin[k + 1];
+  const float scale = scales[k];
+  const double ha = kInnerScaleD * scale, hb = 2.0 * kInnerScaleD * scale;
+  const float inv_b2 = static_cast<float>(1.0 / (hb * hb));
+  const double inv_hb = 1.0 / hb;
+  if (tid == 0) {
+    s_y[0] = 0.0f;
+    s_y[1] = 0.0f;
+    s_step = static_cast<float>(0.5 * h0);
+    s_go = 1;
+  }
+  __syncthreads();
+  bool ok = true;
+  for (int it = 0; it < kNewtonStepsD; ++it) {
+    const float y0 = s_y[0], y1 = s_y[1], step = s_step;
+    const float c = expf(-step * step * inv_b2);
+    for (int g = 0; g < 9; ++g) {
+      const int gx = g / 3, gy = g % 3;
+      double acc[18];
+#pragma unroll
+      for (int i = 0; i < 18; ++i) acc[i] = 0.0;
+      for (unsigned s = b0 + tid; s < b1; s += kRefineThreads) {
+        const float4 l = samples[s];
+        const float da = l.x - y0, db = l.y - y1, z = l.z;
+        const float base = expf(-(da * da + db * db + z * z) * inv_b2) * l.w;
+        const float ex = expf(2.0f * step * da * inv_b2), ey = expf(2.0f * step * db * inv_b2);
+        const float fx = gx == 0 ? c / ex : (gx == 1 ? 1.0f : c * ex);
+        const float fy = gy == 0 ? c / ey : (gy == 1 ? 1.0f : c * ey);
+        const float eb = base * fx * fy;
+        const float r = eb / l.w, r2 = r * r;
+        const float ea = r2 * r2 * l.w;
+        const double a = (da - (gx - 1) * step) * inv_hb, b = (db - (gy - 1) * step) * inv_hb;
+        const double t[9] = {1.0, a, b, a * a, a * b, b * b, z, a * z, b * z};
+#pragma unroll
+        for (int i = 0; i < 9; ++i) {
+          acc[i] += eb * t[i];
+          acc[9 + i] += ea * t[i];
+        }
+      }
+#pragma unroll
+      for (int i = 0; i < 18; ++i) {
+        double v = acc[i];
+        for (int off = 16; off > 0; off >>= 1) v += __shfl_down_sync(0xffffffffu, v, off);
+        if (lane == 0) s_part[warp][i] = v;
+      }
+      __syncthreads();
+      if (tid == 0) {
+        double m[18];
+        for (int i = 0; i < 18; ++i) {
+          m[i] = s_part[0][i];
+          for (int w = 1; w < kRefineThreads / 32; ++w) m[i] += s_part[w][i];
+        }
+        s_val[g] = (interceptOf(m) - interceptOf(m + 9)) / ha;
+      }
+      __syncthreads();
+    }
+    if (tid == 0) {
+      // The quadratic through the 9 values, then the step (newtonSteps, line by line).
+      double A[6][6] = {}, rhs[6] = {};
+      for (int gx = -1; gx <= 1; ++gx)
+        for (int gy = -1; gy <= 1; ++gy) {
+          const double phi[6] = {
+              1.0, double(gx), double(gy), double(gx * gx), double(gx * gy), double(gy * gy)};
+          for (int i = 0; i < 6; ++i) {
+            for (int j = 0; j < 6; ++j) A[i][j] += phi[i] * phi[j];
+            rhs[i] += s_val[3 * (gx + 1) + (gy + 1)] * phi[i];
+          }
+        }
+      ldltSolve<6, false>(A, rhs);
+      const double* co = rhs;
+      bool finite = true;
+      for (int i = 0; i < 6; ++i) finite = finite && isfinite(co[i]);
+      int go = 0;
+      if (finite) {
+        const double h00 = 2.0 * co[3], h01 = co[4], h11 = 2.0 * co[5];
+        const double g0 = co[1], g1 = co[2];
+        const bool is_max = maximum[k] != 0;
+        const double det = h00 * h11 - h01 * h01, tr = h00 + h11;
+        double st0 = 0.0, st1 = 0.0;
+        bool stepped = true;
+        if (det > 0.0 && (is_max ? tr < 0.0 : tr > 0.0)) {
+          const double inv = 1.0 / det;  // Eigen's 2 x 2 inverse: cofactors times 1 / det
+          const double i00 = h11 * inv, i01 = -h01 * inv, i10 = -h01 * inv, i11 = h00 * inv;
+          st0 = -i00 * g0 + -i01 * g1;
+          st1 = -i10 * g0 + -i11 * g1;
+        } else {
+          const double gn = sqrt(g0 * g0 + g1 * g1);
+          if (gn > 0.0) {
+            const double sgn = is_max ? 1.0 : -1.0;
+            st0 = sgn * (g0 / gn);
+            st1 = sgn * (g1 / gn);
+          } else {
+            stepped = false;
+          }
+        }
+        if (stepped) {
+          double sn = sqrt(st0 * st0 + st1 * st1);
+          if (sn > 1.5) {
+            const double f = 1.5 / sn;
+            st0 *= f;
+            st1 *= f;
+            sn = sqrt(st0 * st0 + st1 * st1);
+          }
+          const float y0n = s_y[0] + step * static_cast<float>(st0);
+          const float y1n = s_y[1] + step * static_cast<float>(st1);
+          s_y[0] = y0n;
+          s_y[1] = y1n;
+          const float* f = frames + 12 * static_cast<long long>(k);
+          float d2 = 0.0f;
+          for (int c3 = 0; c3 < 3; ++c3) {
+            const float e = f[c3] + y0n * f[3 + c3] + y1n * f[6 + c3] - f[9 + c3];
+            d2 += e * e;
+          }
+          ok = sqrtf(d2) <= static_cast<float>(3.0 * h0);
+          go = ok && !(step * sn < kConvergedD * h0);
+          if (go && sn < 0.5) s_step = step * 0.5f;
+        }
+      }
+      s_go = go;
+    }
+    __syncthreads();
+    if (!s_go) break;
+  }
+  if (tid == 0) {
+    y_out[2 * k] = s_y[0];
+    y_out[2 * k + 1] = s_y[1];
+    ok_out[k] = ok ? 1 : 0;
+  }
 }
 
 inline int blocksFor(long long n, int per_block) {
@@ -744,6 +913,26 @@ void FeatureBlock::launch(const FeatureBlockArgs& args) {
   cudaCheckLaunch();
   // The tables and normals are freed when this returns: wait for the kernel first.
   cudaSafeCall(cudaDeviceSynchronize());
+}
+
+void refineKeypoints(int nk, double h0, const std::vector<unsigned>& disc_begin,
+                     const std::vector<float>& samples, const std::vector<float>& frames,
+                     const std::vector<float>& scales, const std::vector<unsigned char>& maximum,
+                     float* y, unsigned char* ok) {
+  if (nk == 0) return;
+  DeviceArray<unsigned> d_begin(disc_begin.data(), disc_begin.size());
+  DeviceArray<float> d_samples(samples.data(), std::max<std::size_t>(samples.size(), 4));
+  DeviceArray<float> d_frames(frames.data(), frames.size());
+  DeviceArray<float> d_scales(scales.data(), scales.size());
+  DeviceArray<unsigned char> d_max(maximum.data(), maximum.size());
+  DeviceArray<float> d_y(2 * static_cast<std::size_t>(nk));
+  DeviceArray<unsigned char> d_ok(static_cast<std::size_t>(nk));
+  refineKernel<<<nk, kRefineThreads>>>(
+      nk, h0, d_begin.ptr(), reinterpret_cast<const float4*>(d_samples.ptr()), d_frames.ptr(),
+      d_scales.ptr(), d_max.ptr(), d_y.ptr(), d_ok.ptr());
+  cudaCheckLaunch();
+  d_y.download(y);
+  d_ok.download(ok);
 }
 
 void FeatureBlock::fetchLevel(int level, float* out) const {

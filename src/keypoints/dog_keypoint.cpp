@@ -91,12 +91,101 @@ constexpr int kAreaPasses = 3;
 constexpr int kNewtonSteps = 6;
 constexpr double kConverged = 0.025;  // h0: a step this small ends the iterations
 
+/** Step 3 of refinePositions for one keypoint: Newton steps on R(y) = (z_b(y) - z_a(y)) / h_a,
+ * where z_s(y) is the height above y, along the keypoint's normal at the coarsest level, of the
+ * area-weighted local linear fit of the input points with a Gaussian of width s (the samples
+ * themselves, exact, rather than the diffused levels; the linear fit removes the effect of an
+ * unbalanced sample on a slope). Each step fits a quadratic to R on a 3 x 3 grid around the
+ * estimate. `local` holds the disc's n samples (tangent a, b, height, area: 4 floats each); y
+ * the extremum from x0 along (uu, vv). False when it moved more than 3 h0 from the detected
+ * point pj. A device runs the same steps (gpu/src/features_kernels.cu: refineKernel). */
+bool newtonSteps(const float* local, std::size_t n, float scale, bool is_max, double h0,
+                 const Eigen::Vector3f& x0, const Eigen::Vector3f& uu, const Eigen::Vector3f& vv,
+                 const Eigen::Vector3f& pj, Eigen::Vector2f& y) {
+  const double ha = kInnerScale * scale, hb = kOuterScale * scale;
+  const float inv_b2 = static_cast<float>(1.0 / (hb * hb));  // 1 / h_a^2 = 4 / h_b^2
+  const float max_shift = static_cast<float>(3.0 * h0);
+  // Intercept of the weighted linear fit z ~ c0 + c1 a + c2 b from its moments.
+  auto intercept = [](const double* m) {
+    // m: w, wa, wb, waa, wab, wbb, wz, waz, wbz
+    Eigen::Matrix3d M;
+    M << m[0], m[1], m[2], m[1], m[3], m[4], m[2], m[4], m[5];
+    return M.ldlt().solve(Eigen::Vector3d(m[6], m[7], m[8]))(0);
+  };
+  // R at the 3 x 3 grid y + (gx, gy) step, in one pass over the disc: the Gaussian factors
+  // into exp(-|d|^2 / h_b^2) exp(2 gx step d_a / h_b^2) exp(2 gy step d_b / h_b^2)
+  // exp(-(gx^2 + gy^2) step^2 / h_b^2), three exponentials per point instead of nine.
+  const double inv_hb = 1.0 / hb;
+  auto gridR = [&](const Eigen::Vector2f& at, float step, double* val) {
+    double mom[9][2][9] = {};
+    const float c = std::exp(-step * step * inv_b2);
+    for (std::size_t s = 0; s < n; ++s) {
+      const float* l = local + 4 * s;
+      const float da = l[0] - at(0), db = l[1] - at(1), z = l[2];
+      const float base = std::exp(-(da * da + db * db + z * z) * inv_b2) * l[3];
+      const float ex = std::exp(2.0f * step * da * inv_b2),
+                  ey = std::exp(2.0f * step * db * inv_b2);
+      const float fx[3] = {c / ex, 1.0f, c * ex}, fy[3] = {c / ey, 1.0f, c * ey};
+      for (int gx = 0; gx < 3; ++gx)
+        for (int gy = 0; gy < 3; ++gy) {
+          const float eb = base * fx[gx] * fy[gy];
+          const float r = eb / l[3], r2 = r * r;  // the inner Gaussian is the outer one ^4
+          const float ea = r2 * r2 * l[3];
+          const double a = (da - (gx - 1) * step) * inv_hb, b = (db - (gy - 1) * step) * inv_hb;
+          const double t[9] = {1.0, a, b, a * a, a * b, b * b, z, a * z, b * z};
+          double* mb = mom[3 * gx + gy][0];
+          double* ma = mom[3 * gx + gy][1];
+          for (int i = 0; i < 9; ++i) {
+            mb[i] += eb * t[i];
+            ma[i] += ea * t[i];
+          }
+        }
+    }
+    for (int g = 0; g < 9; ++g) val[g] = (intercept(mom[g][0]) - intercept(mom[g][1])) / ha;
+  };
+  y = Eigen::Vector2f::Zero();
+  float step = static_cast<float>(0.5 * h0);
+  bool ok = true;
+  for (int it = 0; it < kNewtonSteps && ok; ++it) {
+    Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> rhs = Eigen::Matrix<double, 6, 1>::Zero();
+    double val[9];
+    gridR(y, step, val);
+    for (int gx = -1; gx <= 1; ++gx)
+      for (int gy = -1; gy <= 1; ++gy) {
+        Eigen::Matrix<double, 6, 1> phi;
+        phi << 1.0, gx, gy, gx * gx, gx * gy, gy * gy;
+        A.noalias() += phi * phi.transpose();
+        rhs.noalias() += val[3 * (gx + 1) + (gy + 1)] * phi;
+      }
+    const Eigen::Matrix<double, 6, 1> co = A.ldlt().solve(rhs);
+    if (!co.allFinite()) break;  // degenerate disc: keep the fitted position
+    Eigen::Matrix2d H;
+    H << 2.0 * co(3), co(4), co(4), 2.0 * co(5);
+    const Eigen::Vector2d g(co(1), co(2));
+    Eigen::Vector2d st;
+    if (H.determinant() > 0.0 && (is_max ? H.trace() < 0.0 : H.trace() > 0.0))
+      st = -H.inverse() * g;
+    else if (g.norm() > 0.0)
+      st = (is_max ? 1.0 : -1.0) * g.normalized();  // not yet near the extremum: walk uphill
+    else
+      break;
+    if (st.norm() > 1.5) st *= 1.5 / st.norm();
+    y += step * st.cast<float>();
+    ok = (x0 + y(0) * uu + y(1) * vv - pj).norm() <= max_shift;
+    if (step * st.norm() < kConverged * h0) break;
+    if (st.norm() < 0.5) step *= 0.5f;
+  }
+  return ok;
+}
+
 /** Moves each keypoint in `which` to the extremum of a direct, area-weighted evaluation of the
  * normal difference around it and sets its index to the nearest frame point; clears keep[] for
  * those whose extremum lies farther than 3 h0 from their point or near an open border. */
 void refinePositions(const ScaleSpace& ss, const std::vector<Candidate>& cand,
                      const std::vector<std::size_t>& which, double border_gap,
-                     std::vector<PointKeypoint>& found, std::vector<char>& keep) {
+                     const KeypointRefineDevice* device, std::vector<PointKeypoint>& found,
+                     std::vector<char>& keep) {
   if (which.empty()) return;
   const Neighbourhoods& nb = *ss.neighbourhoods;
   const auto& in = *ss.input;
@@ -104,7 +193,6 @@ void refinePositions(const ScaleSpace& ss, const std::vector<Candidate>& cand,
   const std::size_t n = in.size();
   const double h0 = ss.scales[0];
   const float ring = static_cast<float>(3.0 * h0);
-  const float max_shift = static_cast<float>(3.0 * h0);
   // Entries of row q within the ring (the whole row unless a later stage asked for wider ones).
   const bool whole_rows = nb.radius <= ring;
   auto ringCount = [&](int q) { return whole_rows ? nb.count(q) : nb.countWithin(q, ring); };
@@ -199,11 +287,84 @@ void refinePositions(const ScaleSpace& ss, const std::vector<Candidate>& cand,
     first += lists[p - 1].size();
   }
 
-  // 3. Newton steps on R(y) = (z_b(y) - z_a(y)) / h_a, where z_s(y) is the height above y, along
-  //    the keypoint's normal at the coarsest level, of the area-weighted local linear fit of the
-  //    input points with a Gaussian of width s (the samples themselves, exact, rather than the
-  //    diffused levels; the linear fit removes the effect of an unbalanced sample on a slope).
-  //    Each step fits a quadratic to R on a 3 x 3 grid around the estimate.
+  // 3. Newton steps on R(y) = (z_b(y) - z_a(y)) / h_a (newtonSteps), on the cores or a device.
+  //    The keypoint's frame: its normal at the coarsest level and two tangent axes.
+  struct Frame {
+    Eigen::Vector3f x0, uu, vv, nn;
+  };
+  std::vector<Frame> frames(which.size());
+  for (long k = 0; k < nk; ++k) {
+    const PointKeypoint& kp = found[which[k]];
+    Frame& f = frames[k];
+    f.nn = top[static_cast<std::size_t>(kp.index)].getNormalVector3fMap();
+    f.uu = someOrthogonal(f.nn);
+    f.vv = f.nn.cross(f.uu);
+    f.x0 = kp.getVector3fMap();
+  }
+  // Tangent coordinates, height and area of keypoint k's disc samples, 4 floats each.
+  auto localSamples = [&](long k, float* out) {
+    const Frame& f = frames[k];
+    for (int q : discs[k]) {
+      const Eigen::Vector3f d = in[q].getVector3fMap() - f.x0;
+      *out++ = d.dot(f.uu);
+      *out++ = d.dot(f.vv);
+      *out++ = d.dot(f.nn);
+      *out++ = area[q];
+    }
+  };
+  std::vector<Eigen::Vector2f> extremum(which.size(), Eigen::Vector2f::Zero());
+  std::vector<char> within(which.size(), 1);
+  if (device) {
+    KeypointRefineJobs jobs;
+    jobs.h0 = h0;
+    jobs.disc_begin.assign(which.size() + 1, 0);
+    for (long k = 0; k < nk; ++k)
+      jobs.disc_begin[k + 1] = jobs.disc_begin[k] + static_cast<std::uint32_t>(discs[k].size());
+    jobs.samples.resize(4 * static_cast<std::size_t>(jobs.disc_begin.back()));
+    jobs.frames.resize(12 * which.size());
+    jobs.scales.resize(which.size());
+    jobs.maximum.resize(which.size());
+#pragma omp parallel for schedule(dynamic, 4)
+    for (long k = 0; k < nk; ++k) {
+      localSamples(k, jobs.samples.data() + 4 * static_cast<std::size_t>(jobs.disc_begin[k]));
+      const PointKeypoint& kp = found[which[k]];
+      float* f = jobs.frames.data() + 12 * k;
+      const Eigen::Vector3f pj = in[static_cast<std::size_t>(kp.index)].getVector3fMap();
+      for (int c = 0; c < 3; ++c) {
+        f[c] = frames[k].x0(c);
+        f[3 + c] = frames[k].uu(c);
+        f[6 + c] = frames[k].vv(c);
+        f[9 + c] = pj(c);
+      }
+      jobs.scales[k] = kp.scale;
+      jobs.maximum[k] = cand[which[k]].maximum ? 1 : 0;
+    }
+    device->refine(jobs);
+    for (long k = 0; k < nk; ++k) {
+      extremum[k] = Eigen::Vector2f(jobs.y[2 * k], jobs.y[2 * k + 1]);
+      within[k] = jobs.ok[k];
+    }
+  } else {
+#pragma omp parallel
+    {
+      std::vector<float> local;
+#pragma omp for schedule(dynamic, 1)
+      for (long k = 0; k < nk; ++k) {
+        const PointKeypoint& kp = found[which[k]];
+        local.resize(4 * discs[k].size());
+        localSamples(k, local.data());
+        const Eigen::Vector3f pj = in[static_cast<std::size_t>(kp.index)].getVector3fMap();
+        within[k] = newtonSteps(local.data(), discs[k].size(), kp.scale, cand[which[k]].maximum, h0,
+                                frames[k].x0, frames[k].uu, frames[k].vv, pj, extremum[k])
+                        ? 1
+                        : 0;
+      }
+    }
+  }
+
+  // 4. The extremum lies in the tangent plane of the coarsest level, which leaves the surface of
+  //    a thin or strongly curved part: the position is put back onto the tangent plane (level
+  //    0) of the frame point nearest to it, which becomes the keypoint's index.
 #pragma omp parallel
   {
     std::vector<int> ids;
@@ -211,100 +372,16 @@ void refinePositions(const ScaleSpace& ss, const std::vector<Candidate>& cand,
 #pragma omp for schedule(dynamic, 1)
     for (long k = 0; k < nk; ++k) {
       const std::size_t idx = which[k];
-      PointKeypoint& kp = found[idx];
-      const std::vector<int>& disc = discs[k];
-      const std::size_t j = static_cast<std::size_t>(kp.index);
-      const bool is_max = cand[idx].maximum;
-      const double ha = kInnerScale * kp.scale, hb = kOuterScale * kp.scale;
-      const float inv_b2 = static_cast<float>(1.0 / (hb * hb));  // 1 / h_a^2 = 4 / h_b^2
-      const Eigen::Vector3f nn = top[j].getNormalVector3fMap();
-      const Eigen::Vector3f uu = someOrthogonal(nn), vv = nn.cross(uu);
-      const Eigen::Vector3f x0 = kp.getVector3fMap();
-      std::vector<Eigen::Vector4f> local(disc.size());  // tangent coordinates, height, area
-      for (std::size_t s = 0; s < disc.size(); ++s) {
-        const Eigen::Vector3f d = in[disc[s]].getVector3fMap() - x0;
-        local[s] << d.dot(uu), d.dot(vv), d.dot(nn), area[disc[s]];
-      }
-      // Intercept of the weighted linear fit z ~ c0 + c1 a + c2 b from its moments.
-      auto intercept = [](const double* m) {
-        // m: w, wa, wb, waa, wab, wbb, wz, waz, wbz
-        Eigen::Matrix3d M;
-        M << m[0], m[1], m[2], m[1], m[3], m[4], m[2], m[4], m[5];
-        return M.ldlt().solve(Eigen::Vector3d(m[6], m[7], m[8]))(0);
-      };
-      // R at the 3 x 3 grid y + (gx, gy) step, in one pass over the disc: the Gaussian factors
-      // into exp(-|d|^2 / h_b^2) exp(2 gx step d_a / h_b^2) exp(2 gy step d_b / h_b^2)
-      // exp(-(gx^2 + gy^2) step^2 / h_b^2), three exponentials per point instead of nine.
-      const double inv_hb = 1.0 / hb;
-      auto gridR = [&](const Eigen::Vector2f& y, float step, double* val) {
-        double mom[9][2][9] = {};
-        const float c = std::exp(-step * step * inv_b2);
-        for (const Eigen::Vector4f& l : local) {
-          const float da = l(0) - y(0), db = l(1) - y(1), z = l(2);
-          const float base = std::exp(-(da * da + db * db + z * z) * inv_b2) * l(3);
-          const float ex = std::exp(2.0f * step * da * inv_b2),
-                      ey = std::exp(2.0f * step * db * inv_b2);
-          const float fx[3] = {c / ex, 1.0f, c * ex}, fy[3] = {c / ey, 1.0f, c * ey};
-          for (int gx = 0; gx < 3; ++gx)
-            for (int gy = 0; gy < 3; ++gy) {
-              const float eb = base * fx[gx] * fy[gy];
-              const float r = eb / l(3), r2 = r * r;  // the inner Gaussian is the outer one ^4
-              const float ea = r2 * r2 * l(3);
-              const double a = (da - (gx - 1) * step) * inv_hb, b = (db - (gy - 1) * step) * inv_hb;
-              const double t[9] = {1.0, a, b, a * a, a * b, b * b, z, a * z, b * z};
-              double* mb = mom[3 * gx + gy][0];
-              double* ma = mom[3 * gx + gy][1];
-              for (int i = 0; i < 9; ++i) {
-                mb[i] += eb * t[i];
-                ma[i] += ea * t[i];
-              }
-            }
-        }
-        for (int g = 0; g < 9; ++g) val[g] = (intercept(mom[g][0]) - intercept(mom[g][1])) / ha;
-      };
-      Eigen::Vector2f y = Eigen::Vector2f::Zero();
-      float step = static_cast<float>(0.5 * h0);
-      bool ok = true;
-      for (int it = 0; it < kNewtonSteps && ok; ++it) {
-        Eigen::Matrix<double, 6, 6> A = Eigen::Matrix<double, 6, 6>::Zero();
-        Eigen::Matrix<double, 6, 1> rhs = Eigen::Matrix<double, 6, 1>::Zero();
-        double val[9];
-        gridR(y, step, val);
-        for (int gx = -1; gx <= 1; ++gx)
-          for (int gy = -1; gy <= 1; ++gy) {
-            Eigen::Matrix<double, 6, 1> phi;
-            phi << 1.0, gx, gy, gx * gx, gx * gy, gy * gy;
-            A.noalias() += phi * phi.transpose();
-            rhs.noalias() += val[3 * (gx + 1) + (gy + 1)] * phi;
-          }
-        const Eigen::Matrix<double, 6, 1> co = A.ldlt().solve(rhs);
-        if (!co.allFinite()) break;  // degenerate disc: keep the fitted position
-        Eigen::Matrix2d H;
-        H << 2.0 * co(3), co(4), co(4), 2.0 * co(5);
-        const Eigen::Vector2d g(co(1), co(2));
-        Eigen::Vector2d st;
-        if (H.determinant() > 0.0 && (is_max ? H.trace() < 0.0 : H.trace() > 0.0))
-          st = -H.inverse() * g;
-        else if (g.norm() > 0.0)
-          st = (is_max ? 1.0 : -1.0) * g.normalized();  // not yet near the extremum: walk uphill
-        else
-          break;
-        if (st.norm() > 1.5) st *= 1.5 / st.norm();
-        y += step * st.cast<float>();
-        ok = (x0 + y(0) * uu + y(1) * vv - in[j].getVector3fMap()).norm() <= max_shift;
-        if (step * st.norm() < kConverged * h0) break;
-        if (st.norm() < 0.5) step *= 0.5f;
-      }
-      if (!ok) {
+      if (!within[k]) {
         keep[idx] = 0;
         continue;
       }
-      // The extremum lies in the tangent plane of the coarsest level, which leaves the surface
-      // of a thin or strongly curved part: the position is put back onto the tangent plane
-      // (level 0) of the frame point nearest to it, which becomes the keypoint's index.
-      Eigen::Vector3f x = x0 + y(0) * uu + y(1) * vv;
+      PointKeypoint& kp = found[idx];
+      const int j = kp.index;
+      const Eigen::Vector2f& y = extremum[k];
+      Eigen::Vector3f x = frames[k].x0 + y(0) * frames[k].uu + y(1) * frames[k].vv;
       float best = std::numeric_limits<float>::max();
-      for (int q : disc) {
+      for (int q : discs[k]) {
         const float d2 = (in[q].getVector3fMap() - x).squaredNorm();
         if (d2 < best) {
           best = d2;
@@ -316,7 +393,7 @@ void refinePositions(const ScaleSpace& ss, const std::vector<Candidate>& cand,
       kp.getVector3fMap() = x;
       // The extremum may have moved towards an open border (e.g. along a ridge that runs into it):
       // the border test again, at the new point.
-      if (kp.index != static_cast<int>(j) &&
+      if (kp.index != j &&
           nearOpenBorder(ss, static_cast<std::size_t>(kp.index), ring, border_gap, ids, angles))
         keep[idx] = 0;
     }
@@ -509,7 +586,7 @@ void DoGKeypoint::compute(KeypointCloud& keypoints) const {
     return kept;
   };
   const std::vector<std::size_t> kept = suppress();
-  refinePositions(ss, cand, kept, border_gap, found, keep);
+  refinePositions(ss, cand, kept, border_gap, refine_device_, found, keep);
   suppress();
   for (std::size_t a = 0; a < cand.size(); ++a)
     if (keep[a]) keypoints.push_back(found[a]);

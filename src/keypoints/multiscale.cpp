@@ -34,7 +34,10 @@ void forEachFrame(const PointCloudSequence& seq, std::size_t first, std::size_t 
     try {
       work(t);
     } catch (const Error& e) {
-      errors[i] = "frame '" + seq.name(t) + "': " + e.what();
+      // A device's errors (they start with "GPU") are not the frame's: said as they are, so
+      // that the pipeline can tell them from the input's.
+      const std::string what = e.what();
+      errors[i] = what.compare(0, 3, "GPU") == 0 ? what : "frame '" + seq.name(t) + "': " + what;
       failed[i] = 1;
     } catch (const std::exception& e) {
       errors[i] = "frame '" + seq.name(t) + "': " + e.what();
@@ -151,6 +154,7 @@ void computeBlock(const PointCloudSequence& seq, std::size_t first, std::size_t 
           dog.setScaleSpace(spaces[t]);
           dog.setMinResponse(p.min_response);
           dog.setEdgeRatio(p.edge_ratio);
+          if (device) dog.setRefineDevice(device->keypointRefiner());
           DoGKeypoint::KeypointCloud kps;
           dog.compute(kps);
           std::map<int, std::size_t> best;  // index -> keypoint with the largest |response|

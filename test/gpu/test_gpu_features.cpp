@@ -9,6 +9,7 @@
 #include <pcl_animseg/features/scale_space.h>
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/features.h>
+#include <pcl_animseg/keypoints/dog_keypoint.h>
 #include <pcl_animseg/pipeline.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/mean_shift.h>
@@ -217,4 +218,57 @@ TEST(GpuFeatures, PaperMethodLabelsAgreeWithTheCpu) {
   std::size_t kp = 0;
   for (const auto& k : cpu.keypoints) kp += k.size();
   EXPECT_EQ(r.keypoints, kp);
+}
+
+// The keypoints' Newton steps on the device against the cores', on the same (CPU) scale space:
+// the same keypoints at the same frame points, positions to the last bits (the device adds each
+// disc's sums in another order). Bumpy spheres (one without normals) and two humanoid frames
+// (many keypoints a frame, near thin parts).
+TEST(GpuFeatures, KeypointRefinementAgreesWithTheCpu) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  PointCloudSequence seq = testSequence();
+  pcl_animseg::synth::SynthParams sp;
+  sp.plan = pcl_animseg::synth::BodyPlan::Humanoid;
+  sp.frames = 2;
+  sp.points = 12000;
+  sp.seed = 3;
+  const PointCloudSequence humanoid =
+      pcl_animseg::synth::toSequence(pcl_animseg::synth::generate(sp));
+  for (std::size_t t = 0; t < humanoid.size(); ++t)
+    seq.addFrame(humanoid.frame(t), "h" + std::to_string(t));
+  const pcl_animseg::MultiscaleParams p;
+  const double unit = pcl_animseg::sequenceSpacing(seq);
+  gpu::FeatureDevice device;
+  ASSERT_NE(device.keypointRefiner(), nullptr);
+  std::size_t total = 0, same_bits = 0;
+  double worst = 0.0;
+  for (std::size_t t = 0; t < seq.size(); ++t) {
+    pcl_animseg::MLSScaleSpace mls;
+    pcl_animseg::configureScaleSpace(mls, seq.frame(t), p, unit);
+    pcl_animseg::ScaleSpace ss;
+    mls.compute(ss);
+    pcl_animseg::DoGKeypoint dog;
+    dog.setScaleSpace(ss);
+    pcl_animseg::DoGKeypoint::KeypointCloud on_cores, on_device;
+    dog.compute(on_cores);
+    dog.setRefineDevice(device.keypointRefiner());
+    dog.compute(on_device);
+    ASSERT_EQ(on_cores.size(), on_device.size()) << "frame " << t;
+    for (std::size_t k = 0; k < on_cores.size(); ++k) {
+      const auto& a = on_cores[k];
+      const auto& b = on_device[k];
+      EXPECT_EQ(a.index, b.index) << "frame " << t << " keypoint " << k;
+      EXPECT_EQ(a.level, b.level);
+      EXPECT_EQ(a.response, b.response);
+      const double e = (a.getVector3fMap() - b.getVector3fMap()).norm() / ss.scales[0];
+      worst = std::max(worst, e);
+      same_bits += e == 0.0;
+    }
+    total += on_cores.size();
+  }
+  std::printf("keypoint refinement: %zu keypoints, %zu at the same bits, worst %.3g h0\n", total,
+              same_bits, worst);
+  EXPECT_GT(total, 40u);
+  EXPECT_LT(worst, 1e-3);
 }

@@ -197,6 +197,76 @@ TEST(DoGKeypoint, RejectsOpenBordersAndRidges) {
   EXPECT_GE(blob, 1);         // the interior bump is still found
 }
 
+// A refine device gets every refined keypoint's job, consistent (its disc, frame and scale), and
+// its answers are what the detector keeps: "moved too far" for all leaves no keypoint; "stayed
+// at the fitted position" gives the same keypoints (the same response and level) at other
+// positions than the cores' own steps, each one on its nearest frame point's tangent plane.
+TEST(DoGKeypoint, ARefineDeviceGetsEveryKeypointAndItsAnswersAreKept) {
+  class FakeDevice : public KeypointRefineDevice {
+   public:
+    explicit FakeDevice(bool within) : within_(within) {}
+    void refine(KeypointRefineJobs& jobs) const override {
+      const std::size_t nk = jobs.scales.size();
+      jobs_ += nk;
+      EXPECT_EQ(jobs.disc_begin.size(), nk + 1);
+      EXPECT_EQ(jobs.frames.size(), 12 * nk);
+      EXPECT_EQ(jobs.maximum.size(), nk);
+      EXPECT_EQ(jobs.samples.size(), 4 * std::size_t{jobs.disc_begin.back()});
+      EXPECT_GT(jobs.h0, 0.0);
+      for (std::size_t k = 0; k < nk; ++k) {
+        EXPECT_GT(jobs.disc_begin[k + 1], jobs.disc_begin[k] + 10) << "a disc of samples";
+        EXPECT_GT(jobs.scales[k], 0.0f);
+        // The first sample is the keypoint's own point: within 3 h0 of the fitted position.
+        const float* l = jobs.samples.data() + 4 * std::size_t{jobs.disc_begin[k]};
+        EXPECT_LT(std::hypot(l[0], l[1]), 3.0 * jobs.h0);
+        EXPECT_GT(l[3], 0.0f) << "area weight";
+        // The tangent axes are unit vectors.
+        const float* f = jobs.frames.data() + 12 * k;
+        EXPECT_NEAR(std::sqrt(f[3] * f[3] + f[4] * f[4] + f[5] * f[5]), 1.0, 1e-5);
+        EXPECT_NEAR(f[3] * f[6] + f[4] * f[7] + f[5] * f[8], 0.0, 1e-5);
+      }
+      jobs.y.assign(2 * nk, 0.0f);
+      jobs.ok.assign(nk, within_ ? 1 : 0);
+    }
+    mutable std::size_t jobs_ = 0;
+
+   private:
+    bool within_;
+  };
+  auto cloud = test::bumpySphere(10000, 20);
+  MLSScaleSpace mls;
+  mls.setInputCloud(cloud);
+  mls.setSpacing(unitOf({cloud}));
+  ScaleSpace ss;
+  mls.compute(ss);
+  DoGKeypoint dog;
+  dog.setScaleSpace(ss);
+  DoGKeypoint::KeypointCloud cores, none, stayed;
+  dog.compute(cores);
+  ASSERT_GT(cores.size(), 6u);
+  FakeDevice far_away(false), at_fit(true);
+  dog.setRefineDevice(&far_away);
+  dog.compute(none);
+  EXPECT_TRUE(none.empty());
+  EXPECT_GE(far_away.jobs_, cores.size());
+  dog.setRefineDevice(&at_fit);
+  dog.compute(stayed);
+  EXPECT_EQ(at_fit.jobs_, far_away.jobs_);
+  ASSERT_GE(stayed.size(), cores.size() - cores.size() / 5);
+  std::size_t moved = 0;
+  for (const auto& k : stayed) {
+    ASSERT_GE(k.index, 0);
+    ASSERT_LT(k.index, static_cast<int>(cloud->size()));
+    // On the plane through the input point with level 0's normal.
+    const Eigen::Vector3f nq = ss.levels[0]->points[k.index].getNormalVector3fMap();
+    EXPECT_NEAR((k.getVector3fMap() - (*cloud)[k.index].getVector3fMap()).dot(nq), 0.0, 1e-5);
+    bool same = false;
+    for (const auto& c : cores) same = same || (c.getVector3fMap() == k.getVector3fMap());
+    moved += !same;
+  }
+  EXPECT_GT(moved, stayed.size() / 2) << "the device's positions are used, not the cores'";
+}
+
 TEST(DoGKeypoint, BadInputAndDegenerateFrames) {
   auto cloud = test::bumpySphere(3000, 25);
   EXPECT_THROW(detect(cloud, unitOf({cloud}), 10.0, 3), Error);  // needs >= 4 levels

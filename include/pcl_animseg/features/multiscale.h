@@ -10,6 +10,7 @@
 
 namespace pcl_animseg {
 class Progress;
+class KeypointRefineDevice;
 
 /** \brief Knobs of the multi-scale features. Lengths are in units of the sequence's reference
  * spacing (sequenceSpacing): a multiple of it is the same world length in every frame, scales
@@ -84,6 +85,9 @@ class FeatureDevice {
   /** \brief Frame t's signatures (N_t x D), of the last scaleSpaces() call. Safe to call from
    * several threads. */
   virtual void signature(std::size_t t, Eigen::MatrixXf& out) const = 0;
+  /** \brief Where DoGKeypoint runs its refinement's Newton steps (dog_keypoint.h); nullptr (the
+   * default): on the cores. */
+  virtual const KeypointRefineDevice* keypointRefiner() const { return nullptr; }
 };
 
 /** \brief Runs MLSScaleSpace, DoGKeypoint and SignatureEstimation on every frame (frames one

@@ -4,6 +4,7 @@
 #include <pcl_animseg/features/scale_space.h>
 #include <pcl_animseg/point_types.h>
 
+#include <cstdint>
 #include <memory>
 #include <vector>
 
@@ -68,6 +69,33 @@ namespace pcl_animseg {
  * (world units), signed response (the contrast, D_i minus the level's median, at the detected
  * point), `index` that nearest frame point (which may differ from the detected point), and the
  * level; sorted by (level, detected point). */
+/** \brief The Newton steps of DoGKeypoint's sub-sample refinement for a batch of keypoints, as
+ * handed to a KeypointRefineDevice. Keypoint k's samples (its disc) are
+ * samples[4 * disc_begin[k] .. 4 * disc_begin[k + 1]): tangent coordinates a, b, the height along
+ * the keypoint's normal and the sample's area weight. frames[12 k ..]: the fitted position x0,
+ * the tangent axes u, v and the position of the detected frame point (3 floats each). */
+struct KeypointRefineJobs {
+  double h0 = 0.0;                        ///< the scale space's smallest scale
+  std::vector<std::uint32_t> disc_begin;  ///< K + 1 offsets (in samples)
+  std::vector<float> samples;             ///< 4 per sample: a, b, z, area
+  std::vector<float> frames;              ///< 12 per keypoint: x0, u, v, detected point
+  std::vector<float> scales;              ///< the keypoint's scale h_i
+  std::vector<char> maximum;              ///< is the keypoint a maximum of D
+  // Results, one per keypoint.
+  std::vector<float> y;  ///< 2 per keypoint: the extremum in (u, v) from x0
+  std::vector<char> ok;  ///< 0 where the extremum moved more than 3 h0 from the detected point
+};
+
+/** \brief Runs the Newton steps of KeypointRefineJobs somewhere else than the calling thread (a
+ * GPU): the same steps as the CPU's, with the sums over each disc possibly added in another
+ * order (so the positions agree to the last bits, not bit for bit). Must be safe to call from
+ * several threads at once; throws Error on a device failure. */
+class KeypointRefineDevice {
+ public:
+  virtual ~KeypointRefineDevice() = default;
+  virtual void refine(KeypointRefineJobs& jobs) const = 0;
+};
+
 class DoGKeypoint {
  public:
   using KeypointCloud = pcl::PointCloud<PointKeypoint>;
@@ -90,6 +118,10 @@ class DoGKeypoint {
   void setBoundaryAngle(double a) { boundary_angle_ = a; }
   double getBoundaryAngle() const { return boundary_angle_; }
 
+  /** \brief Where the refinement's Newton steps run (nullptr, the default: on the calling
+   * thread's cores). The device is not owned. */
+  void setRefineDevice(const KeypointRefineDevice* device) { refine_device_ = device; }
+
   /** \brief Detects the keypoints. Throws Error with fewer than 4 levels. */
   void compute(KeypointCloud& keypoints) const;
 
@@ -101,6 +133,7 @@ class DoGKeypoint {
   double min_response_ = 0.04;
   double edge_ratio_ = 10.0;
   double boundary_angle_ = 1.5707963267948966;
+  const KeypointRefineDevice* refine_device_ = nullptr;
 };
 
 }  // namespace pcl_animseg

@@ -2,6 +2,7 @@
 /** \file features.h Section 3.1's scale space and signatures on the GPU
  * (pcl_animseg::FeatureDevice for computeSequenceFeatures). */
 #include <pcl_animseg/features/multiscale.h>
+#include <pcl_animseg/keypoints/dog_keypoint.h>
 
 #include <memory>
 
@@ -24,14 +25,21 @@ class FeatureDevice : public pcl_animseg::FeatureDevice {
                    const std::vector<ScaleSpacePlan>& plans, const MultiscaleParams& p, bool rows,
                    std::vector<ScaleSpace>& spaces) override;
   void signature(std::size_t t, Eigen::MatrixXf& out) const override;
+  /** \brief The keypoints' Newton steps on the device, a block of threads a keypoint. */
+  const KeypointRefineDevice* keypointRefiner() const override { return &refiner_; }
 
   /** \brief The device's neighbour rows of the last block's frame t, as radiusNeighbourhoods
    * returns them (for tests). */
   Neighbourhoods rows(std::size_t t) const;
 
  private:
+  class Refiner : public KeypointRefineDevice {
+   public:
+    void refine(KeypointRefineJobs& jobs) const override;
+  };
   struct Impl;
   std::unique_ptr<Impl> impl_;
+  Refiner refiner_;
 };
 
 }  // namespace gpu
