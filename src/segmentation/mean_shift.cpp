@@ -920,30 +920,38 @@ void finishWith(const JointSpace& space, const std::vector<int>& flat, int num_c
       if (flat[i] >= 0)
         result.mode_density[flat[i]] = std::max<double>(result.mode_density[flat[i]], f(i, 0));
   }
-  // Saddle between adjacent clusters: the highest min(f_i, f_j) over k-NN pairs across them.
-  // Cross edges as (pair key, value), sorted: the pairs in increasing (a, b) order.
-  std::vector<std::pair<std::uint64_t, float>> cross;
-  for (Eigen::Index i = 0; i < n; ++i) {
-    const int a = flat[i];
-    if (a < 0) continue;
-    for (int m = 0; m < k; ++m) {
-      const int j = graph[i * k + m];
-      if (j < 0) continue;
-      const int b = flat[j];
-      if (b < 0 || b == a) continue;
-      cross.push_back({pairKey(a, b), std::min(f(i, 0), f(j, 0))});
+  // Saddle between adjacent clusters: the highest min(f_i, f_j) over k-NN pairs across them,
+  // per pair of clusters (a maximum: the same whatever the order), pairs in increasing (a, b)
+  // order. Points in parallel, each thread with its own pairs, merged after.
+  std::unordered_map<std::uint64_t, float> best;
+#pragma omp parallel
+  {
+    std::unordered_map<std::uint64_t, float> mine;
+#pragma omp for schedule(static) nowait
+    for (Eigen::Index i = 0; i < n; ++i) {
+      const int a = flat[i];
+      if (a < 0) continue;
+      for (int m = 0; m < k; ++m) {
+        const int j = graph[i * k + m];
+        if (j < 0) continue;
+        const int b = flat[j];
+        if (b < 0 || b == a) continue;
+        const float v = std::min(f(i, 0), f(j, 0));
+        const auto [it, fresh] = mine.emplace(pairKey(a, b), v);
+        if (!fresh) it->second = std::max(it->second, v);
+      }
+    }
+#pragma omp critical(mean_shift_saddles)
+    for (const auto& [key, v] : mine) {
+      const auto [it, fresh] = best.emplace(key, v);
+      if (!fresh) it->second = std::max(it->second, v);
     }
   }
+  std::vector<std::pair<std::uint64_t, float>> cross(best.begin(), best.end());
   std::sort(cross.begin(), cross.end());
   result.saddles.clear();
-  for (std::size_t e = 0; e < cross.size();) {
-    std::size_t g = e;
-    while (g < cross.size() && cross[g].first == cross[e].first) ++g;
-    // Sorted by value within a key: the last is the highest.
-    result.saddles.push_back({pairFirst(cross[e].first), pairSecond(cross[e].first),
-                              static_cast<double>(cross[g - 1].second)});
-    e = g;
-  }
+  for (const auto& [key, v] : cross)
+    result.saddles.push_back({pairFirst(key), pairSecond(key), static_cast<double>(v)});
   result.labels = splitByFrame(flat, space.offsets);
 }
 }  // namespace
