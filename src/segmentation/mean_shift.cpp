@@ -1,9 +1,14 @@
-#include <pcl_animseg/error.h>
+#include "mean_shift_internal.h"
+
 #include <pcl_animseg/kdtree.h>
+#include <pcl_animseg/error.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/union_find.h>
 
+#include <flann/flann.hpp>
+
 #include <Eigen/Eigenvalues>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -11,7 +16,6 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
-#include <flann/flann.hpp>
 #include <functional>
 #include <future>
 #include <limits>
@@ -19,8 +23,6 @@
 #include <queue>
 #include <sstream>
 #include <unordered_map>
-
-#include "mean_shift_internal.h"
 
 namespace pcl_animseg {
 namespace segmentation {

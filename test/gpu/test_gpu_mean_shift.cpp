@@ -54,6 +54,24 @@ std::shared_ptr<pcl_animseg::PointCloudSequence> synthSequence(pcl_animseg::synt
       pcl_animseg::synth::toSequence(pcl_animseg::synth::generate(sp)));
 }
 
+/** A joint space (Eq. 5-6, no signatures) with keypoint flags on every step-th point from
+ * `first` and a pair metric 1.5 times the plain one on the normals. */
+struct PairSpace {
+  Eigen::MatrixXf z;
+  Eigen::RowVectorXf metric, pair;
+  std::vector<char> key;
+};
+PairSpace pairSpace(pcl_animseg::synth::BodyPlan plan, int points, std::size_t first,
+                    std::size_t step, const seg::MeanShiftParams& mp) {
+  PairSpace s;
+  jointSpace(*synthSequence(plan, points), mp, s.z, s.metric);
+  s.key.assign(static_cast<std::size_t>(s.z.rows()), 0);
+  for (std::size_t i = first; i < s.key.size(); i += step) s.key[i] = 1;
+  s.pair = s.metric;
+  s.pair.tail(3) *= 1.5f;
+  return s;
+}
+
 }  // namespace
 
 TEST(GpuMeanShift, AgreesWithCpuPaperMethod) {
@@ -170,15 +188,11 @@ TEST(GpuMeanShift, ExactBordersAgreeWithCpu) {
 TEST(GpuMeanShift, DensityKeepsItsTreesOnlyForTheSameData) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  const auto sequence = synthSequence(pcl_animseg::synth::BodyPlan::Quadruped, 1500);
   seg::MeanShiftParams mp;
-  Eigen::MatrixXf z;
-  Eigen::RowVectorXf metric;
-  jointSpace(*sequence, mp, z, metric);
-  std::vector<char> key(static_cast<std::size_t>(z.rows()), 0);
-  for (std::size_t i = 0; i < key.size(); i += 9) key[i] = 1;
-  Eigen::RowVectorXf pair = metric;
-  pair.tail(3) *= 1.5f;
+  const PairSpace js = pairSpace(pcl_animseg::synth::BodyPlan::Quadruped, 1500, 0, 9, mp);
+  const Eigen::MatrixXf& z = js.z;
+  const Eigen::RowVectorXf &metric = js.metric, &pair = js.pair;
+  const std::vector<char>& key = js.key;
   const Eigen::MatrixXf q1 = z.topRows(500), q2 = z.bottomRows(700);
   const std::vector<char> k1(key.begin(), key.begin() + 500), k2(key.end() - 700, key.end());
   auto fresh = [&](const Eigen::MatrixXf& data, const Eigen::MatrixXf& q,
@@ -209,15 +223,11 @@ TEST(GpuMeanShift, DensityKeepsItsTreesOnlyForTheSameData) {
 TEST(GpuMeanShift, DensityFromTheIterationsTreesIsAFreshTreesDensity) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  const auto sequence = synthSequence(pcl_animseg::synth::BodyPlan::Humanoid, 2500);
   seg::MeanShiftParams mp;
-  Eigen::MatrixXf z;
-  Eigen::RowVectorXf metric;
-  jointSpace(*sequence, mp, z, metric);
-  std::vector<char> key(static_cast<std::size_t>(z.rows()), 0);
-  for (std::size_t i = 3; i < key.size(); i += 11) key[i] = 1;
-  Eigen::RowVectorXf pair = metric;
-  pair.tail(3) *= 1.5f;
+  const PairSpace js = pairSpace(pcl_animseg::synth::BodyPlan::Humanoid, 2500, 3, 11, mp);
+  const Eigen::MatrixXf& z = js.z;
+  const Eigen::RowVectorXf &metric = js.metric, &pair = js.pair;
+  const std::vector<char>& key = js.key;
   gpu::MeanShiftBackend iterated;
   Eigen::MatrixXf y;
   Eigen::VectorXf end_density;

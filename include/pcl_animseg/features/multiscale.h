@@ -95,7 +95,8 @@ class FeatureDevice {
  * "signature" (their times are summed over frames). Throws Error naming the frame on bad input.
  * A keypoint index appears once per frame even when detected at several levels (the strongest
  * |response| is kept). With a `device`, the scale spaces and signatures are computed there (the
- * "scale_space" stage then includes the signatures' time). */
+ * "scale_space" stage then includes the signatures' time), and the keypoints' refinement where
+ * it offers one (FeatureDevice::keypointRefiner). */
 SequenceFeatures computeSequenceFeatures(const PointCloudSequence& seq, const MultiscaleParams& p,
                                          Progress* progress = nullptr,
                                          FeatureDevice* device = nullptr);

@@ -16,6 +16,7 @@
 #include <pcl_animseg/filters/gaussian_kdtree.h>
 
 #include <Eigen/Core>
+
 #include <cstddef>
 #include <memory>
 #include <vector>
