@@ -241,13 +241,9 @@ void FeatureDevice::Refiner::refine(KeypointRefineJobs& jobs) const {
   if (nk > static_cast<std::size_t>(INT_MAX)) throw Error("GPU keypoints: too many keypoints");
   jobs.y.assign(2 * nk, 0.0f);
   jobs.ok.assign(nk, 1);
-  if (nk == 0) return;
-  const std::vector<unsigned> begin(jobs.disc_begin.begin(), jobs.disc_begin.end());
-  const std::vector<unsigned char> maximum(jobs.maximum.begin(), jobs.maximum.end());
-  std::vector<unsigned char> ok(nk, 1);
-  detail::refineKeypoints(static_cast<int>(nk), jobs.h0, begin, jobs.samples, jobs.frames,
-                          jobs.scales, maximum, jobs.y.data(), ok.data());
-  for (std::size_t k = 0; k < nk; ++k) jobs.ok[k] = static_cast<char>(ok[k]);
+  detail::refineKeypoints(static_cast<int>(nk), jobs.h0, jobs.disc_begin.data(),
+                          jobs.samples.data(), jobs.frames.data(), jobs.scales.data(),
+                          jobs.maximum.data(), jobs.y.data(), jobs.ok.data());
 }
 
 }  // namespace gpu

@@ -5,6 +5,7 @@
 #include <pcl_animseg/gpu/device_array.h>
 
 #include <cstddef>
+#include <cstdint>
 #include <vector>
 
 namespace pcl_animseg {
@@ -65,14 +66,13 @@ class FeatureBlock {
   Impl* impl_;
 };
 
-/** DoGKeypoint's Newton steps (dog_keypoint.cpp: newtonSteps) for nk keypoints on the device:
- * KeypointRefineJobs' arrays (samples 4 floats each, frames 12 floats a keypoint), results into
- * y (2 a keypoint) and ok (1 a keypoint), host memory. Blocks until done; safe to call from
- * several threads. */
-void refineKeypoints(int nk, double h0, const std::vector<unsigned>& disc_begin,
-                     const std::vector<float>& samples, const std::vector<float>& frames,
-                     const std::vector<float>& scales, const std::vector<unsigned char>& maximum,
-                     float* y, unsigned char* ok);
+/** DoGKeypoint's Newton steps (dog_keypoint.cpp: newtonSteps) for nk keypoints on the device,
+ * from KeypointRefineJobs' arrays in host memory: disc_begin (nk + 1 offsets), samples (4 floats
+ * each), frames (12 floats a keypoint), scales and maximum (one a keypoint); results into y (2
+ * a keypoint) and ok (1 a keypoint). Blocks until done; safe to call from several threads. */
+void refineKeypoints(int nk, double h0, const std::uint32_t* disc_begin, const float* samples,
+                     const float* frames, const float* scales, const char* maximum, float* y,
+                     char* ok);
 
 }  // namespace detail
 }  // namespace gpu

@@ -613,9 +613,9 @@ __device__ double interceptOf(const double* m) {
 }
 
 __global__ void __launch_bounds__(kRefineThreads)
-    refineKernel(int nk, double h0, const unsigned* disc_begin, const float4* samples,
-                 const float* frames, const float* scales, const unsigned char* maximum,
-                 float* y_out, unsigned char* ok_out) {
+    refineKernel(int nk, double h0, const std::uint32_t* disc_begin, const float4* samples,
+                 const float* frames, const float* scales, const char* maximum, float* y_out,
+                 char* ok_out) {
   const int k = blockIdx.x;
   if (k >= nk) return;
   __shared__ double s_part[kRefineThreads / 32][18];
@@ -915,18 +915,18 @@ void FeatureBlock::launch(const FeatureBlockArgs& args) {
   cudaSafeCall(cudaDeviceSynchronize());
 }
 
-void refineKeypoints(int nk, double h0, const std::vector<unsigned>& disc_begin,
-                     const std::vector<float>& samples, const std::vector<float>& frames,
-                     const std::vector<float>& scales, const std::vector<unsigned char>& maximum,
-                     float* y, unsigned char* ok) {
+void refineKeypoints(int nk, double h0, const std::uint32_t* disc_begin, const float* samples,
+                     const float* frames, const float* scales, const char* maximum, float* y,
+                     char* ok) {
   if (nk == 0) return;
-  DeviceArray<unsigned> d_begin(disc_begin.data(), disc_begin.size());
-  DeviceArray<float> d_samples(samples.data(), std::max<std::size_t>(samples.size(), 4));
-  DeviceArray<float> d_frames(frames.data(), frames.size());
-  DeviceArray<float> d_scales(scales.data(), scales.size());
-  DeviceArray<unsigned char> d_max(maximum.data(), maximum.size());
-  DeviceArray<float> d_y(2 * static_cast<std::size_t>(nk));
-  DeviceArray<unsigned char> d_ok(static_cast<std::size_t>(nk));
+  const std::size_t k = static_cast<std::size_t>(nk);
+  DeviceArray<std::uint32_t> d_begin(disc_begin, k + 1);
+  DeviceArray<float> d_samples(samples, 4 * std::size_t{disc_begin[k]});
+  DeviceArray<float> d_frames(frames, 12 * k);
+  DeviceArray<float> d_scales(scales, k);
+  DeviceArray<char> d_max(maximum, k);
+  DeviceArray<float> d_y(2 * k);
+  DeviceArray<char> d_ok(k);
   refineKernel<<<nk, kRefineThreads>>>(
       nk, h0, d_begin.ptr(), reinterpret_cast<const float4*>(d_samples.ptr()), d_frames.ptr(),
       d_scales.ptr(), d_max.ptr(), d_y.ptr(), d_ok.ptr());
