@@ -5,6 +5,7 @@
 // levels and signatures agree to the last bits of the library functions (exp, atan2, cos, sin:
 // the CPU's and CUDA's differ in the last bit now and then).
 #include <pcl_animseg/features/mls_projection.h>
+#include <pcl_animseg/keypoints/dog_refinement.h>
 
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
@@ -601,9 +602,6 @@ __global__ void signatureKernel(SignatureArgs s) {
 // threads' (so the sums' order differs from the CPU's), thread 0 solves and steps.
 
 constexpr int kRefineThreads = 128;
-constexpr double kInnerScaleD = 1.6817928305074290;  // 2^(3/4), as dog_keypoint.cpp
-constexpr int kNewtonStepsD = 6;
-constexpr double kConvergedD = 0.025;
 
 __device__ double interceptOf(const double* m) {
   double M[3][3] = {{m[0], m[1], m[2]}, {m[1], m[3], m[4]}, {m[2], m[4], m[5]}};
@@ -626,7 +624,8 @@ __global__ void __launch_bounds__(kRefineThreads)
   const int tid = threadIdx.x, lane = tid & 31, warp = tid >> 5;
   const unsigned b0 = disc_begin[k], b1 = disc_begin[k + 1];
   const float scale = scales[k];
-  const double ha = kInnerScaleD * scale, hb = 2.0 * kInnerScaleD * scale;
+  const double ha = dog_refinement::kInnerScale * scale,
+               hb = dog_refinement::kOuterScale * scale;
   const float inv_b2 = static_cast<float>(1.0 / (hb * hb));
   const double inv_hb = 1.0 / hb;
   if (tid == 0) {
@@ -637,7 +636,7 @@ __global__ void __launch_bounds__(kRefineThreads)
   }
   __syncthreads();
   bool ok = true;
-  for (int it = 0; it < kNewtonStepsD; ++it) {
+  for (int it = 0; it < dog_refinement::kNewtonSteps; ++it) {
     const float y0 = s_y[0], y1 = s_y[1], step = s_step;
     const float c = expf(-step * step * inv_b2);
     for (int g = 0; g < 9; ++g) {
@@ -738,7 +737,7 @@ __global__ void __launch_bounds__(kRefineThreads)
             d2 += e * e;
           }
           ok = sqrtf(d2) <= static_cast<float>(3.0 * h0);
-          go = ok && !(step * sn < kConvergedD * h0);
+          go = ok && !(step * sn < dog_refinement::kConverged * h0);
           if (go && sn < 0.5) s_step = step * 0.5f;
         }
       }

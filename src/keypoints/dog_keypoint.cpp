@@ -1,6 +1,7 @@
 #include <omp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/keypoints/dog_keypoint.h>
+#include <pcl_animseg/keypoints/dog_refinement.h>
 
 #include <Eigen/Cholesky>
 #include <algorithm>
@@ -81,15 +82,13 @@ bool nearOpenBorder(const ScaleSpace& ss, std::size_t j, float ring, double angl
   return false;
 }
 
-// Sub-sample localisation (see dog_keypoint.h): the pair of scales of the refit, relative to the
-// keypoint's scale h_i, how far (in the outer scale) the disc of samples reaches, the balancing
-// passes of the area weights and the Newton iterations.
-constexpr double kInnerScale = 1.6817928305074290;  // 2^(3/4)
-constexpr double kOuterScale = 2.0 * kInnerScale;
-constexpr double kDiscRadius = 2.0;
-constexpr int kAreaPasses = 3;
-constexpr int kNewtonSteps = 6;
-constexpr double kConverged = 0.025;  // h0: a step this small ends the iterations
+// Sub-sample localisation (see dog_keypoint.h): its constants are shared with the device.
+using dog_refinement::kAreaPasses;
+using dog_refinement::kConverged;
+using dog_refinement::kDiscRadius;
+using dog_refinement::kInnerScale;
+using dog_refinement::kNewtonSteps;
+using dog_refinement::kOuterScale;
 
 /** Step 3 of refinePositions for one keypoint: Newton steps on R(y) = (z_b(y) - z_a(y)) / h_a,
  * where z_s(y) is the height above y, along the keypoint's normal at the coarsest level, of the
