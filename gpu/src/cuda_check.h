@@ -19,7 +19,7 @@ namespace detail {
     msg += "; no usable GPU: use --device cpu";
   (void)file;
   (void)line;
-  throw Error(msg);
+  throw DeviceError(msg);
 }
 
 }  // namespace detail

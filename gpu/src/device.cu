@@ -61,8 +61,8 @@ void DeviceMemory::create(std::size_t bytes) {
       std::size_t free_b = 0, total_b = 0;
       cudaMemGetInfo(&free_b, &total_b);
       cudaGetLastError();
-      throw Error("GPU out of memory: cannot allocate " + mib(bytes) + " (" + mib(free_b) +
-                  " free of " + mib(total_b) + "); use fewer points or --device cpu");
+      throw DeviceError("GPU out of memory: cannot allocate " + mib(bytes) + " (" + mib(free_b) +
+                        " free of " + mib(total_b) + "); use fewer points or --device cpu");
     }
     detail::throwCuda(err, "cudaMalloc", __FILE__, __LINE__);
   }
@@ -81,12 +81,12 @@ void DeviceMemory::release() noexcept {
 }
 
 void DeviceMemory::uploadBytes(const void* host, std::size_t bytes) {
-  if (bytes > bytes_) throw Error("GPU: upload of more bytes than the buffer holds");
+  if (bytes > bytes_) throw DeviceError("GPU: upload of more bytes than the buffer holds");
   if (bytes) cudaSafeCall(cudaMemcpy(ptr_, host, bytes, cudaMemcpyHostToDevice));
 }
 
 void DeviceMemory::downloadBytes(void* host, std::size_t bytes) const {
-  if (bytes > bytes_) throw Error("GPU: download of more bytes than the buffer holds");
+  if (bytes > bytes_) throw DeviceError("GPU: download of more bytes than the buffer holds");
   if (bytes) cudaSafeCall(cudaMemcpy(host, ptr_, bytes, cudaMemcpyDeviceToHost));
 }
 
@@ -162,7 +162,7 @@ ProbeState probeState() {
 
 void requireGpu() {
   std::string why;
-  if (!gpuAvailable(&why)) throw Error("no usable GPU: " + why);
+  if (!gpuAvailable(&why)) throw DeviceError("no usable GPU: " + why);
 }
 
 DeviceInfo deviceInfo() {

@@ -63,14 +63,14 @@ void FeatureDevice::scaleSpaces(const PointCloudSequence& seq, std::size_t first
   if (F == 0) return;
   Laps laps;
   if (plans.size() != F || last > seq.size() || spaces.size() < last)
-    throw Error("GPU features: the plans do not match the frames");
+    throw DeviceError("GPU features: the plans do not match the frames");
   d.first = first;
   d.begin.assign(F + 1, 0);
   for (std::size_t f = 0; f < F; ++f)
     d.begin[f + 1] = d.begin[f] + static_cast<long long>(seq.frame(first + f)->size());
   if (d.begin[F] > INT_MAX / 3)
-    throw Error("GPU features: a block of " + std::to_string(d.begin[F]) +
-                " points is too large for the GPU kernels; lower the block size");
+    throw DeviceError("GPU features: a block of " + std::to_string(d.begin[F]) +
+                      " points is too large for the GPU kernels; lower the block size");
   const int n = static_cast<int>(d.begin[F]);
 
   detail::FeatureBlockArgs args;
@@ -204,7 +204,7 @@ void FeatureDevice::scaleSpaces(const PointCloudSequence& seq, std::size_t first
 void FeatureDevice::signature(std::size_t t, Eigen::MatrixXf& out) const {
   const Impl& d = *impl_;
   if (t < d.first || t + 1 >= d.first + d.begin.size())
-    throw Error("GPU features: frame " + std::to_string(t) + " is not in the last block");
+    throw DeviceError("GPU features: frame " + std::to_string(t) + " is not in the last block");
   const std::size_t f = t - d.first;
   const long long rows = d.begin[f + 1] - d.begin[f];
   out = Eigen::Map<const Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
@@ -214,7 +214,7 @@ void FeatureDevice::signature(std::size_t t, Eigen::MatrixXf& out) const {
 Neighbourhoods FeatureDevice::rows(std::size_t t) const {
   const Impl& d = *impl_;
   if (t < d.first || t + 1 >= d.first + d.begin.size())
-    throw Error("GPU features: frame " + std::to_string(t) + " is not in the last block");
+    throw DeviceError("GPU features: frame " + std::to_string(t) + " is not in the last block");
   const std::size_t f = t - d.first;
   std::vector<long long> offsets;
   std::vector<int> indices;
@@ -237,8 +237,9 @@ void FeatureDevice::Refiner::refine(KeypointRefineJobs& jobs) const {
   const std::size_t nk = jobs.scales.size();
   if (jobs.disc_begin.size() != nk + 1 || jobs.frames.size() != 12 * nk ||
       jobs.maximum.size() != nk || jobs.samples.size() != 4 * std::size_t{jobs.disc_begin.back()})
-    throw Error("GPU keypoints: inconsistent refinement jobs");
-  if (nk > static_cast<std::size_t>(INT_MAX)) throw Error("GPU keypoints: too many keypoints");
+    throw DeviceError("GPU keypoints: inconsistent refinement jobs");
+  if (nk > static_cast<std::size_t>(INT_MAX))
+    throw DeviceError("GPU keypoints: too many keypoints");
   jobs.y.assign(2 * nk, 0.0f);
   jobs.ok.assign(nk, 1);
   detail::refineKeypoints(static_cast<int>(nk), jobs.h0, jobs.disc_begin.data(),

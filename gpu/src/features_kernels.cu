@@ -783,7 +783,7 @@ void FeatureBlock::launch(const FeatureBlockArgs& args) {
   if (n <= 0 || nframes == 0) return;
   if (args.signatures && (args.angular > kMaxS || args.angular_freqs > kMaxSp ||
                           args.radial_freqs * args.angular_freqs > kMaxD))
-    throw Error("GPU features: the signature layout is larger than the GPU kernel's limits");
+    throw DeviceError("GPU features: the signature layout is larger than the GPU kernel's limits");
   d.frames.upload(args.frames);
   d.xyz.upload(args.xyz, 3 * static_cast<std::size_t>(n));
   d.normals.upload(args.normals, 3 * static_cast<std::size_t>(n));
@@ -875,7 +875,7 @@ void FeatureBlock::launch(const FeatureBlockArgs& args) {
   const int R = args.radial, S = args.angular, Rp = args.radial_freqs, Sp = args.angular_freqs;
   const std::size_t Q = static_cast<std::size_t>(R) * S;
   if (args.disc_tables.size() != 9 * Q + 2 * static_cast<std::size_t>(Sp) * S + 2 * Rp * R)
-    throw Error("GPU features: the signature tables have the wrong size");
+    throw DeviceError("GPU features: the signature tables have the wrong size");
   const float* tp = tables.ptr();
   DiscTables tab;
   const float** slots[] = {&tab.a,   &tab.b,   &tab.aa,  &tab.ab, &tab.bb,
@@ -936,7 +936,7 @@ void refineKeypoints(int nk, double h0, const std::uint32_t* disc_begin, const f
 
 void FeatureBlock::fetchLevel(int level, float* out) const {
   const Impl& d = *impl_;
-  if (level < 0 || level >= d.levels) throw Error("GPU features: no such level");
+  if (level < 0 || level >= d.levels) throw DeviceError("GPU features: no such level");
   cudaSafeCall(cudaMemcpy(out, d.level_data.ptr() + static_cast<std::size_t>(level) * 6 * d.n,
                           sizeof(float) * 6 * d.n, cudaMemcpyDeviceToHost));
 }

@@ -105,17 +105,17 @@ void GaussTransform::setData(const Eigen::MatrixXf& x, const Eigen::MatrixXf& ca
   const Eigen::Index n = x.rows();
   const int dx = static_cast<int>(x.cols());
   const int dc = carried.size() ? static_cast<int>(carried.cols()) : 0;
-  if (n == 0 || dx == 0) throw Error("GPU Gauss transform: no data points");
+  if (n == 0 || dx == 0) throw DeviceError("GPU Gauss transform: no data points");
   if (dc && carried.rows() != n)
-    throw Error("GPU Gauss transform: the carried coordinates need one row per data point");
+    throw DeviceError("GPU Gauss transform: the carried coordinates need one row per data point");
   if (dx + dc > 64)
-    throw Error("GPU Gauss transform: " + std::to_string(dx + dc) +
-                " dimensions, at most 64 are supported");
-  if (n > (Eigen::Index{1} << 30)) throw Error("GPU Gauss transform: too many data points");
+    throw DeviceError("GPU Gauss transform: " + std::to_string(dx + dc) +
+                      " dimensions, at most 64 are supported");
+  if (n > (Eigen::Index{1} << 30)) throw DeviceError("GPU Gauss transform: too many data points");
   if (!(cutoff > 0.0f) || !std::isfinite(cutoff))
-    throw Error("GPU Gauss transform: the cutoff must be positive");
+    throw DeviceError("GPU Gauss transform: the cutoff must be positive");
   if (!x.allFinite() || (dc && !carried.allFinite()))
-    throw Error("GPU Gauss transform: the data contain NaN or Inf");
+    throw DeviceError("GPU Gauss transform: the data contain NaN or Inf");
   requireGpu();
   auto d = std::make_unique<Data>();
   d->n = static_cast<int>(n);
@@ -168,13 +168,14 @@ void GaussTransform::evaluate(const Eigen::Ref<const Eigen::MatrixXf>& q,
 }
 
 void GaussTransform::evaluate(const Eigen::Ref<const Eigen::MatrixXf>& q, float* out) const {
-  if (!data_) throw Error("GPU Gauss transform: setData() must be called before evaluate()");
+  if (!data_) throw DeviceError("GPU Gauss transform: setData() must be called before evaluate()");
   const Data& d = *data_;
   if (q.cols() != d.dx)
-    throw Error("GPU Gauss transform: queries have " + std::to_string(q.cols()) +
-                " coordinates, the data " + std::to_string(d.dx));
-  if (!q.allFinite()) throw Error("GPU Gauss transform: the queries contain NaN or Inf");
-  if (q.rows() > (Eigen::Index{1} << 30)) throw Error("GPU Gauss transform: too many queries");
+    throw DeviceError("GPU Gauss transform: queries have " + std::to_string(q.cols()) +
+                      " coordinates, the data " + std::to_string(d.dx));
+  if (!q.allFinite()) throw DeviceError("GPU Gauss transform: the queries contain NaN or Inf");
+  if (q.rows() > (Eigen::Index{1} << 30))
+    throw DeviceError("GPU Gauss transform: too many queries");
   const auto start = Clock::now();
   const int nq = static_cast<int>(q.rows());
   const int s = d.stride;

@@ -179,7 +179,8 @@ void gaussTransformPartial(const float* x, const float* tile_lo, const float* ti
     ANIMSEG_GT_CASE(32)
     ANIMSEG_GT_CASE(64)
     default:
-      throw Error("GPU Gauss transform: internal error, row stride " + std::to_string(stride));
+      throw DeviceError("GPU Gauss transform: internal error, row stride " +
+                        std::to_string(stride));
   }
 #undef ANIMSEG_GT_CASE
 }
@@ -190,7 +191,7 @@ DeviceClock::DeviceClock() {
   if (cudaEventCreate(&b) != cudaSuccess) {
     cudaEventDestroy(a);
     cudaGetLastError();
-    throw Error("GPU: cudaEventCreate failed");
+    throw DeviceError("GPU: cudaEventCreate failed");
   }
   start_ = a;
   stop_ = b;

@@ -16,11 +16,12 @@ using RowMatrix = Eigen::Matrix<float, Eigen::Dynamic, Eigen::Dynamic, Eigen::Ro
 void checkParams(const filters::GaussianKdTreeParams& p) {
   if (!(p.leaf_extent > 0.0f) || p.slice_samples < 1 || !(p.slice_sigma > 0.0f) ||
       !(p.blur_radius > 0.0f))
-    throw Error("Gaussian kd-tree: leaf_extent, slice_samples, slice_sigma and blur_radius must be "
-                "positive");
+    throw DeviceError(
+        "Gaussian kd-tree: leaf_extent, slice_samples, slice_sigma and blur_radius must be "
+        "positive");
   if (p.slice_samples > detail::kMaxSliceSamples)
-    throw Error("GPU Gaussian kd-tree: slice_samples is at most " +
-                std::to_string(detail::kMaxSliceSamples));
+    throw DeviceError("GPU Gaussian kd-tree: slice_samples is at most " +
+                      std::to_string(detail::kMaxSliceSamples));
 }
 }  // namespace
 
@@ -37,15 +38,16 @@ void GaussianKdTree::build(const Eigen::MatrixXf& positions) {
 
 void GaussianKdTree::build(const float* positions, int n, int d) {
   if (n <= 0 || d <= 0)
-    throw Error("Gaussian kd-tree: no points to build from (empty position matrix)");
+    throw DeviceError("Gaussian kd-tree: no points to build from (empty position matrix)");
   if (d > detail::kMaxDim)
-    throw Error("GPU Gaussian kd-tree: " + std::to_string(d) + " dimensions, at most " +
-                std::to_string(detail::kMaxDim) + " are supported");
+    throw DeviceError("GPU Gaussian kd-tree: " + std::to_string(d) + " dimensions, at most " +
+                      std::to_string(detail::kMaxDim) + " are supported");
   checkParams(params_);
   const std::size_t total = static_cast<std::size_t>(n) * d;
   for (std::size_t i = 0; i < total; ++i)
     if (!std::isfinite(positions[i]))
-      throw Error("Gaussian kd-tree: positions contain NaN or Inf; drop invalid points first");
+      throw DeviceError(
+          "Gaussian kd-tree: positions contain NaN or Inf; drop invalid points first");
   DeviceArray<float> pts(positions, total);
   auto tree = std::make_unique<detail::TreeDevice>();
   detail::buildTree(pts.ptr(), n, d, params_, *tree);
@@ -54,17 +56,17 @@ void GaussianKdTree::build(const float* positions, int n, int d) {
 
 void GaussianKdTree::requireBuilt() const {
   if (!tree_ || tree_->root < 0)
-    throw Error("Gaussian kd-tree: build() must be called before filtering");
+    throw DeviceError("Gaussian kd-tree: build() must be called before filtering");
 }
 
 void GaussianKdTree::splatBlur(const Eigen::MatrixXf& values, Eigen::MatrixXf& sample_values) const {
   requireBuilt();
   if (values.rows() != tree_->n)
-    throw Error("Gaussian kd-tree: values must have one row per data point");
+    throw DeviceError("Gaussian kd-tree: values must have one row per data point");
   const int v = static_cast<int>(values.cols());
   if (v < 1 || v > detail::kMaxValueDim)
-    throw Error("GPU Gaussian kd-tree: values need 1.." + std::to_string(detail::kMaxValueDim) +
-                " columns");
+    throw DeviceError("GPU Gaussian kd-tree: values need 1.." +
+                      std::to_string(detail::kMaxValueDim) + " columns");
   const RowMatrix rv = values;
   DeviceArray<float> d_vals(rv.data(), rv.size());
   DeviceArray<float> d_sv;
@@ -79,14 +81,14 @@ void GaussianKdTree::slice(const Eigen::MatrixXf& sample_values, const Eigen::Ma
   requireBuilt();
   checkParams(params_);
   if (sample_values.rows() != tree_->m)
-    throw Error("Gaussian kd-tree: sample values must have one row per sample");
+    throw DeviceError("Gaussian kd-tree: sample values must have one row per sample");
   if (queries.cols() != tree_->d)
-    throw Error("Gaussian kd-tree: queries have " + std::to_string(queries.cols()) +
-                " dimensions, the tree " + std::to_string(tree_->d));
+    throw DeviceError("Gaussian kd-tree: queries have " + std::to_string(queries.cols()) +
+                      " dimensions, the tree " + std::to_string(tree_->d));
   const int v = static_cast<int>(sample_values.cols());
   if (v < 1 || v > detail::kMaxValueDim)
-    throw Error("GPU Gaussian kd-tree: sample values need 1.." +
-                std::to_string(detail::kMaxValueDim) + " columns");
+    throw DeviceError("GPU Gaussian kd-tree: sample values need 1.." +
+                      std::to_string(detail::kMaxValueDim) + " columns");
   const RowMatrix rsv = sample_values;
   const RowMatrix rq = queries;
   DeviceArray<float> d_sv(rsv.data(), rsv.size()), d_q(rq.data(), rq.size());

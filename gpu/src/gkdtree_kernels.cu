@@ -432,7 +432,7 @@ __global__ void columnKernel(const float* __restrict__ src, int n, int v, int c,
 
 void buildTree(const float* points, int n, int d, const filters::GaussianKdTreeParams& params,
                TreeDevice& tree) {
-  if (d < 1 || d > kMaxDim) throw Error("GPU Gaussian kd-tree: dimension must be 1..64");
+  if (d < 1 || d > kMaxDim) throw DeviceError("GPU Gaussian kd-tree: dimension must be 1..64");
   tree = TreeDevice();
   tree.n = n;
   tree.d = d;
@@ -640,8 +640,9 @@ void buildTree(const float* points, int n, int d, const filters::GaussianKdTreeP
 
 void splatBlur(const TreeDevice& tree, const float* values, const float* homogeneous_points, int v,
                float blur_radius, DeviceArray<float>& sample_values) {
-  if (v < 1 || v > kMaxValueDim) throw Error("GPU Gaussian kd-tree: value dimension must be 1..128");
-  if (v > kThreads) throw Error("GPU Gaussian kd-tree: value dimension too large");
+  if (v < 1 || v > kMaxValueDim)
+    throw DeviceError("GPU Gaussian kd-tree: value dimension must be 1..128");
+  if (v > kThreads) throw DeviceError("GPU Gaussian kd-tree: value dimension too large");
   const int m = tree.m, d = tree.d;
   std::vector<int> begin;
   tree.leaf_begin.download(begin);
@@ -667,7 +668,7 @@ void slice(const TreeDevice& tree, const filters::GaussianKdTreeParams& params,
            const float* sample_values, int v, const float* queries, const float* metric,
            const int* rows, int nrows, bool accumulate, float* out) {
   if (params.slice_samples < 1 || params.slice_samples > kMaxSliceSamples)
-    throw Error("GPU Gaussian kd-tree: slice_samples must be 1..64");
+    throw DeviceError("GPU Gaussian kd-tree: slice_samples must be 1..64");
   if (nrows == 0) return;
   const float inv_h_sqrt2 = 1.0f / (params.slice_sigma * std::sqrt(2.0f));
   const float inv_2h2 = 0.5f / (params.slice_sigma * params.slice_sigma);

@@ -74,21 +74,22 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
   state_.reset();
   const int n = static_cast<int>(z.rows());
   const int d = static_cast<int>(z.cols());
-  if (n == 0 || d == 0) throw Error("GPU mean shift: no points");
+  if (n == 0 || d == 0) throw DeviceError("GPU mean shift: no points");
   if (d > detail::kMaxDim)
-    throw Error("GPU mean shift: " + std::to_string(d) + " feature dimensions, at most " +
-                std::to_string(detail::kMaxDim) + " are supported");
+    throw DeviceError("GPU mean shift: " + std::to_string(d) + " feature dimensions, at most " +
+                      std::to_string(detail::kMaxDim) + " are supported");
   if (metric_plain.size() != d || (!keypoint.empty() && metric_key.size() != d))
-    throw Error("GPU mean shift: metric size differs from the feature dimension");
+    throw DeviceError("GPU mean shift: metric size differs from the feature dimension");
   if (!keypoint.empty() && static_cast<int>(keypoint.size()) != n)
-    throw Error("GPU mean shift: keypoint flags must have one entry per point");
-  if (!z.allFinite()) throw Error("GPU mean shift: non-finite features");
-  if (params_.max_iterations < 1) throw Error("GPU mean shift: max iterations must be >= 1");
+    throw DeviceError("GPU mean shift: keypoint flags must have one entry per point");
+  if (!z.allFinite()) throw DeviceError("GPU mean shift: non-finite features");
+  if (params_.max_iterations < 1) throw DeviceError("GPU mean shift: max iterations must be >= 1");
   const filters::GaussianKdTreeParams& gp = params_.gkdtree;
   if (!(gp.leaf_extent > 0.0f) || gp.slice_samples < 1 ||
       gp.slice_samples > detail::kMaxSliceSamples || !(gp.slice_sigma > 0.0f) ||
       !(gp.blur_radius > 0.0f))
-    throw Error("GPU mean shift: bad Gaussian kd-tree parameters (positive, slice_samples <= 64)");
+    throw DeviceError(
+        "GPU mean shift: bad Gaussian kd-tree parameters (positive, slice_samples <= 64)");
   resetPeakDeviceBytes();
 
   auto t0 = Clock::now();
@@ -206,11 +207,11 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
 
 void MeanShift::density(const Eigen::MatrixXf& queries, const std::vector<char>& query_key,
                         Eigen::VectorXf& out) const {
-  if (!state_) throw Error("GPU mean shift: density before a run");
+  if (!state_) throw DeviceError("GPU mean shift: density before a run");
   const int q = static_cast<int>(queries.rows()), d = state_->d, v = d + 1;
-  if (queries.cols() != d) throw Error("GPU density: queries and data differ in dimension");
+  if (queries.cols() != d) throw DeviceError("GPU density: queries and data differ in dimension");
   if (!query_key.empty() && query_key.size() != static_cast<std::size_t>(q))
-    throw Error("GPU density: query flags must have one entry per query");
+    throw DeviceError("GPU density: query flags must have one entry per query");
   out.setZero(q);
   if (q == 0) return;
   DeviceArray<float> d_q;

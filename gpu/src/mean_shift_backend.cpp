@@ -30,9 +30,9 @@ class ExactSums : public segmentation::DeviceExactSums {
             const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint)
       : dim_(static_cast<int>(z.cols())) {
     if (metric_plain.size() != z.cols() || metric_key.size() != z.cols())
-      throw Error("GPU exact sums: metrics and data differ in dimension");
+      throw DeviceError("GPU exact sums: metrics and data differ in dimension");
     if (!keypoint.empty() && keypoint.size() != static_cast<std::size_t>(z.rows()))
-      throw Error("GPU exact sums: keypoint flags must have one entry per point");
+      throw DeviceError("GPU exact sums: keypoint flags must have one entry per point");
     std::vector<Eigen::Index> plain, key;
     for (Eigen::Index i = 0; i < z.rows(); ++i)
       (!keypoint.empty() && keypoint[i] ? key : plain).push_back(i);
@@ -51,7 +51,7 @@ class ExactSums : public segmentation::DeviceExactSums {
   void evaluate(const Eigen::MatrixXf& q, const std::vector<int>& rows,
                 const std::vector<char>& query_key, Eigen::MatrixXf& out) override {
     if (q.cols() != dim_ || out.cols() != dim_ + 1)
-      throw Error("GPU exact sums: queries or output of the wrong width");
+      throw DeviceError("GPU exact sums: queries or output of the wrong width");
     for (int r : rows) out.row(r).setZero();
     std::vector<int> plain_rows, key_rows;
     for (int r : rows) (!query_key.empty() && query_key[r] ? key_rows : plain_rows).push_back(r);
@@ -112,7 +112,7 @@ class ExactSums : public segmentation::DeviceExactSums {
         g.carried.push_back(k);
       }
     }
-    if (g.dist.empty()) throw Error("GPU exact sums: every weight of the metric is 0");
+    if (g.dist.empty()) throw DeviceError("GPU exact sums: every weight of the metric is 0");
     const int dx = static_cast<int>(g.dist.size()), dc = static_cast<int>(g.carried.size());
     Eigen::MatrixXf x(idx.size(), dx), c(dc ? idx.size() : 0, dc);
 #pragma omp parallel for schedule(static)
@@ -198,7 +198,7 @@ std::unique_ptr<segmentation::DeviceExactSums> MeanShiftBackend::exactSums(
     const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_plain,
     const Eigen::RowVectorXf& metric_key, const std::vector<char>& keypoint) {
   requireGpu();
-  if (z.rows() == 0) throw Error("GPU exact sums: no data points");
+  if (z.rows() == 0) throw DeviceError("GPU exact sums: no data points");
   return std::make_unique<ExactSums>(z, metric_plain, metric_key, keypoint);
 }
 
@@ -239,11 +239,12 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
                                Eigen::VectorXf& out) {
   requireGpu();
   const Eigen::Index n = z.rows(), q = queries.rows();
-  if (queries.cols() != z.cols()) throw Error("GPU density: queries and data differ in dimension");
+  if (queries.cols() != z.cols())
+    throw DeviceError("GPU density: queries and data differ in dimension");
   if (!keypoint.empty() && keypoint.size() != static_cast<std::size_t>(n))
-    throw Error("GPU density: keypoint flags must have one entry per point");
+    throw DeviceError("GPU density: keypoint flags must have one entry per point");
   if (!query_key.empty() && query_key.size() != static_cast<std::size_t>(q))
-    throw Error("GPU density: query flags must have one entry per query");
+    throw DeviceError("GPU density: query flags must have one entry per query");
   out.setZero(q);
   if (q == 0) return;
   // The trees and blurred weights (or the exact sums' data) are kept for the next call on the

@@ -22,7 +22,7 @@ namespace {
 void appendSource(const Eigen::Matrix3Xd& p, const Eigen::Matrix3Xd& n, std::vector<double>& out,
                   std::vector<int>& begin) {
   if (p.cols() != n.cols())
-    throw Error("GPU tracking: a source has positions and normals of different counts");
+    throw DeviceError("GPU tracking: a source has positions and normals of different counts");
   segmentation::appendPoints(p, n, out);
   begin.push_back(static_cast<int>(out.size() / 6));
 }
@@ -37,7 +37,7 @@ void countSourcesAndMotions(const std::vector<double>& points, const std::vector
   if (n_sources < 0 || source_begin.front() != 0 ||
       static_cast<std::size_t>(source_begin.back()) * 6 != points.size() ||
       motions.size() % detail::kPoseDoubles != 0)
-    throw Error(what + ": the sources or motions are malformed");
+    throw DeviceError(what + ": the sources or motions are malformed");
 }
 
 // Error("<what>: a job out of range") unless a job's source, motion and frame are in range.
@@ -45,7 +45,7 @@ void checkJob(int source, int n_sources, int motion, int n_motions, int frame, i
               const std::string& what) {
   if (source < 0 || source >= n_sources || motion < 0 || motion >= n_motions || frame < 0 ||
       frame >= frames)
-    throw Error(what + ": a job out of range");
+    throw DeviceError(what + ": a job out of range");
 }
 
 }  // namespace
@@ -114,9 +114,9 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
   std::vector<const FlatKdTree3*> trees(in.frames.size());
   for (std::size_t t = 0; t < in.frames.size(); ++t) {
     const segmentation::DeviceFrames::Frame& f = in.frames[t];
-    if (!f.tree) throw Error(what + " " + std::to_string(t) + " has no tree");
+    if (!f.tree) throw DeviceError(what + " " + std::to_string(t) + " has no tree");
     if (f.leaf_normals.size() != 3 * f.tree->size())
-      throw Error(what + " " + std::to_string(t) + " has one normal per point expected");
+      throw DeviceError(what + " " + std::to_string(t) + " has one normal per point expected");
     trees[t] = f.tree;
     a.spacing.push_back(f.spacing);
     a.unoriented.push_back(f.unoriented ? 1 : 0);
@@ -171,14 +171,14 @@ detail::FrameStore* MotionTracking::store() {
 void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,
                                   std::vector<std::vector<Eigen::Isometry3d>>& poses,
                                   std::vector<std::vector<double>>& residual) {
-  if (!store()) throw Error("GPU tracking: no frames were set");
+  if (!store()) throw DeviceError("GPU tracking: no frames were set");
   const int T = frames_->frames, S = problem.samples;
   const std::size_t uS = static_cast<std::size_t>(S), uT = static_cast<std::size_t>(T);
   if (S < 0 || problem.source_p.size() != uS || problem.source_n.size() != uS ||
       problem.probe_p.size() != uS || problem.probe_n.size() != uS || problem.graph.size() != uS ||
       problem.level.size() != uT || problem.before.size() != uT ||
       problem.two_before.size() != uT || problem.global.size() != uT)
-    throw Error("GPU tracking: the problem's arrays do not match its frames and samples");
+    throw DeviceError("GPU tracking: the problem's arrays do not match its frames and samples");
   detail::TrackingArrays a;
   a.samples = S;
   a.iterations = problem.icp_iterations;
@@ -189,8 +189,8 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     if (problem.level[t].empty())
       a.level.insert(a.level.end(), uS, 0);
     else if (problem.level[t].size() != uS)
-      throw Error("GPU tracking: frame " + std::to_string(t) +
-                  " has one level per sample expected");
+      throw DeviceError("GPU tracking: frame " + std::to_string(t) +
+                        " has one level per sample expected");
     else
       a.level.insert(a.level.end(), problem.level[t].begin(), problem.level[t].end());
   }
@@ -201,7 +201,7 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     appendSource(problem.source_p[s], problem.source_n[s], a.source, a.source_begin);
     appendSource(problem.probe_p[s], problem.probe_n[s], a.probe, a.probe_begin);
     for (int o : problem.graph[s]) {
-      if (o < 0 || o >= S) throw Error("GPU tracking: a sample neighbour out of range");
+      if (o < 0 || o >= S) throw DeviceError("GPU tracking: a sample neighbour out of range");
       a.adjacency.push_back(o);
     }
     a.adjacency_begin.push_back(static_cast<int>(a.adjacency.size()));
@@ -209,10 +209,10 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
   const long long TS = static_cast<long long>(T) * S;
   for (const std::vector<int>& wave : problem.waves) {
     for (int task : wave) {
-      if (task < 0 || task >= TS) throw Error("GPU tracking: a task out of range");
+      if (task < 0 || task >= TS) throw DeviceError("GPU tracking: a task out of range");
       const int before = problem.before[task / S];
       if (before < 0 || before >= T)
-        throw Error("GPU tracking: a task in a frame without a frame before it");
+        throw DeviceError("GPU tracking: a task in a frame without a frame before it");
       a.tasks.push_back(task);
     }
   }
@@ -223,7 +223,7 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
   {
     std::vector<int> at(static_cast<std::size_t>(TS), -1);
     for (std::size_t k = 0; k < a.tasks.size(); ++k) {
-      if (at[a.tasks[k]] >= 0) throw Error("GPU tracking: a task twice");
+      if (at[a.tasks[k]] >= 0) throw DeviceError("GPU tracking: a task twice");
       at[a.tasks[k]] = static_cast<int>(k);
     }
     auto ready = [&](int t, int s, int k) {
@@ -232,14 +232,16 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     };
     for (std::size_t k = 0; k < a.tasks.size(); ++k) {
       const int task = a.tasks[k], t = task / S, s = task % S, kk = static_cast<int>(k);
-      if (problem.two_before[t] >= T) throw Error("GPU tracking: a frame two before out of range");
+      if (problem.two_before[t] >= T)
+        throw DeviceError("GPU tracking: a frame two before out of range");
       bool ok = ready(problem.before[t], s, kk) &&
                 (problem.two_before[t] < 0 || ready(problem.two_before[t], s, kk));
       const std::vector<int>& lev = problem.level[t];
       for (int o : problem.graph[s])
         if (!lev.empty() && lev[o] < lev[s]) ok = ok && ready(t, o, kk);
       if (!ok)
-        throw Error("GPU tracking: the waves do not put every task after the poses it starts from");
+        throw DeviceError(
+            "GPU tracking: the waves do not put every task after the poses it starts from");
     }
   }
   std::vector<double> flat_poses, flat_res;
@@ -261,7 +263,7 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
 
 void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) {
   const std::string what = "GPU residuals";
-  if (!store()) throw Error(what + ": no frames were set");
+  if (!store()) throw DeviceError(what + ": no frames were set");
   int sources = 0, motions = 0;
   countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
   std::vector<detail::ResidualJob> list;
@@ -276,19 +278,19 @@ void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vect
 }
 
 void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) {
-  if (!store()) throw Error("GPU point costs: no frames were set");
+  if (!store()) throw DeviceError("GPU point costs: no frames were set");
   const int T = frames_->frames;
   const int points = static_cast<int>(jobs.points.size() / 6);
   const std::size_t per_motion = static_cast<std::size_t>(T) * detail::kPoseDoubles;
   if (jobs.points.size() % 6 != 0 || per_motion == 0 || jobs.motions.size() % per_motion != 0 ||
       jobs.reference_frame < 0 || jobs.reference_frame >= T)
-    throw Error("GPU point costs: the points, motions or reference frame are malformed");
+    throw DeviceError("GPU point costs: the points, motions or reference frame are malformed");
   const int motions = static_cast<int>(jobs.motions.size() / per_motion);
   std::vector<detail::PointCostJob> list;
   list.reserve(jobs.jobs.size());
   for (const segmentation::PointCostJobs::Job& j : jobs.jobs) {
     if (j.point < 0 || j.point >= points || j.motion < 0 || j.motion >= motions)
-      throw Error("GPU point costs: a job out of range");
+      throw DeviceError("GPU point costs: a job out of range");
     list.push_back({j.point, j.motion});
   }
   const detail::CallTimer timer(*frames_, 1, list.size());
@@ -298,10 +300,10 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
 
 void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) {
   const std::string what = "GPU part fits";
-  if (!store()) throw Error(what + ": no frames were set");
+  if (!store()) throw DeviceError(what + ": no frames were set");
   int sources = 0, motions = 0;
   countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
-  if (jobs.iterations < 0) throw Error(what + ": negative iterations");
+  if (jobs.iterations < 0) throw DeviceError(what + ": negative iterations");
   std::vector<detail::PartFitJob> list;
   list.reserve(jobs.jobs.size());
   for (const segmentation::PartFitJobs::Job& j : jobs.jobs) {

@@ -78,7 +78,8 @@ void RigidFits::setSources(const std::vector<const std::vector<double>*>& source
   auto s = std::make_unique<detail::RigidSources>();
   std::vector<double> flat;
   for (const std::vector<double>* x : sources) {
-    if (!x || x->size() % 3 != 0) throw Error("GPU rigid fits: a source is not x, y, z triples");
+    if (!x || x->size() % 3 != 0)
+      throw DeviceError("GPU rigid fits: a source is not x, y, z triples");
     s->begin.push_back(static_cast<int>(flat.size() / 3));
     s->count.push_back(static_cast<int>(x->size() / 3));
     flat.insert(flat.end(), x->begin(), x->end());
@@ -99,13 +100,13 @@ void RigidFits::setSources(const std::vector<const std::vector<double>*>& source
 void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
                     const segmentation::RigidMotionParams& params, std::vector<double>& poses,
                     std::vector<double>& rms) {
-  if (!surfaces_ || !sources_) throw Error("GPU rigid fits: no surfaces or sources were set");
+  if (!surfaces_ || !sources_) throw DeviceError("GPU rigid fits: no surfaces or sources were set");
   std::vector<detail::RigidJob> list;
   list.reserve(jobs.size());
   const int n_sources = static_cast<int>(sources_->begin.size());
   for (const segmentation::RigidFitJob& j : jobs) {
     if (j.source < 0 || j.source >= n_sources || j.surface < 0 || j.surface >= surfaces_->frames)
-      throw Error("GPU rigid fits: a job out of range");
+      throw DeviceError("GPU rigid fits: a job out of range");
     detail::RigidJob r{};
     r.source_begin = sources_->begin[j.source];
     r.source_count = sources_->count[j.source];
@@ -134,12 +135,12 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     std::vector<int>& rows, std::vector<int>& count) {
   if (k < 1 || k > detail::kMaxKnn) return false;
   if (queries.size() != 3 * tree_of.size())
-    throw Error("GPU k-NN: three coordinates per query expected");
+    throw DeviceError("GPU k-NN: three coordinates per query expected");
   const int n_trees = static_cast<int>(trees.size());
   for (int t : tree_of)
-    if (t < 0 || t >= n_trees) throw Error("GPU k-NN: a query's tree out of range");
+    if (t < 0 || t >= n_trees) throw DeviceError("GPU k-NN: a query's tree out of range");
   for (int t = 0; t < n_trees; ++t)
-    if (!trees[t]) throw Error("GPU k-NN: a tree is missing");
+    if (!trees[t]) throw DeviceError("GPU k-NN: a tree is missing");
   detail::KnnTrees packed;
   const std::vector<int> point0 =
       detail::packTrees(trees, packed.nodes, packed.points, packed.root);

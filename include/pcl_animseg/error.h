@@ -11,4 +11,14 @@ class Error : public std::runtime_error {
   explicit Error(const std::string& what) : std::runtime_error(what) {}
 };
 
+/** \brief An Error of a device (the CUDA module's GPU): none usable, out of its memory, a kernel
+ * or transfer that failed, or a job beyond its limits. Every error the CUDA module throws is one,
+ * so that a caller tells them from the input's own errors by type: with `--device auto` the
+ * features fall back to the CPU on these alone (a frame's error is the frame's, whatever ran
+ * it); the later stages fall back on any error of their device run. */
+class DeviceError : public Error {
+ public:
+  explicit DeviceError(const std::string& what) : Error(what) {}
+};
+
 }  // namespace pcl_animseg

@@ -28,17 +28,16 @@ void forEachFrame(const PointCloudSequence& seq, std::size_t first, std::size_t 
   const std::size_t T = last - first;
   if (progress) progress->begin(stage, T);
   std::vector<std::string> errors(T);
-  std::vector<char> failed(T, 0);
+  std::vector<char> failed(T, 0);  // 1: the frame's error, 2: its device's (DeviceError)
   auto runOne = [&](std::size_t i) {
     const std::size_t t = first + i;
     try {
       work(t);
-    } catch (const Error& e) {
-      // A device's errors (they start with "GPU") are not the frame's: said as they are, so
-      // that the pipeline can tell them from the input's.
-      const std::string what = e.what();
-      errors[i] = what.compare(0, 3, "GPU") == 0 ? what : "frame '" + seq.name(t) + "': " + what;
-      failed[i] = 1;
+    } catch (const DeviceError& e) {
+      // Not the frame's: said and thrown as it is, so that the pipeline can tell it from the
+      // input's.
+      errors[i] = e.what();
+      failed[i] = 2;
     } catch (const std::exception& e) {
       errors[i] = "frame '" + seq.name(t) + "': " + e.what();
       failed[i] = 1;
@@ -61,8 +60,10 @@ void forEachFrame(const PointCloudSequence& seq, std::size_t first, std::size_t 
       if (progress) progress->update(t + 1);
     }
   }
-  for (std::size_t t = 0; t < T; ++t)
+  for (std::size_t t = 0; t < T; ++t) {
+    if (failed[t] == 2) throw DeviceError(errors[t]);
     if (failed[t]) throw Error(errors[t]);
+  }
   finish();
   if (progress) {
     progress->update(T);

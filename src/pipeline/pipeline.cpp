@@ -122,9 +122,9 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     try {
       features = computeSequenceFeatures(seq, params.multiscale, &progress, feature_device.get());
       if (feature_device) r.notes.push_back("scale space and signatures computed on the GPU");
-    } catch (const Error& e) {
-      // Errors of the input come before the device is called; the device's own start with "GPU".
-      if (!feature_device || std::string(e.what()).compare(0, 3, "GPU") != 0) throw;
+    } catch (const DeviceError& e) {
+      // The device's own errors (the input's are plain Errors, thrown as they are).
+      if (!feature_device) throw;
       std::string why;
       const bool missing = !gpu::gpuAvailable(&why);
       if (params.device == "gpu") {

@@ -5,6 +5,7 @@
 #include <pcl_animseg/features/multiscale.h>
 #include <pcl_animseg/features/scale_space.h>
 #include <pcl_animseg/features/signature.h>
+#include <pcl_animseg/keypoints/dog_keypoint.h>
 #include <pcl_animseg/progress.h>
 
 #include "features/bumpy_surface.h"
@@ -109,5 +110,58 @@ TEST(Multiscale, AFeatureDeviceGetsEveryBlockAndItsResultsAreUsed) {
     FAIL() << "a frame of 10 points was accepted";
   } catch (const Error& e) {
     EXPECT_NE(std::string(e.what()).find("frame 'tiny'"), std::string::npos) << e.what();
+  }
+}
+
+namespace {
+
+/** A keypoint refinement that fails, as a device's (DeviceError) or as a malformed input's
+ * (Error). */
+class FailingRefiner : public KeypointRefineDevice {
+ public:
+  explicit FailingRefiner(bool device) : device_(device) {}
+  void refine(KeypointRefineJobs&) const override {
+    if (device_) throw DeviceError("GPU keypoints: the kernel failed (test)");
+    throw Error("a malformed refinement job (test)");
+  }
+
+ private:
+  bool device_;
+};
+
+class FailingRefineDevice : public CpuFeatureDevice {
+ public:
+  explicit FailingRefineDevice(bool device) : refiner_(device) {}
+  const KeypointRefineDevice* keypointRefiner() const override { return &refiner_; }
+
+ private:
+  FailingRefiner refiner_;
+};
+
+}  // namespace
+
+// A device's failure inside a frame's work is thrown as the device's (DeviceError, its message
+// as it is), so that the pipeline falls back to the CPU on it; any other failure there is the
+// frame's (a plain Error naming the frame), which no fall-back hides.
+TEST(Multiscale, ADeviceErrorInAFrameStaysTheDevicesAndOtherErrorsNameTheFrame) {
+  PointCloudSequence seq;
+  for (unsigned t = 0; t < 2; ++t)
+    seq.addFrame(test::bumpySphere(3000 + 500 * t, 70 + t), "f" + std::to_string(t));
+  const MultiscaleParams p;
+  FailingRefineDevice gpu(true);
+  try {
+    computeSequenceFeatures(seq, p, nullptr, &gpu);
+    FAIL() << "the device's failure was not thrown";
+  } catch (const DeviceError& e) {
+    EXPECT_STREQ(e.what(), "GPU keypoints: the kernel failed (test)");
+  }
+  FailingRefineDevice input(false);
+  try {
+    computeSequenceFeatures(seq, p, nullptr, &input);
+    FAIL() << "the frame's failure was not thrown";
+  } catch (const DeviceError& e) {
+    FAIL() << "a frame's failure was thrown as the device's: " << e.what();
+  } catch (const Error& e) {
+    EXPECT_EQ(std::string(e.what()), "frame 'f0': a malformed refinement job (test)");
   }
 }
