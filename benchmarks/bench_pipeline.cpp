@@ -23,7 +23,6 @@
 #include <chrono>
 #include <cstdlib>
 #include <map>
-#include <memory>
 #include <string>
 
 namespace {
@@ -81,17 +80,12 @@ void report(benchmark::State& state, const std::map<std::string, double>& stages
 void BM_PipelineFirstRun(benchmark::State& state) {
   const pcl_animseg::PipelineParams p = params();
   // As animseg: the device starts beside the input's making (its loading there).
-  std::unique_ptr<pcl_animseg::DeviceWarmUp> warm_up;
+  const pcl_animseg::DeviceWarmUp warm_up(p.device);
+  sequence();
   std::map<std::string, double> stages;
   pcl_animseg::PipelineResult r;
   int runs = 0;
   for (auto _ : state) {
-    state.PauseTiming();
-    if (runs == 0) {
-      warm_up = std::make_unique<pcl_animseg::DeviceWarmUp>(p.device);
-      sequence();
-    }
-    state.ResumeTiming();
     state.SetIterationTime(runOnce(p, stages, r));
     ++runs;
   }

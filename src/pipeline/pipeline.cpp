@@ -123,8 +123,8 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       features = computeSequenceFeatures(seq, params.multiscale, &progress, feature_device.get());
       if (feature_device) r.notes.push_back("scale space and signatures computed on the GPU");
     } catch (const DeviceError& e) {
-      // The device's own errors (the input's are plain Errors, thrown as they are).
-      if (!feature_device) throw;
+      // The device's own errors (the input's are plain Errors, thrown as they are; without a
+      // device there are none).
       std::string why;
       const bool missing = !gpu::gpuAvailable(&why);
       if (params.device == "gpu") {
