@@ -2,6 +2,7 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
+#include <pcl_animseg/segmentation/icp_step.h>
 
 #include <algorithm>
 #include <cstdint>
@@ -53,8 +54,11 @@ std::vector<int> rigidSearchOrder(const std::vector<double>& xyz) {
     }
     code[i] = c;
   }
-  for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
-    const int c1 = std::min(n, c0 + kRigidChunk);
+  for (int g = 0; g < kRigidMaxCluster; ++g) {
+    const int c0 = segmentation::icp_step::rangeBegin(
+                  g * segmentation::icp_step::kSumRanges / kRigidMaxCluster, n),
+              c1 = segmentation::icp_step::rangeBegin(
+                  (g + 1) * segmentation::icp_step::kSumRanges / kRigidMaxCluster, n);
     std::stable_sort(order.begin() + c0, order.begin() + c1,
                      [&](int a, int b) { return code[a] < code[b]; });
   }
@@ -125,7 +129,13 @@ void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
   p.relative_mse_epsilon = params.relative_mse_epsilon;
   p.max_turn = segmentation::rigidStepMaxTurn();
   const detail::CallTimer timer(*surfaces_, 3, list.size());
-  detail::runRigidFits(*surfaces_, sources_->points, sources_->orders, list, p, poses, rms);
+  int max_points = 0;
+  for (const detail::RigidJob& r : list) max_points = std::max(max_points, r.source_count);
+  const int cluster =
+      detail::rigidClusterSize(*surfaces_, static_cast<int>(list.size()), max_points, cluster_);
+  detail::runRigidFits(*surfaces_, sources_->points, sources_->orders, list, p, cluster, poses,
+                       rms);
+  last_cluster_ = cluster;
   fits_ += static_cast<long long>(jobs.size());
   ++batches_;
 }

@@ -13,6 +13,7 @@
 // the CPU's system. Nearest points come from a copy of the frame's FlatKdTree3 with the same
 // walk and the same float distances, so a query finds the CPU's point: the results are the
 // CPU's bit for bit. Written by us: no kept library fits many small ICPs at once on a GPU.
+#include <cooperative_groups.h>
 #include <math_constants.h>
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/segmentation/icp_step.h>
@@ -592,85 +593,130 @@ __global__ void pointCostSums(const double* __restrict__ errors, int frames, int
   out[j] = sum;
 }
 
-// The rigid motions' ICP (rigid_motion.cpp: icpPass, fitness, alignPasses), one block per fit:
-// thread j < kRigidThreads adds the values of its range of the source (icp_step::rangeBegin) in
-// point order, then thread q adds column q of the ranges' sums in range order, the CPU's order.
-// The nearest-point searches, most of an iteration's time, are made first by all
-// kRigidSearchThreads threads of the block, kRigidChunk points at a time, into shared memory;
-// the range threads then add the chunk's matches of their ranges in order (the same sums: a
-// thread per range searching its points in turn waited for memory most of the time).
+// The rigid motions' ICP (rigid_motion.cpp: icpPass, fitness, alignPasses), one cluster of
+// R blocks per fit (R = 1, 2, 4 or 8; thread block clusters, sm_90). The source's
+// icp_step::kSumRanges ranges (icp_step::rangeBegin) are split among the cluster's blocks, each
+// block the ranges [rank * 128 / R, (rank + 1) * 128 / R) and their points. A block searches its
+// points' nearest surface points with all its threads (into the job's global scratch), then
+// its range threads add their ranges' values in point order; every block gathers the other
+// blocks' range sums through distributed shared memory and adds the 128 of each column in range
+// order, the CPU's order, so every block of the cluster holds the CPU's totals and takes the
+// CPU's step. The searches, most of an iteration's time with one block (a 3000-point source is
+// 12 searches per thread), spread over R SMs; the sums' order does not depend on R.
 constexpr int kRigidThreads = icp_step::kSumRanges;
-constexpr int kRigidSearchThreads = 2 * kRigidThreads;
+constexpr int kRigidBlockThreads = 256;
 constexpr int kRigidCols = icp_step::kTerms + 2;  // the terms, the squared distances, the count
-struct RigidShared {
-  double part[kRigidThreads][kRigidCols];
-  double total[kRigidCols];
-  int match[kRigidChunk];
-  float d2[kRigidChunk];
+static_assert(kRigidThreads % kRigidMaxCluster == 0, "a block's ranges are whole order groups");
+// Dynamic shared memory of a block: two buffers of the ranges' sums (consecutive reductions
+// alternate, so that a block writes a buffer only after every block read it the time before:
+// a cluster barrier lies between), then the totals.
+constexpr std::size_t kRigidSharedBytes = (2 * kRigidThreads * kRigidCols + kRigidCols) * sizeof(double);
+
+struct RigidBlock {
+  int rank = 0, R = 1;  // the block's rank in its cluster, the cluster's size
+  int r0 = 0, r1 = kRigidThreads;  // its ranges
+  int buf = 0;                     // the buffer of the next reduction
+  double* smem = nullptr;
+  int* match = nullptr;  // the job's scratch: per source point, its match and squared distance
+  float* d2 = nullptr;
+  __device__ double (*part(int b))[kRigidCols] {
+    return reinterpret_cast<double (*)[kRigidCols]>(smem + b * kRigidThreads * kRigidCols);
+  }
+  __device__ double* total() { return smem + 2 * kRigidThreads * kRigidCols; }
+  // This thread's range (global index), or -1.
+  __device__ int range() const {
+    const int j = r0 + static_cast<int>(threadIdx.x);
+    return j < r1 ? j : -1;
+  }
 };
 
-// Column q < cols of the range threads' partial sums added in range order, into sh.total (every
-// range thread's part[] written before; every thread reads the totals after).
-__device__ void rangeTotals(RigidShared& sh, int cols) {
-  __syncthreads();
-  const int q = threadIdx.x;
-  if (q < cols) {
-    double t = 0.0;
-    for (int j = 0; j < kRigidThreads; ++j) t += sh.part[j][q];
-    sh.total[q] = t;
+__device__ void clusterSync(const RigidBlock& rb) {
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  if (rb.R > 1) {
+    cooperative_groups::this_cluster().sync();
+    return;
   }
+#endif
   __syncthreads();
 }
 
-// The nearest surface point (within bound2) of every point c0..c1-1 of the source under T, by
-// all threads of the block, into sh.match / sh.d2 (index - c0); synchronised after. The threads
-// take the chunk's points in `order` (rigidSearchOrder: near points side by side), so that the
-// lanes of a warp walk the same branches of the tree: in the source's own order they walked
-// apart, and the warps' divergent walks were most of a fit's time.
-__device__ void rigidMatches(const Dev& d, int root, const double* src, const int* order,
-                             const Rigid& T, int c0, int c1, float bound2, RigidShared& sh) {
-  for (int s = c0 + static_cast<int>(threadIdx.x); s < c1; s += blockDim.x) {
+// Columns 0..cols-1 of every range's sums (each block's range threads wrote theirs into buffer
+// rb.buf) added in range order into rb.total(), in every block of the cluster; every thread
+// reads the totals after.
+__device__ void rangeTotals(RigidBlock& rb, int cols) {
+  clusterSync(rb);
+  double(*mine)[kRigidCols] = rb.part(rb.buf);
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  if (rb.R > 1) {
+    cooperative_groups::cluster_group cluster = cooperative_groups::this_cluster();
+    const int per = kRigidThreads / rb.R;
+    for (int idx = threadIdx.x; idx < kRigidThreads * cols; idx += blockDim.x) {
+      const int j = idx / cols, q = idx - j * cols, owner = j / per;
+      if (owner != rb.rank) mine[j][q] = *cluster.map_shared_rank(&mine[j][q], owner);
+    }
+    __syncthreads();
+  }
+#endif
+  const int q = threadIdx.x;
+  if (q < cols) {
+    double t = 0.0;
+    for (int j = 0; j < kRigidThreads; ++j) t += mine[j][q];
+    rb.total()[q] = t;
+  }
+  rb.buf ^= 1;
+  __syncthreads();
+}
+
+// The nearest surface point (within bound2) of every point of the block's ranges under T, by all
+// threads of the block, into the job's scratch; synchronised after. The threads take the points
+// in `order` (rigidSearchOrder: near points side by side within each order group), so that the
+// lanes of a warp walk the same branches of the tree.
+__device__ void rigidMatches(const Dev& d, int root, const double* src, const int* order, int n,
+                             const Rigid& T, float bound2, RigidBlock& rb) {
+  const int s1 = icp_step::rangeBegin(rb.r1, n);
+  for (int s = icp_step::rangeBegin(rb.r0, n) + static_cast<int>(threadIdx.x); s < s1;
+       s += blockDim.x) {
     const int i = order[s];
     double y[3];
     icp_step::apply(T, src + 3 * i, y);
     float d2 = 0.0f;
-    sh.match[i - c0] = nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
-                               static_cast<float>(y[2]), bound2, d2);
-    sh.d2[i - c0] = d2;
+    rb.match[i] = nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]),
+                          static_cast<float>(y[2]), bound2, d2);
+    rb.d2[i] = d2;
   }
   __syncthreads();
 }
 
 __device__ Rigid rigidPass(const Dev& d, int root, const double* src, const int* order, int n,
                            Rigid T, double max_dist, int iterations, bool plane, double spacing,
-                           const RigidParams& p, RigidShared& sh) {
+                           const RigidParams& p, RigidBlock& rb) {
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double max_move = p.transformation_epsilon * spacing;
-  const int j = threadIdx.x;
-  const bool ranger = j < kRigidThreads;
-  const int b = ranger ? icp_step::rangeBegin(j, n) : 0,
-            e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
+  const int j = rb.range();
+  const int b = j >= 0 ? icp_step::rangeBegin(j, n) : 0, e = j >= 0 ? icp_step::rangeBegin(j + 1, n) : 0;
   double prev_mse = -1.0;
   for (int it = 0; it < iterations; ++it) {
-    double part[kRigidCols];
-    for (int k = 0; k < 3; ++k) part[k] = 0.0;
-    for (int i = b; i < e; ++i) {
-      double y[3];
-      icp_step::apply(T, src + 3 * i, y);
-      for (int k = 0; k < 3; ++k) part[k] += y[k];
+    {
+      double part[3] = {0.0, 0.0, 0.0};
+      for (int i = b; i < e; ++i) {
+        double y[3];
+        icp_step::apply(T, src + 3 * i, y);
+        for (int k = 0; k < 3; ++k) part[k] += y[k];
+      }
+      if (j >= 0)
+        for (int k = 0; k < 3; ++k) rb.part(rb.buf)[j][k] = part[k];
     }
-    if (ranger)
-      for (int k = 0; k < 3; ++k) sh.part[j][k] = part[k];
-    rangeTotals(sh, 3);
+    rangeTotals(rb, 3);
     double c[3];
-    for (int k = 0; k < 3; ++k) c[k] = sh.total[k] / static_cast<double>(n > 0 ? n : 1);
-    __syncthreads();  // the totals are read before they are written again
-    for (int q = 0; q < kRigidCols; ++q) part[q] = 0.0;
-    for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
-      const int c1 = min(n, c0 + kRigidChunk);
-      rigidMatches(d, root, src, order, T, c0, c1, max_d2, sh);
-      for (int i = max(b, c0); i < min(e, c1); ++i) {
-        const int k = sh.match[i - c0];
+    for (int k = 0; k < 3; ++k) c[k] = rb.total()[k] / static_cast<double>(n > 0 ? n : 1);
+    rigidMatches(d, root, src, order, n, T, max_d2, rb);
+    if (j >= 0) {
+      // Added in place in the buffer (this thread's row): no 25 doubles held in registers
+      // beside the searches'.
+      double* row = rb.part(rb.buf)[j];
+      for (int q = 0; q < kRigidCols; ++q) row[q] = 0.0;
+      for (int i = b; i < e; ++i) {
+        const int k = rb.match[i];
         if (k < 0) continue;
         double y[3];
         icp_step::apply(T, src + 3 * i, y);
@@ -678,18 +724,14 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, const int*
         const double tp[3] = {a.x, a.y, a.z}, tn[3] = {nb.x, nb.y, nb.z};
         double terms[icp_step::kTerms];
         icp_step::weightedTerms(y, c, tp, tn, plane ? 1.0 : 0.0, plane ? 0.0 : 1.0, terms);
-        for (int q = 0; q < icp_step::kTerms; ++q) part[q] += terms[q];
-        part[icp_step::kTerms] += sh.d2[i - c0];
-        part[icp_step::kTerms + 1] += 1.0;
+        for (int q = 0; q < icp_step::kTerms; ++q) row[q] += terms[q];
+        row[icp_step::kTerms] += rb.d2[i];
+        row[icp_step::kTerms + 1] += 1.0;
       }
-      __syncthreads();  // the chunk's matches are read before the next chunk's are written
     }
-    if (ranger)
-      for (int q = 0; q < kRigidCols; ++q) sh.part[j][q] = part[q];
-    rangeTotals(sh, kRigidCols);
+    rangeTotals(rb, kRigidCols);
     double sums[kRigidCols];
-    for (int q = 0; q < kRigidCols; ++q) sums[q] = sh.total[q];
-    __syncthreads();
+    for (int q = 0; q < kRigidCols; ++q) sums[q] = rb.total()[q];
     if (!icp_step::rigidStep(sums, c, p.max_turn, max_move, p.relative_mse_epsilon, T, prev_mse))
       break;
   }
@@ -699,40 +741,48 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, const int*
 // RMS distance from the moved source to its nearest surface points (no bound), NaN when a point
 // finds none; added by ranges as on the CPU.
 __device__ double rigidFitness(const Dev& d, int root, const double* src, const int* order, int n,
-                               const Rigid& T, RigidShared& sh) {
+                               const Rigid& T, RigidBlock& rb) {
   if (n == 0) return CUDART_NAN;
-  const int j = threadIdx.x;
-  const bool ranger = j < kRigidThreads;
-  const int b = ranger ? icp_step::rangeBegin(j, n) : 0,
-            e = ranger ? icp_step::rangeBegin(j + 1, n) : 0;
-  double sum = 0.0, missing = 0.0;
-  for (int c0 = 0; c0 < n; c0 += kRigidChunk) {
-    const int c1 = min(n, c0 + kRigidChunk);
-    rigidMatches(d, root, src, order, T, c0, c1, CUDART_INF_F, sh);
-    for (int i = max(b, c0); i < min(e, c1); ++i) {
-      if (sh.match[i - c0] < 0)
+  const int j = rb.range();
+  rigidMatches(d, root, src, order, n, T, CUDART_INF_F, rb);
+  if (j >= 0) {
+    double sum = 0.0, missing = 0.0;
+    for (int i = icp_step::rangeBegin(j, n), e = icp_step::rangeBegin(j + 1, n); i < e; ++i) {
+      if (rb.match[i] < 0)
         missing += 1.0;
       else
-        sum += sh.d2[i - c0];
+        sum += rb.d2[i];
     }
-    __syncthreads();
+    rb.part(rb.buf)[j][0] = sum;
+    rb.part(rb.buf)[j][1] = missing;
   }
-  if (ranger) {
-    sh.part[j][0] = sum;
-    sh.part[j][1] = missing;
-  }
-  rangeTotals(sh, 2);
-  const double total = sh.total[0], lost = sh.total[1];
-  __syncthreads();
+  rangeTotals(rb, 2);
+  const double total = rb.total()[0], lost = rb.total()[1];
   if (lost > 0.0) return CUDART_NAN;
   return sqrt(total / static_cast<double>(n));
 }
 
-__global__ void __launch_bounds__(kRigidSearchThreads)
+// One fit per cluster of `cluster` blocks (blockIdx.x / cluster is the job); `scratch_begin`
+// per job: where its points' matches start in match / d2.
+__global__ void __launch_bounds__(kRigidBlockThreads)
     rigidFitJobs(Dev d, const double* __restrict__ sources, const int* __restrict__ orders,
-                 const RigidJob* __restrict__ jobs, RigidParams p, double* poses, double* rms_out) {
-  __shared__ RigidShared sh;
-  const RigidJob job = jobs[blockIdx.x];
+                 const RigidJob* __restrict__ jobs, const long long* __restrict__ scratch_begin,
+                 int* match, float* match_d2, int cluster, RigidParams p, double* poses,
+                 double* rms_out) {
+  extern __shared__ double rigid_smem[];
+  RigidBlock rb;
+  rb.smem = rigid_smem;
+  rb.R = cluster;
+  const int job_index = blockIdx.x / cluster;
+#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
+  rb.rank = cluster > 1 ? static_cast<int>(cooperative_groups::this_cluster().block_rank()) : 0;
+#endif
+  const int per = kRigidThreads / cluster;
+  rb.r0 = rb.rank * per;
+  rb.r1 = rb.r0 + per;
+  const RigidJob job = jobs[job_index];
+  rb.match = match + scratch_begin[job_index];
+  rb.d2 = match_d2 + scratch_begin[job_index];
   const int root = d.root[job.surface];
   const double* src = sources + 3LL * job.source_begin;
   const int* order = orders + job.source_begin;
@@ -744,20 +794,22 @@ __global__ void __launch_bounds__(kRigidSearchThreads)
   if (job.wide)
     for (int k = 0; k < 2; ++k)
       m = rigidPass(d, root, src, order, n, m, passes[k], max(1, p.max_iterations / 2), false,
-                    job.spacing, p, sh);
-  m = rigidPass(d, root, src, order, n, m, fine, p.max_iterations, false, job.spacing, p, sh);
-  double rms = rigidFitness(d, root, src, order, n, m, sh);
+                    job.spacing, p, rb);
+  m = rigidPass(d, root, src, order, n, m, fine, p.max_iterations, false, job.spacing, p, rb);
+  double rms = rigidFitness(d, root, src, order, n, m, rb);
   const Rigid plane =
-      rigidPass(d, root, src, order, n, m, fine, p.max_iterations, true, job.spacing, p, sh);
-  const double rms_plane = rigidFitness(d, root, src, order, n, plane, sh);
+      rigidPass(d, root, src, order, n, m, fine, p.max_iterations, true, job.spacing, p, rb);
+  const double rms_plane = rigidFitness(d, root, src, order, n, plane, rb);
   if (rms_plane <= rms) {
     m = plane;
     rms = rms_plane;
   }
-  if (threadIdx.x == 0) {
-    icp_step::store(m, poses + static_cast<long long>(blockIdx.x) * kPoseDoubles);
-    rms_out[blockIdx.x] = rms;
+  if (rb.rank == 0 && threadIdx.x == 0) {
+    icp_step::store(m, poses + static_cast<long long>(job_index) * kPoseDoubles);
+    rms_out[job_index] = rms;
   }
+  // No block leaves while another may still read its shared memory.
+  clusterSync(rb);
 }
 
 Dev frameView(const FrameStore& f) {
@@ -849,24 +901,100 @@ int blocksFor(long long warps) {
   return static_cast<int>((warps + kWarpsPerBlock - 1) / kWarpsPerBlock);
 }
 
+// How many clusters of R blocks of the rigid fits run at once on this device (0: clusters of R
+// are not possible), measured once per store.
+int rigidClusterLimit(FrameStore& store, int R) {
+  int& known = store.rigid_clusters[R == 2 ? 0 : (R == 4 ? 1 : 2)];
+  if (known >= 0) return known;
+  known = 0;
+  int device = 0, can = 0;
+  cudaSafeCall(cudaGetDevice(&device));
+  cudaSafeCall(cudaDeviceGetAttribute(&can, cudaDevAttrClusterLaunch, device));
+  cudaFuncAttributes fa{};
+  cudaSafeCall(cudaFuncGetAttributes(&fa, rigidFitJobs));
+  if (!can || fa.binaryVersion < 90) return known;  // no clusters: one block per fit
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = dim3(static_cast<unsigned>(R));
+  cfg.blockDim = dim3(kRigidBlockThreads);
+  cfg.dynamicSmemBytes = kRigidSharedBytes;
+  cudaLaunchAttribute attr{};
+  attr.id = cudaLaunchAttributeClusterDimension;
+  attr.val.clusterDim.x = static_cast<unsigned>(R);
+  attr.val.clusterDim.y = attr.val.clusterDim.z = 1;
+  cfg.attrs = &attr;
+  cfg.numAttrs = 1;
+  int clusters = 0;
+  if (cudaOccupancyMaxActiveClusters(&clusters, rigidFitJobs, &cfg) != cudaSuccess) {
+    cudaGetLastError();  // a size this device cannot co-schedule: not used
+    clusters = 0;
+  }
+  return known = clusters;
+}
+
 }  // namespace
+
+int rigidClusterSize(FrameStore& store, int jobs, int max_points, int forced) {
+  cudaSafeCall(cudaFuncSetAttribute(rigidFitJobs, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                    static_cast<int>(kRigidSharedBytes)));
+  if (forced > 0) {
+    int R = 1;
+    while (R * 2 <= std::min(forced, kRigidMaxCluster) && rigidClusterLimit(store, R * 2) > 0)
+      R *= 2;
+    return R;
+  }
+  // Enough blocks that each searches at most a point per thread, while every job's cluster runs
+  // at once (a cluster that waits for another to finish costs more than it saves).
+  int R = 1;
+  while (R < kRigidMaxCluster && static_cast<long long>(R) * kRigidBlockThreads < max_points)
+    R *= 2;
+  while (R > 1 && rigidClusterLimit(store, R) < jobs) R /= 2;
+  return R;
+}
 
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
                   const DeviceArray<int>& orders, const std::vector<RigidJob>& jobs,
-                  const RigidParams& params, std::vector<double>& poses, std::vector<double>& rms) {
+                  const RigidParams& params, int cluster, std::vector<double>& poses,
+                  std::vector<double>& rms) {
   poses.assign(jobs.size() * kPoseDoubles, 0.0);
   rms.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
-  put(surfaces.job_in, jobs.data(), jobs.size() * sizeof(RigidJob));
-  grow(surfaces.job_out, jobs.size() * (kPoseDoubles + 1) * sizeof(double));
+  if (cluster < 1 || cluster > kRigidMaxCluster || (cluster & (cluster - 1)) != 0)
+    throw DeviceError("GPU rigid fits: a cluster of " + std::to_string(cluster) + " blocks");
+  // The jobs, then where each job's matches start in the scratch, in one upload.
+  const std::size_t n = jobs.size();
+  std::vector<long long> scratch_begin(n + 1, 0);
+  for (std::size_t k = 0; k < n; ++k)
+    scratch_begin[k + 1] = scratch_begin[k] + std::max(0, jobs[k].source_count);
+  const std::size_t jobs_bytes = (n * sizeof(RigidJob) + 15) & ~static_cast<std::size_t>(15);
+  std::vector<unsigned char> in(jobs_bytes + n * sizeof(long long));
+  std::memcpy(in.data(), jobs.data(), n * sizeof(RigidJob));
+  std::memcpy(in.data() + jobs_bytes, scratch_begin.data(), n * sizeof(long long));
+  put(surfaces.job_in, in.data(), in.size());
+  grow(surfaces.job_out, n * (kPoseDoubles + 1) * sizeof(double));
+  const std::size_t points = static_cast<std::size_t>(std::max(1LL, scratch_begin[n]));
+  grow(surfaces.rigid_scratch, points * (sizeof(int) + sizeof(float)));
   const Dev d = frameView(surfaces);
-  const int n = static_cast<int>(jobs.size());
+  const auto* base = static_cast<const unsigned char*>(surfaces.job_in.rawPtr());
+  const auto* job_list = reinterpret_cast<const RigidJob*>(base);
+  const auto* begin = reinterpret_cast<const long long*>(base + jobs_bytes);
+  int* match = static_cast<int*>(surfaces.rigid_scratch.rawPtr());
+  float* match_d2 = reinterpret_cast<float*>(match + points);
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
-  rigidFitJobs<<<n, kRigidSearchThreads>>>(
-      d, sources.ptr(), orders.ptr(), static_cast<const RigidJob*>(surfaces.job_in.rawPtr()),
-      params, out, out + static_cast<std::size_t>(n) * kPoseDoubles);
+  double* rms_out = out + n * kPoseDoubles;
+  cudaLaunchConfig_t cfg{};
+  cfg.gridDim = dim3(static_cast<unsigned>(n * cluster));
+  cfg.blockDim = dim3(kRigidBlockThreads);
+  cfg.dynamicSmemBytes = kRigidSharedBytes;
+  cudaLaunchAttribute attr{};
+  attr.id = cudaLaunchAttributeClusterDimension;
+  attr.val.clusterDim.x = static_cast<unsigned>(cluster);
+  attr.val.clusterDim.y = attr.val.clusterDim.z = 1;
+  cfg.attrs = cluster > 1 ? &attr : nullptr;
+  cfg.numAttrs = cluster > 1 ? 1 : 0;
+  cudaSafeCall(cudaLaunchKernelEx(&cfg, rigidFitJobs, d, sources.ptr(), orders.ptr(), job_list,
+                                  begin, match, match_d2, cluster, params, out, rms_out));
   cudaCheckLaunch();
-  std::vector<double> all(jobs.size() * (kPoseDoubles + 1));
+  std::vector<double> all(n * (kPoseDoubles + 1));
   surfaces.job_out.downloadBytes(all.data(), all.size() * sizeof(double));
   std::copy(all.begin(), all.begin() + poses.size(), poses.begin());
   std::copy(all.begin() + poses.size(), all.end(), rms.begin());

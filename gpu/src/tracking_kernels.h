@@ -69,6 +69,10 @@ struct FrameStore {
    * batch instead of four, each a synchronous round trip of some 10-25 us. */
   DeviceMemory job_in, job_out;
   PinnedHost staging, results;
+  /** The rigid fits' matches (an int and a float per source point of a batch), and how many
+   * clusters of 2, 4 and 8 blocks run at once (-1: not measured yet). */
+  DeviceMemory rigid_scratch;
+  int rigid_clusters[3] = {-1, -1, -1};
   /** Calls by kind (residuals, point costs, part fits, rigid fits): count, jobs and wall
    * seconds, printed on stderr when the store goes and ANIMSEG_MS_TIMING is set. */
   struct CallStats {
@@ -202,21 +206,31 @@ constexpr int kMaxKnn = 32;
 void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
 
-/** The rigid fits' nearest-point searches go kRigidChunk source points at a time. */
-constexpr int kRigidChunk = 1024;
+/** The largest cluster of blocks that one rigid fit runs on (thread block clusters, sm_90). */
+constexpr int kRigidMaxCluster = 8;
 
-/** The order in which a rigid fit searches a source's points (x, y, z per point): within each
- * chunk of kRigidChunk points, by the Morton code of the point in the source's bounding box
- * (each entry a point's index in the source). Which thread searches a point does not change its
+/** The order in which a rigid fit searches a source's points (x, y, z per point): within each of
+ * kRigidMaxCluster groups of whole ranges (group g: icp_step::rangeBegin of ranges
+ * [g * kSumRanges / kRigidMaxCluster, (g + 1) * kSumRanges / kRigidMaxCluster)), by the Morton
+ * code of the point in the source's bounding box (each entry a point's index in the source). A
+ * block of a cluster searches whole groups. Which thread searches a point does not change its
  * match, only how far apart the lanes of a warp walk. */
 std::vector<int> rigidSearchOrder(const std::vector<double>& xyz);
 
-/** segmentation::fitRigidJob for every job, one block each: poses (12 doubles per job) and rms.
- * `surfaces`: the parts' trees as frames (their spacing and orientation unused); `sources`:
- * the packed sources on the device, `orders` their rigidSearchOrder()s packed the same way. */
+/** The cluster size (1, 2, 4 or 8 blocks per fit) for a batch of `jobs` fits whose largest
+ * source has `max_points` points: enough blocks that each searches about a point per thread, as
+ * long as every job's cluster runs at once; 1 where the device or the build has no clusters.
+ * `forced` > 0: that size, or the largest below it that the device runs. */
+int rigidClusterSize(FrameStore& store, int jobs, int max_points, int forced = 0);
+
+/** segmentation::fitRigidJob for every job, one cluster of `cluster` blocks each (see
+ * rigidClusterSize): poses (12 doubles per job) and rms. `surfaces`: the parts' trees as frames
+ * (their spacing and orientation unused); `sources`: the packed sources on the device, `orders`
+ * their rigidSearchOrder()s packed the same way. The same results for every cluster size. */
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
                   const DeviceArray<int>& orders, const std::vector<RigidJob>& jobs,
-                  const RigidParams& params, std::vector<double>& poses, std::vector<double>& rms);
+                  const RigidParams& params, int cluster, std::vector<double>& poses,
+                  std::vector<double>& rms);
 
 }  // namespace detail
 }  // namespace gpu

@@ -177,32 +177,45 @@ TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
     est.setInitialMotions(coarse.compute(levels[0]));
     const auto cpu = est.computeLevels(levels);
     const auto cpu_chained = est.compute(levels[1]);
-    gpu::RigidFits device;
-    est.setDevice(&device);
-    const auto dev = est.computeLevels(levels);
-    const auto dev_chained = est.compute(levels[1]);
-    int transforms = 0, differ = 0;
-    auto compare = [&](const seg::PartMotion& a, const seg::PartMotion& b) {
-      ASSERT_EQ(a.frames.size(), b.frames.size());
-      for (std::size_t t = 0; t < a.frames.size(); ++t) {
-        ++transforms;
-        const auto &x = a.frames[t], &y = b.frames[t];
-        differ += !(x.valid == y.valid && x.rotation == y.rotation &&
-                    x.translation == y.translation && (x.rms == y.rms || !x.valid));
+    // Every cluster size (0: chosen per batch) gives the same bits: a fit's ranges, split among
+    // 1-8 blocks, are added in the same order.
+    for (int cluster : {0, 1, 2, 4, 8}) {
+      gpu::RigidFits device;
+      device.setClusterSize(cluster);
+      est.setDevice(&device);
+      const auto dev = est.computeLevels(levels);
+      const auto dev_chained = est.compute(levels[1]);
+      est.setDevice(nullptr);
+      int transforms = 0, differ = 0;
+      auto compare = [&](const seg::PartMotion& a, const seg::PartMotion& b) {
+        ASSERT_EQ(a.frames.size(), b.frames.size());
+        for (std::size_t t = 0; t < a.frames.size(); ++t) {
+          ++transforms;
+          const auto &x = a.frames[t], &y = b.frames[t];
+          differ += !(x.valid == y.valid && x.rotation == y.rotation &&
+                      x.translation == y.translation && (x.rms == y.rms || !x.valid));
+        }
+      };
+      ASSERT_EQ(dev.size(), cpu.size());
+      for (std::size_t l = 0; l < cpu.size(); ++l) {
+        ASSERT_EQ(dev[l].parts.size(), cpu[l].parts.size());
+        for (std::size_t p = 0; p < cpu[l].parts.size(); ++p)
+          compare(dev[l].parts[p], cpu[l].parts[p]);
       }
-    };
-    ASSERT_EQ(dev.size(), cpu.size());
-    for (std::size_t l = 0; l < cpu.size(); ++l) {
-      ASSERT_EQ(dev[l].parts.size(), cpu[l].parts.size());
-      for (std::size_t p = 0; p < cpu[l].parts.size(); ++p)
-        compare(dev[l].parts[p], cpu[l].parts[p]);
+      ASSERT_EQ(dev_chained.size(), cpu_chained.size());
+      for (std::size_t p = 0; p < cpu_chained.size(); ++p) compare(dev_chained[p], cpu_chained[p]);
+      std::printf(
+          "%s, cluster %d (last batch %d blocks per fit): %d transforms, %lld GPU fits in %lld "
+          "batches; %d differ from the CPU's\n",
+          synth::toString(plan).c_str(), cluster, device.lastClusterSize(), transforms,
+          device.fits(), device.batches(), differ);
+      EXPECT_EQ(differ, 0) << synth::toString(plan) << ", cluster " << cluster;
+      EXPECT_GT(device.fits(), 0);
+      if (cluster > 0) {
+        EXPECT_LE(device.lastClusterSize(), cluster);
+        EXPECT_GE(device.lastClusterSize(), 1);
+      }
     }
-    ASSERT_EQ(dev_chained.size(), cpu_chained.size());
-    for (std::size_t p = 0; p < cpu_chained.size(); ++p) compare(dev_chained[p], cpu_chained[p]);
-    std::printf("%s: %d transforms, %lld GPU fits in %lld batches; %d differ from the CPU's\n",
-                synth::toString(plan).c_str(), transforms, device.fits(), device.batches(), differ);
-    EXPECT_EQ(differ, 0) << synth::toString(plan);
-    EXPECT_GT(device.fits(), 0);
   }
 }
 

@@ -8,8 +8,9 @@
  * \endcode
  *
  * `animseg --device gpu|auto` uses one for the rigid motions when the mean-shift stage ran on
- * the GPU. One block runs one fit's ICP passes (segmentation::fitRigidJob), a thread per range of
- * the source (icp_step::rangeBegin); a batch is one kernel launch. The arithmetic and the order of
+ * the GPU. A cluster of 1-8 blocks runs one fit's ICP passes (segmentation::fitRigidJob), a
+ * thread per range of the source (icp_step::rangeBegin), the ranges split among the blocks, whose
+ * threads search the nearest points of their ranges; a batch is one kernel launch. The arithmetic and the order of
  * every sum are the CPU's (segmentation/icp_step.h), and the nearest points come from copies of the
  * CPU's trees: the motions are the CPU's bit for bit.
  */
@@ -51,10 +52,19 @@ class RigidFits : public segmentation::RigidFitDevice {
   long long fits() const { return fits_; }
   long long batches() const { return batches_; }
 
+  /** \brief Blocks per fit: 0 (the default) chooses per batch (enough that a block searches
+   * about a point per thread while every fit's cluster runs at once); 1, 2, 4 or 8 asks for that
+   * many where the device runs such clusters (fewer otherwise). The motions are the same bits
+   * whatever the size. */
+  void setClusterSize(int blocks) { cluster_ = blocks; }
+  /** \brief The blocks per fit of the last batch (0 before the first). */
+  int lastClusterSize() const { return last_cluster_; }
+
  private:
   std::unique_ptr<detail::FrameStore> surfaces_;
   std::unique_ptr<detail::RigidSources> sources_;
   long long fits_ = 0, batches_ = 0;
+  int cluster_ = 0, last_cluster_ = 0;
 };
 
 }  // namespace gpu
