@@ -218,8 +218,9 @@ constexpr int kRigidMaxCluster = 8;
 std::vector<int> rigidSearchOrder(const std::vector<double>& xyz);
 
 /** The cluster size (1, 2, 4 or 8 blocks per fit) for a batch of `jobs` fits whose largest
- * source has `max_points` points: enough blocks that each searches about a point per thread, as
- * long as every job's cluster runs at once; 1 where the device or the build has no clusters.
+ * source has `max_points` points: for sources of more than two points per thread, enough blocks
+ * that each searches about a point per thread, as long as every job's cluster runs at once; 1
+ * for smaller sources, and where the device or the build has no clusters.
  * `forced` > 0: that size, or the largest below it that the device runs. */
 int rigidClusterSize(FrameStore& store, int jobs, int max_points, int forced = 0);
 
