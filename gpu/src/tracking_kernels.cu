@@ -610,10 +610,11 @@ static_assert(kRigidThreads % kRigidMaxCluster == 0, "a block's ranges are whole
 // Dynamic shared memory of a block: two buffers of the ranges' sums (consecutive reductions
 // alternate, so that a block writes a buffer only after every block read it the time before:
 // a cluster barrier lies between), then the totals.
-constexpr std::size_t kRigidSharedBytes = (2 * kRigidThreads * kRigidCols + kRigidCols) * sizeof(double);
+constexpr std::size_t kRigidSharedBytes =
+    (2 * kRigidThreads * kRigidCols + kRigidCols) * sizeof(double);
 
 struct RigidBlock {
-  int rank = 0, R = 1;  // the block's rank in its cluster, the cluster's size
+  int rank = 0, R = 1;             // the block's rank in its cluster, the cluster's size
   int r0 = 0, r1 = kRigidThreads;  // its ranges
   int buf = 0;                     // the buffer of the next reduction
   double* smem = nullptr;
@@ -693,7 +694,8 @@ __device__ Rigid rigidPass(const Dev& d, int root, const double* src, const int*
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   const double max_move = p.transformation_epsilon * spacing;
   const int j = rb.range();
-  const int b = j >= 0 ? icp_step::rangeBegin(j, n) : 0, e = j >= 0 ? icp_step::rangeBegin(j + 1, n) : 0;
+  const int b = j >= 0 ? icp_step::rangeBegin(j, n) : 0,
+            e = j >= 0 ? icp_step::rangeBegin(j + 1, n) : 0;
   double prev_mse = -1.0;
   for (int it = 0; it < iterations; ++it) {
     {
@@ -901,6 +903,24 @@ int blocksFor(long long warps) {
   return static_cast<int>((warps + kWarpsPerBlock - 1) / kWarpsPerBlock);
 }
 
+// The launch configuration of the rigid fits on `blocks` blocks in clusters of R (none for 1).
+struct RigidLaunch {
+  cudaLaunchConfig_t cfg{};
+  cudaLaunchAttribute attr{};
+  RigidLaunch(unsigned blocks, int R) {
+    cfg.gridDim = dim3(blocks);
+    cfg.blockDim = dim3(kRigidBlockThreads);
+    cfg.dynamicSmemBytes = kRigidSharedBytes;
+    attr.id = cudaLaunchAttributeClusterDimension;
+    attr.val.clusterDim.x = static_cast<unsigned>(R);
+    attr.val.clusterDim.y = attr.val.clusterDim.z = 1;
+    cfg.attrs = R > 1 ? &attr : nullptr;
+    cfg.numAttrs = R > 1 ? 1 : 0;
+  }
+  RigidLaunch(const RigidLaunch&) = delete;  // cfg points at attr
+  RigidLaunch& operator=(const RigidLaunch&) = delete;
+};
+
 // How many clusters of R blocks of the rigid fits run at once on this device (0: clusters of R
 // are not possible), measured once per store.
 int rigidClusterLimit(FrameStore& store, int R) {
@@ -913,18 +933,9 @@ int rigidClusterLimit(FrameStore& store, int R) {
   cudaFuncAttributes fa{};
   cudaSafeCall(cudaFuncGetAttributes(&fa, rigidFitJobs));
   if (!can || fa.binaryVersion < 90) return known;  // no clusters: one block per fit
-  cudaLaunchConfig_t cfg{};
-  cfg.gridDim = dim3(static_cast<unsigned>(R));
-  cfg.blockDim = dim3(kRigidBlockThreads);
-  cfg.dynamicSmemBytes = kRigidSharedBytes;
-  cudaLaunchAttribute attr{};
-  attr.id = cudaLaunchAttributeClusterDimension;
-  attr.val.clusterDim.x = static_cast<unsigned>(R);
-  attr.val.clusterDim.y = attr.val.clusterDim.z = 1;
-  cfg.attrs = &attr;
-  cfg.numAttrs = 1;
+  const RigidLaunch launch(static_cast<unsigned>(R), R);
   int clusters = 0;
-  if (cudaOccupancyMaxActiveClusters(&clusters, rigidFitJobs, &cfg) != cudaSuccess) {
+  if (cudaOccupancyMaxActiveClusters(&clusters, rigidFitJobs, &launch.cfg) != cudaSuccess) {
     cudaGetLastError();  // a size this device cannot co-schedule: not used
     clusters = 0;
   }
@@ -985,18 +996,9 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   float* match_d2 = reinterpret_cast<float*>(match + points);
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
   double* rms_out = out + n * kPoseDoubles;
-  cudaLaunchConfig_t cfg{};
-  cfg.gridDim = dim3(static_cast<unsigned>(n * cluster));
-  cfg.blockDim = dim3(kRigidBlockThreads);
-  cfg.dynamicSmemBytes = kRigidSharedBytes;
-  cudaLaunchAttribute attr{};
-  attr.id = cudaLaunchAttributeClusterDimension;
-  attr.val.clusterDim.x = static_cast<unsigned>(cluster);
-  attr.val.clusterDim.y = attr.val.clusterDim.z = 1;
-  cfg.attrs = cluster > 1 ? &attr : nullptr;
-  cfg.numAttrs = cluster > 1 ? 1 : 0;
-  cudaSafeCall(cudaLaunchKernelEx(&cfg, rigidFitJobs, d, sources.ptr(), orders.ptr(), job_list,
-                                  begin, match, match_d2, cluster, params, out, rms_out));
+  const RigidLaunch launch(static_cast<unsigned>(n * cluster), cluster);
+  cudaSafeCall(cudaLaunchKernelEx(&launch.cfg, rigidFitJobs, d, sources.ptr(), orders.ptr(),
+                                  job_list, begin, match, match_d2, cluster, params, out, rms_out));
   cudaCheckLaunch();
   std::vector<double> all(n * (kPoseDoubles + 1));
   surfaces.job_out.downloadBytes(all.data(), all.size() * sizeof(double));

@@ -10,9 +10,9 @@
  * `animseg --device gpu|auto` uses one for the rigid motions when the mean-shift stage ran on
  * the GPU. A cluster of 1-8 blocks runs one fit's ICP passes (segmentation::fitRigidJob), a
  * thread per range of the source (icp_step::rangeBegin), the ranges split among the blocks, whose
- * threads search the nearest points of their ranges; a batch is one kernel launch. The arithmetic and the order of
- * every sum are the CPU's (segmentation/icp_step.h), and the nearest points come from copies of the
- * CPU's trees: the motions are the CPU's bit for bit.
+ * threads search the nearest points of their ranges; a batch is one kernel launch. The arithmetic
+ * and the order of every sum are the CPU's (segmentation/icp_step.h), and the nearest points come
+ * from copies of the CPU's trees: the motions are the CPU's bit for bit.
  */
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
