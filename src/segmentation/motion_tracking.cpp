@@ -625,15 +625,41 @@ std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned se
   if (skipping)
     for (int i = 0; i < n; ++i)
       if (skip[i]) dmin[i] = -1.0;
-  while (static_cast<int>(out.size()) < count) {
-    const Eigen::Vector3d s = p[out.back()];
-    int far = 0;
-    for (int i = 0; i < n; ++i) {
-      dmin[i] = std::min(dmin[i], (p[i] - s).squaredNorm());
-      if (dmin[i] > dmin[far]) far = i;
+  // Each step updates every point's distance to the samples and picks the first point of the
+  // largest (as one scan in point order does): the threads scan contiguous slices, each keeps
+  // the first largest of its slice, and the slices' winners are compared in slice order, so the
+  // samples are the same on any number of threads. One thread scanned 16 667 points 1000 times:
+  // 13 ms on this box, 25-30 ms on the GPU machine's cores, before the device's first call.
+  const int threads = n >= 4096 && !omp_in_parallel() ? omp_get_max_threads() : 1;
+  std::vector<int> slice_best(threads, -1);
+  bool done = static_cast<int>(out.size()) >= count;
+#pragma omp parallel num_threads(threads) if (threads > 1)
+  {
+    const int tid = omp_get_thread_num(), nt = omp_get_num_threads();
+    const int lo = static_cast<int>(static_cast<long long>(n) * tid / nt),
+              hi = static_cast<int>(static_cast<long long>(n) * (tid + 1) / nt);
+    while (!done) {
+      const Eigen::Vector3d s = p[out.back()];
+      int far = lo < hi ? lo : -1;
+      for (int i = lo; i < hi; ++i) {
+        dmin[i] = std::min(dmin[i], (p[i] - s).squaredNorm());
+        if (dmin[i] > dmin[far]) far = i;
+      }
+      slice_best[tid] = far;
+#pragma omp barrier
+#pragma omp single
+      {
+        int best = -1;
+        for (int t = 0; t < nt; ++t)
+          if (slice_best[t] >= 0 && (best < 0 || dmin[slice_best[t]] > dmin[best]))
+            best = slice_best[t];
+        if (best < 0 || dmin[best] <= 0.0)
+          done = true;
+        else
+          out.push_back(best);
+        if (static_cast<int>(out.size()) >= count) done = true;
+      }  // the single's barrier: every thread sees `done` and the new sample
     }
-    if (dmin[far] <= 0.0) break;
-    out.push_back(far);
   }
   return out;
 }

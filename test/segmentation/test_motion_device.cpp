@@ -14,6 +14,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <string>
 #include <vector>
@@ -383,4 +384,69 @@ TEST(TaskWaves, EachTaskInTheWaveAfterItsLongestChain) {
   EXPECT_THROW(seg::taskWaves({{1}, {0}}), pcl_animseg::Error);
   EXPECT_THROW(seg::taskWaves({{5}}), pcl_animseg::Error);
   EXPECT_TRUE(seg::taskWaves({}).empty());
+}
+
+// Farthest-point sampling on any number of threads picks what one scan in point order picks (the
+// first point of the largest distance), with exact ties (coincident points, a grid), skipped
+// points, and more samples asked for than the cloud has distinct points.
+TEST(MotionTracking, FarthestPointSamplesAreTheSameOnAnyNumberOfThreads) {
+  using Cloud = pcl_animseg::PointCloudSequence::Cloud;
+  auto reference = [](const Cloud& cloud, int count, unsigned seed,
+                      const std::vector<char>& skip) {
+    const int n = static_cast<int>(cloud.size());
+    std::vector<int> out;
+    int start = static_cast<int>((1103515245u * seed + 12345u) % static_cast<unsigned>(n));
+    const bool skipping = skip.size() == cloud.size();
+    for (int k = 0; skipping && skip[start] && k < n; ++k) start = (start + 1) % n;
+    if (skipping && skip[start]) return out;
+    out.push_back(start);
+    std::vector<double> dmin(n, std::numeric_limits<double>::max());
+    for (int i = 0; skipping && i < n; ++i)
+      if (skip[i]) dmin[i] = -1.0;
+    while (static_cast<int>(out.size()) < count) {
+      const Eigen::Vector3d s = cloud[out.back()].getVector3fMap().cast<double>();
+      int far = 0;
+      for (int i = 0; i < n; ++i) {
+        dmin[i] = std::min(dmin[i], (cloud[i].getVector3fMap().cast<double>() - s).squaredNorm());
+        if (dmin[i] > dmin[far]) far = i;
+      }
+      if (dmin[far] <= 0.0) break;
+      out.push_back(far);
+    }
+    return out;
+  };
+  // A 20 x 20 x 8 grid (many equal distances), each point twice, shuffled deterministically.
+  Cloud cloud;
+  for (int z = 0; z < 8; ++z)
+    for (int y = 0; y < 20; ++y)
+      for (int x = 0; x < 20; ++x) {
+        pcl::PointNormal q;
+        q.x = 0.1f * x, q.y = 0.1f * y, q.z = 0.1f * z;
+        q.normal_x = q.normal_y = 0.0f, q.normal_z = 1.0f;
+        cloud.push_back(q);
+        cloud.push_back(q);
+      }
+  for (std::size_t i = cloud.size() - 1, r = 12345; i > 0; --i) {
+    r = (r * 6364136223846793005ull + 1442695040888963407ull);
+    std::swap(cloud[i], cloud[(r >> 33) % (i + 1)]);
+  }
+  std::vector<char> skip(cloud.size(), 0);
+  for (std::size_t i = 0; i < skip.size(); i += 7) skip[i] = 1;
+  const int threads = omp_get_max_threads();
+  for (const auto& sk : {std::vector<char>(), skip})
+    for (int count : {1, 300, 8000}) {
+      const std::vector<int> want = reference(cloud, count, 3, sk);
+      if (count < 3200) {
+        EXPECT_EQ(want.size(), static_cast<std::size_t>(count));
+      }
+      if (sk.empty() && count == 8000) {
+        EXPECT_EQ(want.size(), 3200u);  // the distinct points
+      }
+      for (int t : {1, 2, 3, 5}) {
+        omp_set_num_threads(t);
+        EXPECT_EQ(seg::farthestPointSamples(cloud, count, 3, sk), want)
+            << count << " samples on " << t << " threads" << (sk.empty() ? "" : ", skipping");
+      }
+      omp_set_num_threads(threads);
+    }
 }
