@@ -219,6 +219,49 @@ TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
   }
 }
 
+// A source of 12 000 points (max_points raised for it): a block's ranges hold 12 000 or 6 000
+// points, more than 23 searches per thread, with the same bits on one block and on two.
+TEST(GpuTracking, RigidFitsOfLargeSourcesAreTheCpus) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  synth::SynthParams sp;
+  sp.plan = synth::BodyPlan::Humanoid;
+  sp.frames = 4;
+  sp.points = 12000;
+  sp.seed = 3;
+  const auto frames = synth::generate(sp);
+  const pcl_animseg::PointCloudSequence seq = synth::toSequence(frames);
+  std::vector<std::vector<int>> whole;
+  for (const auto& f : frames) whole.emplace_back(f.labels.size(), 0);  // one part: the body
+  seg::RigidMotionParams p;
+  p.max_points = 20000;
+  seg::RigidMotionEstimation est;
+  est.setInputSequence(&seq);
+  est.setParams(p);
+  const auto cpu = est.compute(whole);
+  ASSERT_EQ(cpu.size(), 1u);
+  for (int cluster : {1, 2}) {
+    gpu::RigidFits device;
+    device.setClusterSize(cluster);
+    est.setDevice(&device);
+    const auto dev = est.compute(whole);
+    est.setDevice(nullptr);
+    ASSERT_EQ(dev.size(), 1u);
+    ASSERT_EQ(dev[0].frames.size(), cpu[0].frames.size());
+    int valid = 0;
+    for (std::size_t t = 0; t < cpu[0].frames.size(); ++t) {
+      const auto &x = dev[0].frames[t], &y = cpu[0].frames[t];
+      valid += x.valid;
+      EXPECT_TRUE(x.valid == y.valid && x.rotation == y.rotation &&
+                  x.translation == y.translation && x.rms == y.rms)
+          << "frame " << t << ", cluster " << cluster;
+    }
+    EXPECT_GE(valid, sp.frames - 1);  // frame 0 is the reference
+    EXPECT_EQ(device.lastClusterSize(), cluster);
+    EXPECT_GT(device.fits(), 0);
+  }
+}
+
 // Residual batches on the GPU both ways (a thread per point with the sums after, and a warp per
 // job: setPointParallelLimit(0)) against the CPU's residual of each job from the same frames:
 // the same bits. The sources run from none to thousands of points, as a merge's parts do.
