@@ -69,8 +69,16 @@ double runOnce(const pcl_animseg::PipelineParams& p, std::map<std::string, doubl
   return s;
 }
 
-void report(benchmark::State& state, const std::map<std::string, double>& stages,
-            const pcl_animseg::PipelineResult& r, int runs) {
+// Every iteration of `state` one timed run; the stages' mean times, the points, the parts and
+// the device as its counters and label.
+void timeRuns(benchmark::State& state, const pcl_animseg::PipelineParams& p) {
+  std::map<std::string, double> stages;
+  pcl_animseg::PipelineResult r;
+  int runs = 0;
+  for (auto _ : state) {
+    state.SetIterationTime(runOnce(p, stages, r));
+    ++runs;
+  }
   for (const auto& [name, sec] : stages) state.counters[name + "_s"] = sec / runs;
   state.counters["points"] = static_cast<double>(sequence().totalPoints());
   state.counters["parts"] = r.parts_per_level.empty() ? 0.0 : r.parts_per_level.front();
@@ -82,28 +90,11 @@ void BM_PipelineFirstRun(benchmark::State& state) {
   // As animseg: the device starts beside the input's making (its loading there).
   const pcl_animseg::DeviceWarmUp warm_up(p.device);
   sequence();
-  std::map<std::string, double> stages;
-  pcl_animseg::PipelineResult r;
-  int runs = 0;
-  for (auto _ : state) {
-    state.SetIterationTime(runOnce(p, stages, r));
-    ++runs;
-  }
-  report(state, stages, r, runs);
+  timeRuns(state, p);
 }
 BENCHMARK(BM_PipelineFirstRun)->Unit(benchmark::kMillisecond)->UseManualTime()->Iterations(1);
 
-void BM_PipelineAgain(benchmark::State& state) {
-  const pcl_animseg::PipelineParams p = params();
-  std::map<std::string, double> stages;
-  pcl_animseg::PipelineResult r;
-  int runs = 0;
-  for (auto _ : state) {
-    state.SetIterationTime(runOnce(p, stages, r));
-    ++runs;
-  }
-  report(state, stages, r, runs);
-}
+void BM_PipelineAgain(benchmark::State& state) { timeRuns(state, params()); }
 BENCHMARK(BM_PipelineAgain)->Unit(benchmark::kMillisecond)->UseManualTime()->Iterations(5);
 
 }  // namespace

@@ -764,13 +764,12 @@ __device__ double rigidFitness(const Dev& d, int root, const double* src, const 
   return sqrt(total / static_cast<double>(n));
 }
 
-// One fit per cluster of `cluster` blocks (blockIdx.x / cluster is the job); `scratch_begin`
-// per job: where its points' matches start in match / d2.
+// One fit per cluster of `cluster` blocks (blockIdx.x / cluster is the job); a job's matches
+// start at its scratch_begin in match / match_d2.
 __global__ void __launch_bounds__(kRigidBlockThreads)
     rigidFitJobs(Dev d, const double* __restrict__ sources, const int* __restrict__ orders,
-                 const RigidJob* __restrict__ jobs, const long long* __restrict__ scratch_begin,
-                 int* match, float* match_d2, int cluster, RigidParams p, double* poses,
-                 double* rms_out) {
+                 const RigidJob* __restrict__ jobs, int* match, float* match_d2, int cluster,
+                 RigidParams p, double* poses, double* rms_out) {
   extern __shared__ double rigid_smem[];
   RigidBlock rb;
   rb.smem = rigid_smem;
@@ -783,8 +782,8 @@ __global__ void __launch_bounds__(kRigidBlockThreads)
   rb.r0 = rb.rank * per;
   rb.r1 = rb.r0 + per;
   const RigidJob job = jobs[job_index];
-  rb.match = match + scratch_begin[job_index];
-  rb.d2 = match_d2 + scratch_begin[job_index];
+  rb.match = match + job.scratch_begin;
+  rb.d2 = match_d2 + job.scratch_begin;
   const int root = d.root[job.surface];
   const double* src = sources + 3LL * job.source_begin;
   const int* order = orders + job.source_begin;
@@ -945,8 +944,11 @@ int rigidClusterLimit(FrameStore& store, int R) {
 }  // namespace
 
 int rigidClusterSize(FrameStore& store, int jobs, int max_points, int forced) {
-  cudaSafeCall(cudaFuncSetAttribute(rigidFitJobs, cudaFuncAttributeMaxDynamicSharedMemorySize,
-                                    static_cast<int>(kRigidSharedBytes)));
+  if (!store.rigid_shared_set) {
+    cudaSafeCall(cudaFuncSetAttribute(rigidFitJobs, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                      static_cast<int>(kRigidSharedBytes)));
+    store.rigid_shared_set = true;
+  }
   if (forced > 0) {
     int R = 1;
     while (R * 2 <= std::min(forced, kRigidMaxCluster) && rigidClusterLimit(store, R * 2) > 0)
@@ -975,30 +977,27 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   if (jobs.empty()) return;
   if (cluster < 1 || cluster > kRigidMaxCluster || (cluster & (cluster - 1)) != 0)
     throw DeviceError("GPU rigid fits: a cluster of " + std::to_string(cluster) + " blocks");
-  // The jobs, then where each job's matches start in the scratch, in one upload.
+  // Each job's matches after the jobs before it in the scratch.
   const std::size_t n = jobs.size();
-  std::vector<long long> scratch_begin(n + 1, 0);
-  for (std::size_t k = 0; k < n; ++k)
-    scratch_begin[k + 1] = scratch_begin[k] + std::max(0, jobs[k].source_count);
-  const std::size_t jobs_bytes = (n * sizeof(RigidJob) + 15) & ~static_cast<std::size_t>(15);
-  std::vector<unsigned char> in(jobs_bytes + n * sizeof(long long));
-  std::memcpy(in.data(), jobs.data(), n * sizeof(RigidJob));
-  std::memcpy(in.data() + jobs_bytes, scratch_begin.data(), n * sizeof(long long));
-  put(surfaces.job_in, in.data(), in.size());
+  std::vector<RigidJob> list(jobs);
+  long long total = 0;
+  for (RigidJob& j : list) {
+    j.scratch_begin = total;
+    total += std::max(0, j.source_count);
+  }
+  put(surfaces.job_in, list.data(), n * sizeof(RigidJob));
   grow(surfaces.job_out, n * (kPoseDoubles + 1) * sizeof(double));
-  const std::size_t points = static_cast<std::size_t>(std::max(1LL, scratch_begin[n]));
+  const std::size_t points = static_cast<std::size_t>(std::max(1LL, total));
   grow(surfaces.rigid_scratch, points * (sizeof(int) + sizeof(float)));
   const Dev d = frameView(surfaces);
-  const auto* base = static_cast<const unsigned char*>(surfaces.job_in.rawPtr());
-  const auto* job_list = reinterpret_cast<const RigidJob*>(base);
-  const auto* begin = reinterpret_cast<const long long*>(base + jobs_bytes);
+  const auto* job_list = static_cast<const RigidJob*>(surfaces.job_in.rawPtr());
   int* match = static_cast<int*>(surfaces.rigid_scratch.rawPtr());
   float* match_d2 = reinterpret_cast<float*>(match + points);
   double* out = static_cast<double*>(surfaces.job_out.rawPtr());
   double* rms_out = out + n * kPoseDoubles;
   const RigidLaunch launch(static_cast<unsigned>(n * cluster), cluster);
   cudaSafeCall(cudaLaunchKernelEx(&launch.cfg, rigidFitJobs, d, sources.ptr(), orders.ptr(),
-                                  job_list, begin, match, match_d2, cluster, params, out, rms_out));
+                                  job_list, match, match_d2, cluster, params, out, rms_out));
   cudaCheckLaunch();
   std::vector<double> all(n * (kPoseDoubles + 1));
   surfaces.job_out.downloadBytes(all.data(), all.size() * sizeof(double));

@@ -69,10 +69,12 @@ struct FrameStore {
    * batch instead of four, each a synchronous round trip of some 10-25 us. */
   DeviceMemory job_in, job_out;
   PinnedHost staging, results;
-  /** The rigid fits' matches (an int and a float per source point of a batch), and how many
-   * clusters of 2, 4 and 8 blocks run at once (-1: not measured yet). */
+  /** The rigid fits' matches (an int and a float per source point of a batch), how many
+   * clusters of 2, 4 and 8 blocks run at once (-1: not measured yet), and whether the fits'
+   * kernel may have its dynamic shared memory (set once, before its first launch or query). */
   DeviceMemory rigid_scratch;
   int rigid_clusters[3] = {-1, -1, -1};
+  bool rigid_shared_set = false;
   /** Calls by kind (residuals, point costs, part fits, rigid fits): count, jobs and wall
    * seconds, printed on stderr when the store goes and ANIMSEG_MS_TIMING is set. */
   struct CallStats {
@@ -171,6 +173,7 @@ struct RigidJob {
   int source_count;
   int surface;
   int wide;
+  long long scratch_begin;  // where its matches start in the batch's scratch (runRigidFits)
   double spacing;
   double part_diag;
   double start[kPoseDoubles];
