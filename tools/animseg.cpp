@@ -105,7 +105,7 @@ int main(int argc, char** argv) {
     ("parts", po::value<int>()->default_value(0),
      "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")
     ("patches", po::value<int>()->default_value(msd.patches),
-     "motion method: patches of the over-segmentation (0: automatic)");
+     "motion method: tracked samples of the reference frame (0: one per 8 points, at most 1000)");
   tools::addMotionOptions(od, msd);
   tools::addPaperOptions(od, msd);
   tools::addScaleSpaceOptions(od, defaults.multiscale);

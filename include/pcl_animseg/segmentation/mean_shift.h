@@ -113,8 +113,8 @@ struct MeanShiftParams {
   filters::GaussianKdTreeParams gkdtree;
 
   // Motion method.
-  /** Patches of the reference frame (over-segmentation); 0: about one per 25 points, in
-   * [24, 200]. */
+  /** Tracked samples of the reference frame (MotionTrackingParams::samples); 0: one per 8
+   * reference points, in [16, 1000]. */
   int patches = 0;
   /** Merging stops when the cheapest merge's motion residual exceeds this (point spacings). */
   double motion_threshold = 1.25;
