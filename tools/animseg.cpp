@@ -4,6 +4,7 @@
 #include <pcl_animseg/io/segmentation_io.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/pipeline.h>
+#include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/tool_common.h>
@@ -15,6 +16,7 @@
 #include <iomanip>
 #include <iostream>
 #include <sstream>
+#include <string>
 
 namespace po = boost::program_options;
 using namespace pcl_animseg;
@@ -105,7 +107,9 @@ int main(int argc, char** argv) {
     ("parts", po::value<int>()->default_value(0),
      "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")
     ("patches", po::value<int>()->default_value(msd.patches),
-     "motion method: tracked samples of the reference frame (0: one per 8 points, at most 1000)");
+     ("motion method: tracked samples of the reference frame (0: one per 8 points, at most " +
+      std::to_string(pcl_animseg::segmentation::kMaxTrackedSamples) + ")")
+         .c_str());
   tools::addMotionOptions(od, msd);
   tools::addPaperOptions(od, msd);
   tools::addScaleSpaceOptions(od, defaults.multiscale);

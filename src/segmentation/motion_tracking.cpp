@@ -725,7 +725,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   SpareCoreWhileStarting spare(params.device);
   const Cloud& rc = *frames[ref].cloud;
   const int n0 = static_cast<int>(rc.size());
-  const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, 1000);
+  const int want = params.samples > 0 ? params.samples : std::clamp(n0 / 8, 16, kMaxTrackedSamples);
   SampleTracks tr;
   tr.reference_frame = ref;
   tr.spacing = frames[ref].spacing;

@@ -24,6 +24,7 @@
 #include <memory>
 #include <vector>
 
+#include "pipeline/sequence_params.h"
 #include "segmentation/cpu_residuals.h"
 #include "segmentation/synthetic_parts.h"
 
@@ -35,12 +36,8 @@ namespace {
 
 pcl_animseg::PointCloudSequence::Ptr generated(synth::BodyPlan plan, int frames, int points,
                                                unsigned seed) {
-  synth::SynthParams sp;
-  sp.plan = plan;
-  sp.frames = frames;
-  sp.points = points;
-  sp.seed = seed;
-  return std::make_shared<pcl_animseg::PointCloudSequence>(synth::toSequence(synth::generate(sp)));
+  return std::make_shared<pcl_animseg::PointCloudSequence>(
+      synth::toSequence(synth::generate(animseg_test::sequenceParams(plan, frames, points, seed))));
 }
 
 }  // namespace
@@ -224,11 +221,8 @@ TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
 TEST(GpuTracking, RigidFitsOfLargeSourcesAreTheCpus) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  synth::SynthParams sp;
-  sp.plan = synth::BodyPlan::Humanoid;
-  sp.frames = 4;
-  sp.points = 12000;
-  sp.seed = 3;
+  const synth::SynthParams sp =
+      animseg_test::sequenceParams(synth::BodyPlan::Humanoid, 4, 12000, 3);
   const auto frames = synth::generate(sp);
   const pcl_animseg::PointCloudSequence seq = synth::toSequence(frames);
   std::vector<std::vector<int>> whole;

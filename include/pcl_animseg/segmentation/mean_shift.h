@@ -114,7 +114,7 @@ struct MeanShiftParams {
 
   // Motion method.
   /** Tracked samples of the reference frame (MotionTrackingParams::samples); 0: one per 8
-   * reference points, in [16, 1000]. */
+   * reference points, in [16, kMaxTrackedSamples] (motion_tracking.h). */
   int patches = 0;
   /** Merging stops when the cheapest merge's motion residual exceeds this (point spacings). */
   double motion_threshold = 1.25;

@@ -58,9 +58,12 @@ namespace segmentation {
 
 class MotionDevice;
 
+/** \brief The most tracked samples MotionTrackingParams::samples = 0 gives. */
+constexpr int kMaxTrackedSamples = 1000;
+
 /** \brief Knobs of the tracked-sample decomposition. */
 struct MotionTrackingParams {
-  /** Number of tracked samples; 0: one per 8 reference points, in [16, 1000]. */
+  /** Number of tracked samples; 0: one per 8 reference points, in [16, kMaxTrackedSamples]. */
   int samples = 0;
   /** Reference points in a sample's neighbourhood (the ICP source). */
   int neighbourhood = 60;
