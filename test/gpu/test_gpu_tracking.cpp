@@ -45,8 +45,17 @@ pcl_animseg::PointCloudSequence::Ptr generated(synth::BodyPlan plan, int frames,
 TEST(GpuTracking, PosesAreTheCpusBitForBit) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  for (auto plan : {synth::BodyPlan::Humanoid, synth::BodyPlan::Hand}) {
-    const auto seq = generated(plan, 16, 4000, 7);
+  // The third: 100 frames, tracked through key frames 3 apart (motion_tracking.cpp,
+  // trackingChain), each frame between from the one before.
+  const struct {
+    synth::BodyPlan plan;
+    int frames, points;
+  } cases[] = {{synth::BodyPlan::Humanoid, 16, 4000},
+               {synth::BodyPlan::Hand, 16, 4000},
+               {synth::BodyPlan::Humanoid, 100, 600}};
+  for (const auto& c : cases) {
+    const auto plan = c.plan;
+    const auto seq = generated(plan, c.frames, c.points, 7);
     seg::MotionTrackingParams params;
     const seg::SampleTracks cpu = seg::trackSamples(*seq, params);
     gpu::MotionTracking device;
@@ -65,10 +74,10 @@ TEST(GpuTracking, PosesAreTheCpusBitForBit) {
                          (dev.positions[t].col(s) - cpu.positions[t].col(s)).norm() / cpu.spacing);
       }
     std::printf(
-        "%s: %d sample poses, %d waves, %.4f s on the device; %d differ from the CPU's "
-        "(largest offset %.2e spacings)\n",
-        synth::toString(plan).c_str(), poses, device.lastWaves(), device.lastDeviceSeconds(),
-        differ, worst);
+        "%s, %d frames: %d sample poses, %d waves, %.4f s on the device; %d differ from the "
+        "CPU's (largest offset %.2e spacings)\n",
+        synth::toString(plan).c_str(), c.frames, poses, device.lastWaves(),
+        device.lastDeviceSeconds(), differ, worst);
     EXPECT_EQ(differ, 0);
     EXPECT_EQ(dev.residual, cpu.residual);
   }

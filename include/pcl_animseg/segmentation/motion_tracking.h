@@ -16,7 +16,10 @@
  *    one starts from several candidates: the poses already found for its neighbours in THIS
  *    frame, its own previous pose, a constant-velocity prediction and the whole-frame pose; the
  *    lowest-residual fit wins. The ICP is damped, so a direction the neighbourhood does not
- *    constrain (along a capsule) keeps the neighbour's motion instead of sliding.
+ *    constrain (along a capsule) keeps the neighbour's motion instead of sliding. Such
+ *    directions still drift a little at every step, so a side of the reference longer than 48
+ *    frames is tracked through key frames (every ceil(n / 48)-th frame, at most every 4th, each
+ *    from the key frame before), and the frames between each from the frame before it.
  * 3. Clustering, in two phases. Residuals are surface errors: the distance to the nearest
  *    point's tangent plane (blind to the sampling of the two clouds and to a sample sliding along
  *    a capsule), in point spacings.
