@@ -13,6 +13,7 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -215,26 +216,39 @@ bool searchInParallel(const Source& src) {
   return src.p.cols() >= kParallelSource && !omp_in_parallel() && omp_get_max_threads() > 1;
 }
 
+/** A source point's ICP terms (icp_step::kTerms doubles) against its nearest point within
+ * max_d2 of its moved position y, under the pose T about the centroid c; false where it has no
+ * usable match (none, or normals that disagree). */
+inline bool matchTerms(const Source& src, Eigen::Index i, const double* y, const icp_step::Rigid& T,
+                       const double* c, const Frame& f, float max_d2, double* terms) {
+  float d2;
+  const int k = f.tree.nearest(static_cast<float>(y[0]), static_cast<float>(y[1]),
+                               static_cast<float>(y[2]), max_d2, d2);
+  if (k < 0) return false;
+  const auto& t = (*f.cloud)[k];
+  const double tn[3] = {t.normal_x, t.normal_y, t.normal_z};
+  const double tp[3] = {t.x, t.y, t.z};
+  double n[3];
+  icp_step::rotate(T, src.n.col(i).data(), n);
+  if (normalCos(icp_step::dot3(n, tn), f) < kNormalCos) return false;
+  icp_step::pointTerms(y, c, tp, tn, terms);
+  return true;
+}
+
 /** RMS over the source of the surface error (in the frame's spacings); the errors are added in
- * point order. */
+ * point order. A source that searches in parallel (searchInParallel) goes through residualsOf. */
+std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& poses, const Frame& f);
 double residual(const Source& src, const Pose& T, const Frame& f) {
   const Eigen::Index m = src.p.cols();
   if (m == 0) return 0.0;
+  if (searchInParallel(src)) return residualsOf(src, {T}, f).front();
   const icp_step::Rigid R = toRigid(T);
-  auto error = [&](Eigen::Index i) {
+  double sum = 0.0;
+  for (Eigen::Index i = 0; i < m; ++i) {
     double y[3], n[3];
     icp_step::apply(R, src.p.col(i).data(), y);
     icp_step::rotate(R, src.n.col(i).data(), n);
-    return surfaceError(y, n, f);
-  };
-  double sum = 0.0;
-  if (searchInParallel(src)) {
-    std::vector<double> e(static_cast<std::size_t>(m));
-#pragma omp parallel for schedule(static)
-    for (Eigen::Index i = 0; i < m; ++i) e[i] = error(i);
-    for (double v : e) sum += v;
-  } else {
-    for (Eigen::Index i = 0; i < m; ++i) sum += error(i);
+    sum += surfaceError(y, n, f);
   }
   return std::sqrt(sum / static_cast<double>(m));
 }
@@ -243,70 +257,31 @@ double residual(const Source& src, const Pose& T, const Frame& f) {
  * surfaces), linearised about the moved source's centroid for conditioning (icp_step.h: the
  * arithmetic, shared with the GPU's tracking). The Levenberg damping keeps the directions the
  * source does not constrain (rotation about and translation along a capsule) near the initial
- * pose, which comes from a neighbour on the same part. Every sum runs in point order. */
+ * pose, which comes from a neighbour on the same part. Every sum runs in point order. A source
+ * that searches in parallel (searchInParallel) goes through icpFromStarts. */
+std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& inits, const Frame& f,
+                                int iterations, double max_dist);
 Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, double max_dist) {
+  if (searchInParallel(src)) return icpFromStarts(src, {init}, f, iterations, max_dist).front();
   icp_step::Rigid T = toRigid(init);
   const Eigen::Index m = src.p.cols();
   const float max_d2 = static_cast<float>(max_dist * max_dist);
-  const bool parallel = searchInParallel(src);
-  std::vector<char> usable(parallel ? static_cast<std::size_t>(m) : 0);
   Eigen::Matrix3Xd moved(3, m);  // the source under T, once per iteration
-  auto nearestTo = [&](Eigen::Index i) {
-    float d2;
-    const double* y = moved.col(i).data();
-    return f.tree.nearest(static_cast<float>(y[0]), static_cast<float>(y[1]),
-                          static_cast<float>(y[2]), max_d2, d2);
-  };
-  // A point's terms (kTerms doubles), or false where it has no usable match.
-  auto termsOf = [&](Eigen::Index i, int k, const double* c, double* terms) {
-    if (k < 0) return false;
-    const auto& t = (*f.cloud)[k];
-    const double tn[3] = {t.normal_x, t.normal_y, t.normal_z};
-    const double tp[3] = {t.x, t.y, t.z};
-    double n[3];
-    icp_step::rotate(T, src.n.col(i).data(), n);
-    if (normalCos(icp_step::dot3(n, tn), f) < kNormalCos) return false;
-    icp_step::pointTerms(moved.col(i).data(), c, tp, tn, terms);
-    return true;
-  };
-  // In parallel: each point's move, search and terms, into per-point slots; the sums below stay
-  // in point order, as without.
-  std::vector<double> point_terms(parallel ? static_cast<std::size_t>(m) * icp_step::kTerms : 0);
   for (int it = 0; it < iterations; ++it) {
     double c[3] = {0.0, 0.0, 0.0};
-    if (parallel) {
-#pragma omp parallel for schedule(static)
-      for (Eigen::Index i = 0; i < m; ++i)
-        icp_step::apply(T, src.p.col(i).data(), moved.col(i).data());
-      for (Eigen::Index i = 0; i < m; ++i)
-        for (int k = 0; k < 3; ++k) c[k] += moved(k, i);
-    } else {
-      for (Eigen::Index i = 0; i < m; ++i) {
-        icp_step::apply(T, src.p.col(i).data(), moved.col(i).data());
-        for (int k = 0; k < 3; ++k) c[k] += moved(k, i);
-      }
+    for (Eigen::Index i = 0; i < m; ++i) {
+      icp_step::apply(T, src.p.col(i).data(), moved.col(i).data());
+      for (int k = 0; k < 3; ++k) c[k] += moved(k, i);
     }
     const double count = static_cast<double>(std::max<Eigen::Index>(1, m));
     for (int k = 0; k < 3; ++k) c[k] /= count;
     double sums[icp_step::kTerms] = {};
     int used = 0;
-    if (parallel) {
-#pragma omp parallel for schedule(static)
-      for (Eigen::Index i = 0; i < m; ++i)
-        usable[i] = termsOf(i, nearestTo(i), c, &point_terms[i * icp_step::kTerms]) ? 1 : 0;
-      for (Eigen::Index i = 0; i < m; ++i) {
-        if (!usable[i]) continue;
-        ++used;
-        const double* terms = &point_terms[i * icp_step::kTerms];
-        for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
-      }
-    } else {
-      for (Eigen::Index i = 0; i < m; ++i) {
-        double terms[icp_step::kTerms];
-        if (!termsOf(i, nearestTo(i), c, terms)) continue;
-        ++used;
-        for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
-      }
+    for (Eigen::Index i = 0; i < m; ++i) {
+      double terms[icp_step::kTerms];
+      if (!matchTerms(src, i, moved.col(i).data(), T, c, f, max_d2, terms)) continue;
+      ++used;
+      for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
     }
     if (used < 6) break;
     double x[6];
@@ -315,6 +290,114 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
     if (icp_step::converged(x, f.spacing)) break;
   }
   return toPose(T);
+}
+
+/** icp() from several starts. For a source that searches in parallel (searchInParallel), each
+ * iteration moves, matches and turns into terms the points of every start still running in one
+ * parallel loop, and each start's sums run in point order: each result is the one-thread icp()'s
+ * from that start, bit for bit, and a start stops where it stops. (The tracking's whole-body ICP
+ * has two starts per frame: one after the other they paid the start and end of each parallel
+ * loop twice per iteration, in a chain along the frames.) Otherwise one icp() after the other. */
+std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& inits, const Frame& f,
+                                int iterations, double max_dist) {
+  const std::size_t n = inits.size();
+  std::vector<Pose> out;
+  if (!searchInParallel(src)) {  // icp() then runs one thread: no call back here
+    for (const Pose& p : inits) out.push_back(icp(src, p, f, iterations, max_dist));
+    return out;
+  }
+  const Eigen::Index m = src.p.cols();
+  const float max_d2 = static_cast<float>(max_dist * max_dist);
+  std::vector<icp_step::Rigid> T(n);
+  for (std::size_t c = 0; c < n; ++c) T[c] = toRigid(inits[c]);
+  std::vector<char> running(n, 1);
+  std::vector<Eigen::Matrix3Xd> moved(n, Eigen::Matrix3Xd(3, m));
+  std::vector<std::array<double, 3>> centroid(n);
+  std::vector<char> usable(n * static_cast<std::size_t>(m));
+  std::vector<double> point_terms(usable.size() * icp_step::kTerms);
+  std::vector<int> act;
+  for (int it = 0; it < iterations; ++it) {
+    act.clear();
+    for (std::size_t c = 0; c < n; ++c)
+      if (running[c]) act.push_back(static_cast<int>(c));
+    if (act.empty()) break;
+    const Eigen::Index items = static_cast<Eigen::Index>(act.size()) * m;
+#pragma omp parallel for schedule(static)
+    for (Eigen::Index q = 0; q < items; ++q) {
+      const int c = act[q / m];
+      const Eigen::Index i = q % m;
+      icp_step::apply(T[c], src.p.col(i).data(), moved[c].col(i).data());
+    }
+    const double count = static_cast<double>(std::max<Eigen::Index>(1, m));
+    for (int c : act) {
+      double ct[3] = {0.0, 0.0, 0.0};
+      for (Eigen::Index i = 0; i < m; ++i)
+        for (int k = 0; k < 3; ++k) ct[k] += moved[c](k, i);
+      for (int k = 0; k < 3; ++k) centroid[c][k] = ct[k] / count;
+    }
+#pragma omp parallel for schedule(static)
+    for (Eigen::Index q = 0; q < items; ++q) {
+      const int c = act[q / m];
+      const Eigen::Index i = q % m;
+      const std::size_t slot = static_cast<std::size_t>(c) * m + i;
+      usable[slot] = matchTerms(src, i, moved[c].col(i).data(), T[c], centroid[c].data(), f, max_d2,
+                                &point_terms[slot * icp_step::kTerms])
+                         ? 1
+                         : 0;
+    }
+    for (int c : act) {
+      double sums[icp_step::kTerms] = {};
+      int used = 0;
+      for (Eigen::Index i = 0; i < m; ++i) {
+        const std::size_t slot = static_cast<std::size_t>(c) * m + i;
+        if (!usable[slot]) continue;
+        ++used;
+        const double* terms = &point_terms[slot * icp_step::kTerms];
+        for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
+      }
+      double x[6];
+      if (used < 6 || !icp_step::solveStep(sums, x)) {
+        running[c] = 0;
+        continue;
+      }
+      T[c] = icp_step::compose(icp_step::stepMotion(x, centroid[c].data()), T[c]);
+      if (icp_step::converged(x, f.spacing)) running[c] = 0;
+    }
+  }
+  for (std::size_t c = 0; c < n; ++c) out.push_back(toPose(T[c]));
+  return out;
+}
+
+/** residual() of several poses of one source. For a source that searches in parallel, all the
+ * errors in one parallel loop, each pose's added in point order (the one-thread residual()'s
+ * bits); otherwise one residual() after the other. */
+std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& poses, const Frame& f) {
+  const std::size_t n = poses.size();
+  std::vector<double> out;
+  const Eigen::Index m = src.p.cols();
+  if (m == 0 || !searchInParallel(src)) {  // residual() then runs one thread
+    for (const Pose& p : poses) out.push_back(residual(src, p, f));
+    return out;
+  }
+  std::vector<icp_step::Rigid> R(n);
+  for (std::size_t c = 0; c < n; ++c) R[c] = toRigid(poses[c]);
+  std::vector<double> e(n * static_cast<std::size_t>(m));
+  const Eigen::Index items = static_cast<Eigen::Index>(e.size());
+#pragma omp parallel for schedule(static)
+  for (Eigen::Index q = 0; q < items; ++q) {
+    const std::size_t c = static_cast<std::size_t>(q / m);
+    const Eigen::Index i = q % m;
+    double y[3], nr[3];
+    icp_step::apply(R[c], src.p.col(i).data(), y);
+    icp_step::rotate(R[c], src.n.col(i).data(), nr);
+    e[q] = surfaceError(y, nr, f);
+  }
+  for (std::size_t c = 0; c < n; ++c) {
+    double sum = 0.0;
+    for (Eigen::Index i = 0; i < m; ++i) sum += e[c * m + i];
+    out.push_back(std::sqrt(sum / static_cast<double>(m)));
+  }
+  return out;
 }
 
 /** Breadth-first levels over a graph (adjacency lists of node ids), started from each node of
@@ -838,12 +921,12 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     const int tp = chain.before[t], tpp = chain.two_before[t];
     std::vector<Pose> inits{global[tp]};
     if (tpp >= 0) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
+    const std::vector<Pose> cands =
+        icpFromStarts(whole, inits, frames[t], 30, 10.0 * frames[t].spacing);
+    const std::vector<double> r = residualsOf(whole, cands, frames[t]);
     double best = std::numeric_limits<double>::max();
-    for (const Pose& init : inits) {
-      const Pose cand = icp(whole, init, frames[t], 30, 10.0 * frames[t].spacing);
-      const double r = residual(whole, cand, frames[t]);
-      if (r < best) best = r, global[t] = cand;
-    }
+    for (std::size_t c = 0; c < cands.size(); ++c)
+      if (r[c] < best) best = r[c], global[t] = cands[c];
   }
   // 2. Each frame's order of the samples: BFS levels over the sample graph from the sample best
   //    explained by the global pose (unreached components start from their own best sample).
@@ -1510,8 +1593,8 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   std::vector<long> priority;
   std::vector<int> before(T, -1);
   for (int t : frame_order) before[t] = t - dir_of[t];
-  frameTaskGraph(frame_order, before, adj, [&](int, int c) { return level[c]; }, successors,
-                 priority);
+  frameTaskGraph(
+      frame_order, before, adj, [&](int, int c) { return level[c]; }, successors, priority);
   timer.lap("part motions: adjacency");
   // Task `task`'s starts: the initial motion, the previous frame's, a constant-velocity guess,
   // the samples' rigid fit, and each solved neighbour's motion since the previous frame.

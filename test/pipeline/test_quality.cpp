@@ -291,6 +291,30 @@ TEST(MotionQuality, SameLabelsOnAnyThreadCount) {
   expectSameRun(one, runTracking(long_seq, 5));
 }
 
+// The whole body's ICP of the tracking searches in parallel when its source (the samples) has 256
+// points or more, from both of a frame's starts at once: every pose must be the one-thread run's
+// bits (the runs above have fewer samples).
+TEST(MotionQuality, TrackedPosesTheSameOnAnyThreadCount) {
+  const auto seq =
+      synth::toSequence(synth::generate(sequenceParams(synth::BodyPlan::Humanoid, 6, 2400, 4)));
+  auto track = [&](int threads) {
+    const int before = omp_get_max_threads();
+    omp_set_num_threads(threads);
+    seg::SampleTracks tr = seg::trackSamples(seq, seg::MotionTrackingParams());
+    omp_set_num_threads(before);
+    return tr;
+  };
+  const seg::SampleTracks one = track(1), four = track(4);
+  ASSERT_GE(one.sample_points.size(), 256u);
+  ASSERT_EQ(one.poses.size(), four.poses.size());
+  int differ = 0;
+  for (std::size_t t = 0; t < one.poses.size(); ++t)
+    for (std::size_t s = 0; s < one.poses[t].size(); ++s)
+      differ += one.poses[t][s].matrix() != four.poses[t][s].matrix();
+  EXPECT_EQ(differ, 0);
+  EXPECT_EQ(one.residual, four.residual);
+}
+
 // Normals estimated from plain points have a guessed orientation: a limb, or a whole frame, may
 // come out turned inwards. When the sequence says its normals were estimated, the motion method
 // compares the normals of two frames by |n . n'|, so turning every normal of two frames inwards
