@@ -6,13 +6,14 @@
 
 #include <boost/program_options.hpp>
 
+#include <algorithm>
 #include <cmath>
 
 namespace pcl_animseg {
 namespace tools {
 
 /** Adds --motion-threshold, --crease-cost, --border-smoothness, --dissolve-ratio,
- * --joint-weight and --sliver-fraction with the defaults of `d`. */
+ * --joint-weight, --sliver-fraction and --reference-frame with the defaults of `d`. */
 inline void addMotionOptions(boost::program_options::options_description& od,
                              const segmentation::MeanShiftParams& d) {
   namespace po = boost::program_options;
@@ -33,7 +34,10 @@ inline void addMotionOptions(boost::program_options::options_description& od,
      "spacings from its neighbour's (keeps a finger from jumping onto the next; 0: off)")
     ("sliver-fraction", po::value<double>()->default_value(d.sliver_fraction),
      "motion method: a part smaller than this fraction of the mean part size is a sliver: it "
-     "merges into a neighbour and does not count towards --parts (0: off; below 1)");
+     "merges into a neighbour and does not count towards --parts (0: off; below 1)")
+    ("reference-frame", po::value<int>()->default_value(std::max(0, d.reference_frame)),
+     "motion method: the frame whose points are split into the parts and from which every frame "
+     "is tracked (0-based, in the order of the input; pick one with the whole body in view)");
 }
 
 /** The options into `p`; throws Error (one line) for a value out of range, before any work. */
@@ -45,6 +49,7 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
   p.dissolve_ratio = vm["dissolve-ratio"].as<double>();
   p.joint_weight = vm["joint-weight"].as<double>();
   p.sliver_fraction = vm["sliver-fraction"].as<double>();
+  p.reference_frame = vm["reference-frame"].as<int>();
   if (!(p.motion_threshold > 0.0)) throw Error("--motion-threshold must be positive");
   if (!(p.crease_cost >= 0.0)) throw Error("--crease-cost must be >= 0");
   if (!(p.border_smoothness >= 0.0)) throw Error("--border-smoothness must be >= 0");
@@ -53,6 +58,7 @@ inline void readMotionOptions(const boost::program_options::variables_map& vm,
     throw Error("--joint-weight must be a number >= 0");
   if (!(p.sliver_fraction >= 0.0 && p.sliver_fraction < 1.0))
     throw Error("--sliver-fraction must be in [0, 1)");
+  if (p.reference_frame < 0) throw Error("--reference-frame must be >= 0");
 }
 
 /** Adds the paper method's Gaussian kd-tree knobs --exact-steps, --cell-extent,

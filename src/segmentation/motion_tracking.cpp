@@ -839,7 +839,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   const int ref = params.reference_frame < 0 ? 0 : params.reference_frame;
   if (ref >= T)
     throw Error("motion tracking: reference frame " + std::to_string(ref) +
-                " but the sequence has " + std::to_string(T) + " frames");
+                " is not in the sequence (frames 0-" + std::to_string(T - 1) + ")");
   if (params.neighbourhood < 6 || params.point_neighbours < 1 || params.icp_iterations < 1)
     throw Error(
         "motion tracking: neighbourhood must be >= 6, point_neighbours and icp_iterations "

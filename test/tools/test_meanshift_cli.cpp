@@ -95,6 +95,30 @@ TEST(MeanShiftCli, PaperOptionsReachTheFilter) {
   EXPECT_EQ(off.err.find("exact border trajectories"), std::string::npos) << off.err;
 }
 
+// --reference-frame: the motion method's parts are made on that frame's points; the last of
+// three frames works as well as the first, and one past it is an error (BadInputIsOneErrorLine).
+TEST(MeanShiftCli, ReferenceFrameOption) {
+  TempDir tmp;
+  makeSequence(tmp.dir() / "in");
+  for (const char* ref : {"0", "2"}) {
+    const std::string out = tmp.str() + "/out" + ref;
+    const RunResult r = run(tool("animseg_meanshift") + " --quiet --no-features --input " +
+                                tmp.str() + "/in --output " + out + " --reference-frame " + ref,
+                            tmp.dir());
+    ASSERT_EQ(r.code, 0) << ref << ": " << r.err;
+    for (int t = 0; t < 3; ++t)
+      EXPECT_EQ(countLines(slurp(out + "/f" + std::to_string(t) + ".labels")), 250 + 30 * t)
+          << ref;
+  }
+  const RunResult past = run(tool("animseg_meanshift") + " --no-features --input " + tmp.str() +
+                                 "/in --output " + tmp.str() + "/out3 --reference-frame 3",
+                             tmp.dir());
+  EXPECT_EQ(past.code, 1);
+  EXPECT_NE(past.err.find("reference frame 3 is not in the sequence (frames 0-2)"),
+            std::string::npos)
+      << past.err;
+}
+
 TEST(MeanShiftCli, BadInputIsOneErrorLine) {
   TempDir tmp;
   makeSequence(tmp.dir() / "in");
@@ -104,10 +128,12 @@ TEST(MeanShiftCli, BadInputIsOneErrorLine) {
        {" --bandwidth 0", " --bandwidth -1", " --weights 1,2,3", " --weights 1,-1,1,1",
         " --method magic", " --backend magic", " --parts -2", " --motion-threshold 0",
         " --crease-cost -1", " --border-smoothness -1", " --dissolve-ratio -1", " --joint-weight -1", " --sliver-fraction 1", " --exact-steps -1", " --cell-extent 0",
-        " --cell-min-points 0", " --no-such-option"}) {
+        " --cell-min-points 0", " --reference-frame -1", " --reference-frame 3",
+        " --no-such-option"}) {
     const RunResult r = run(base + extra, tmp.dir());
     EXPECT_EQ(r.code, 1) << extra;
     EXPECT_TRUE(isOneErrorLine(r.err)) << extra << ": " << r.err;
+    EXPECT_FALSE(fs::exists(tmp.dir() / "out")) << extra;
   }
   const RunResult missing =
       run(tool("animseg_meanshift") + " --input " + tmp.str() + "/nope --output " + tmp.str() +
