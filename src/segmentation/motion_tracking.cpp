@@ -423,81 +423,22 @@ std::vector<int> bfsLevels(const Graph& graph, const std::vector<int>& starts) {
   return level;
 }
 
-/** The frame two before t on its side of the reference (t - 2 dir), or -1 when there is none:
- * the second frame of a constant-velocity guess. */
-inline int twoBefore(int t, int dir, int ref, int T) {
-  const int tpp = t - 2 * dir;
-  return tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0 ? tpp : -1;
-}
-
-/** The frames in the order of a serial run away from the reference (forwards first), and each
- * frame's direction (+1 / -1; 0 for the reference). */
-void framesAwayFrom(int ref, int T, std::vector<int>& order, std::vector<int>& dir_of) {
-  order.clear();
-  dir_of.assign(T, 0);
-  for (int dir : {+1, -1})
-    for (int t = ref + dir; t >= 0 && t < T; t += dir) order.push_back(t), dir_of[t] = dir;
-}
-
-/** The frames of a tracking run: in the order of a serial run (each after the frame it starts
- * from), each frame's frame before (its poses start from there; -1 for the reference) and the
- * frame two before (a constant-velocity guess from the two; -1: none). */
-struct FrameChain {
-  std::vector<int> order, before, two_before;
-};
-
-/** Tracking runs away from the reference on each side. A chain of small fits drifts: a sample's
- * pose moves a little in the directions its neighbourhood hardly constrains at every step, and
- * the drift adds up with the steps (a 160-frame humanoid tracked frame by frame: a mean ICP
- * residual of 0.40 spacings in the frames where a 48-frame one of the same motion has 0.28).
- * So a side longer than kMaxChainSteps frames is tracked through key frames `stride` apart (each
- * from the key frame before it), and each frame between from the frame before it, back to a key
- * frame: no frame is more than about kMaxChainSteps + stride steps from the reference. A side of
- * at most kMaxChainSteps frames is one chain of single steps. The stride is at most kMaxStride:
- * a key frame's step is that many frames' motion, and the tracking has been seen to hold steps of
- * about 50 degrees at a joint (generated gallops in 20 frames), while a capture at 30 frames a
- * second moves a fast limb up to about 10 degrees a frame; sides longer than kMaxChainSteps *
- * kMaxStride frames get longer chains of key frames instead. */
-constexpr int kMaxChainSteps = 48;
-constexpr int kMaxStride = 4;
-FrameChain trackingChain(int ref, int T) {
-  FrameChain c;
-  c.before.assign(T, -1);
-  c.two_before.assign(T, -1);
-  for (int dir : {+1, -1}) {
-    const int n = dir > 0 ? T - 1 - ref : ref;
-    const int stride = std::clamp((n + kMaxChainSteps - 1) / kMaxChainSteps, 1, kMaxStride);
-    for (int d = 1; d <= n; ++d) {
-      const int t = ref + dir * d, r = d % stride;
-      c.order.push_back(t);
-      if (r == 0) {  // a key frame (every frame when stride is 1)
-        c.before[t] = t - dir * stride;
-        if (d >= 2 * stride) c.two_before[t] = t - 2 * dir * stride;
-      } else {  // between key frames: from the frame before, the same step as it took
-        c.before[t] = t - dir;
-        if (r >= 2) c.two_before[t] = t - 2 * dir;
-      }
-    }
-  }
-  return c;
-}
-
 /** A task graph (runTaskGraph) of one task per (frame, node): task k * n + v is node v of a graph
- * of n nodes in frame order[k] (a FrameChain's order). It depends on the same node in the frame
- * before (before[t]), and on its graph neighbours of lower level(t, v) in the same frame;
+ * of n nodes in frame chain.order[k] (chainFrames). It depends on the same node in the frame
+ * before (its ChainStep), and on its graph neighbours of lower level(t, v) in the same frame;
  * priorities in the order of a serial run (frame, then level). */
 template <class Graph, class Level>
-void frameTaskGraph(const std::vector<int>& order, const std::vector<int>& before,
-                    const Graph& graph, Level level, std::vector<std::vector<int>>& successors,
-                    std::vector<long>& priority) {
+void frameTaskGraph(const ChainFrames& chain, const Graph& graph, Level level,
+                    std::vector<std::vector<int>>& successors, std::vector<long>& priority) {
+  const std::vector<int>& order = chain.order;
   const int F = static_cast<int>(order.size()), n = static_cast<int>(graph.size());
   successors.assign(static_cast<std::size_t>(F) * n, {});
   priority.assign(successors.size(), 0);
-  std::vector<int> at(before.size(), -1);  // position of each frame in order
+  std::vector<int> at(chain.step.size(), -1);  // position of each frame in order
   for (int k = 0; k < F; ++k) at[order[k]] = k;
   std::vector<std::vector<int>> next(F);  // the positions of the frames started from each
   for (int k = 0; k < F; ++k) {
-    const int b = before[order[k]];
+    const int b = chain.step[order[k]].before;
     if (b >= 0 && at[b] >= 0) next[at[b]].push_back(k);
   }
   for (int k = 0; k < F; ++k) {
@@ -905,8 +846,8 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   tr.poses.assign(T, std::vector<Pose>(S, Pose::Identity()));
   tr.residual.assign(T, 0.0);
   // The frames in the order of a serial run: away from the reference, forwards first (through
-  // key frames on a long side: trackingChain).
-  const FrameChain chain = trackingChain(ref, T);
+  // key frames on a long side: chainFrames).
+  const ChainFrames chain = chainFrames(T, ref);
   const std::vector<int>& frame_order = chain.order;
   const int F = static_cast<int>(frame_order.size());
   if (progress) progress->begin("tracking samples", static_cast<std::size_t>(T));
@@ -918,7 +859,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   spare.recheck();  // the device may have started meanwhile
   std::vector<Pose> global(T, Pose::Identity());
   for (int t : frame_order) {
-    const int tp = chain.before[t], tpp = chain.two_before[t];
+    const int tp = chain.step[t].before, tpp = chain.step[t].two_before;
     std::vector<Pose> inits{global[tp]};
     if (tpp >= 0) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
     const std::vector<Pose> cands =
@@ -954,14 +895,13 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   std::vector<std::vector<int>> successors;
   std::vector<long> priority;
   frameTaskGraph(
-      frame_order, chain.before, tr.graph, [&](int t, int s) { return level_of[t][s]; }, successors,
-      priority);
+      chain, tr.graph, [&](int t, int s) { return level_of[t][s]; }, successors, priority);
   std::vector<std::vector<double>> res(T, std::vector<double>(S, 0.0));
   std::vector<int> left(F, S);
   int frames_done = 0;
   auto solve = [&](int task) {
     const int k = task / S, s = task % S, t = frame_order[k];
-    const int tp = chain.before[t], tpp = chain.two_before[t];
+    const int tp = chain.step[t].before, tpp = chain.step[t].two_before;
     const Frame& f = frames[t];
     const std::vector<int>& level = level_of[t];
     std::vector<Pose>& pose = tr.poses[t];
@@ -1009,8 +949,12 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     }
     problem.graph = tr.graph;
     problem.level = level_of;
-    problem.before = chain.before;
-    problem.two_before = chain.two_before;
+    problem.before.assign(T, -1);
+    problem.two_before.assign(T, -1);
+    for (int t : frame_order) {
+      problem.before[t] = chain.step[t].before;
+      problem.two_before[t] = chain.step[t].two_before;
+    }
     problem.global = global;
     problem.waves = taskWaves(successors);
     for (std::vector<int>& wave : problem.waves)
@@ -1587,20 +1531,18 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   // before and its solved neighbours' (earlier BFS levels) in the same frame are known
   // (runTaskGraph): a frame's levels one after the other, each level's few parts in parallel,
   // left most of 16 cores waiting. Task k * nc + c is part c in frame_order[k].
-  std::vector<int> frame_order, dir_of;
-  framesAwayFrom(ref, T, frame_order, dir_of);
+  const ChainFrames chain = chainFrames(T, ref);
+  const std::vector<int>& frame_order = chain.order;
   std::vector<std::vector<int>> successors;
   std::vector<long> priority;
-  std::vector<int> before(T, -1);
-  for (int t : frame_order) before[t] = t - dir_of[t];
   frameTaskGraph(
-      frame_order, before, adj, [&](int, int c) { return level[c]; }, successors, priority);
+      chain, adj, [&](int, int c) { return level[c]; }, successors, priority);
   timer.lap("part motions: adjacency");
   // Task `task`'s starts: the initial motion, the previous frame's, a constant-velocity guess,
   // the samples' rigid fit, and each solved neighbour's motion since the previous frame.
   auto startsOf = [&](int task) {
     const int t = frame_order[task / nc], c = task % nc;
-    const int dir = dir_of[t], tp = t - dir, tpp = twoBefore(t, dir, ref, T);
+    const int tp = chain.step[t].before, tpp = chain.step[t].two_before;
     std::vector<Pose> st{init[c][t], motion[c][tp]};
     if (tpp >= 0) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
     const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
@@ -2075,13 +2017,12 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
     const int C = static_cast<int>(pts.size());
     std::vector<Source> src(C);
     for (int c = 0; c < C; ++c) src[c] = sourceOf(rc, *pts[c], kPartPoints);
-    auto starts = [&](int c, int t, int dir, const std::vector<Pose>* fit) {
+    auto starts = [&](int c, int t, const ChainStep& step, const std::vector<Pose>* fit) {
       std::vector<ChainStart<Pose>> s{{(*ia[c])[t], false}};
-      if (fit) s.push_back({(*fit)[t - dir], true});
+      const int tp = step.before, tpp = step.two_before;
+      if (fit) s.push_back({(*fit)[tp], true});
       if (ib[c]) s.push_back({(*ib[c])[t], false});
-      const int tpp = twoBefore(t, dir, ref, T);
-      if (fit && tpp >= 0)
-        s.push_back({(*fit)[t - dir] * (*fit)[tpp].inverse() * (*fit)[t - dir], true});
+      if (fit && tpp >= 0) s.push_back({(*fit)[tp] * (*fit)[tpp].inverse() * (*fit)[tp], true});
       return s;
     };
     auto score = [&](int c, int t, const Pose& P) { return residual(src[c], P, frames[t]); };

@@ -347,13 +347,14 @@ class ChainedPart {
   bool active() const { return active_; }
   Link first() const { return {motion_.frames[0], motion_.frames[0], false}; }
 
-  std::vector<ChainStart<Link>> starts(int t, const std::vector<Link>* fits) const {
+  // Frame t's starts; `before`: the frame it is fitted after (chainFrames).
+  std::vector<ChainStart<Link>> starts(int t, int before, const std::vector<Link>* fits) const {
     std::vector<ChainStart<Link>> s;
     if (seeded_ && init_->frames[t].valid)
       s.push_back({{init_->frames[t], init_->frames[t], true}, false});
     if (fits) {
       const Target& g = targets_[t];
-      const RigidTransform& last = (*fits)[t - 1].carry;
+      const RigidTransform& last = (*fits)[before].carry;
       const RigidTransform guess =
           g.usable ? chainedGuess(last, c0_, axis0_, ratio0_, g.centroid, g.axis, g.ratio) : last;
       s.push_back({{guess, last, false}, true});
@@ -517,7 +518,9 @@ std::vector<std::vector<ChainedPart::Link>> fitOnDevice(const std::vector<Chaine
   // Speculative rounds cost a device little and save batches of step 3.
   return fitChainsBatched(
       static_cast<int>(act.size()), frames, 0, act.front()->first(),
-      [&](int c, int t, int, const std::vector<Link>* fits) { return act[c]->starts(t, fits); },
+      [&](int c, int t, const ChainStep& step, const std::vector<Link>* fits) {
+        return act[c]->starts(t, step.before, fits);
+      },
       [&](const std::vector<ChainScore<Link>>& items) {
         auto score = [&](int c, int t, const Link& x) { return act[c]->score(t, x); };
         return scoreEach(items, score);
@@ -540,7 +543,9 @@ void fitChainedParts(std::vector<std::unique_ptr<ChainedPart>>& parts, std::size
   }
   const std::vector<std::vector<Link>> chains = fitChains(
       static_cast<int>(act.size()), static_cast<int>(frames), 0, act.front()->first(),
-      [&](int c, int t, int, const std::vector<Link>* fits) { return act[c]->starts(t, fits); },
+      [&](int c, int t, const ChainStep& step, const std::vector<Link>* fits) {
+        return act[c]->starts(t, step.before, fits);
+      },
       [&](int c, int t, const Link& x) { return act[c]->score(t, x); },
       [&](int c, int t, const Link& x, double) { return act[c]->fitFrom(t, x); },
       ChainedPart::same);
@@ -556,7 +561,9 @@ void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
   using Link = ChainedPart::Link;
   c.finish(fitAlongChain(
       static_cast<int>(seq.size()), 0, c.first(),
-      [&](int t, int, const std::vector<Link>* fits) { return c.starts(t, fits); },
+      [&](int t, const ChainStep& step, const std::vector<Link>* fits) {
+        return c.starts(t, step.before, fits);
+      },
       [&](int t, const Link& x) { return c.score(t, x); },
       [&](int t, const Link& x, double) { return c.fitFrom(t, x); }, ChainedPart::same, false));
 }

@@ -124,9 +124,18 @@ TEST(GpuTracking, WavesOutOfOrderAreAnError) {
 TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  for (auto plan : {synth::BodyPlan::Humanoid, synth::BodyPlan::Quadruped, synth::BodyPlan::Hand,
-                    synth::BodyPlan::Spider}) {
-    const auto seq = generated(plan, 20, 4000, 8);
+  // The last: 70 frames, every chain through key frames 2 apart (chainFrames).
+  const struct {
+    synth::BodyPlan plan;
+    int frames, points;
+  } cases[] = {{synth::BodyPlan::Humanoid, 20, 4000},
+               {synth::BodyPlan::Quadruped, 20, 4000},
+               {synth::BodyPlan::Hand, 20, 4000},
+               {synth::BodyPlan::Spider, 20, 4000},
+               {synth::BodyPlan::Humanoid, 70, 1000}};
+  for (const auto& c : cases) {
+    const auto plan = c.plan;
+    const auto seq = generated(plan, c.frames, c.points, 8);
     seg::MeanShiftParams params;
     params.method = seg::MeanShiftMethod::Motion;
     params.record_densities = false;
@@ -144,8 +153,9 @@ TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
     EXPECT_NE(dev.deviceUsed().find("gpu"), std::string::npos) << dev.deviceUsed();
     const double ari = pcl_animseg::evaluation::adjustedRandIndex(
         animseg_test::pooled(expected.labels), animseg_test::pooled(got.labels));
-    std::printf("%s: CPU %d parts, GPU tracking %d parts, ARI %.4f\n",
-                synth::toString(plan).c_str(), expected.num_clusters, got.num_clusters, ari);
+    std::printf("%s, %d frames: CPU %d parts, GPU tracking %d parts, ARI %.4f\n",
+                synth::toString(plan).c_str(), c.frames, expected.num_clusters, got.num_clusters,
+                ari);
     EXPECT_EQ(got.num_clusters, expected.num_clusters);
     EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
   }
@@ -157,11 +167,19 @@ TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
 TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  for (auto plan : {synth::BodyPlan::Humanoid, synth::BodyPlan::Hand}) {
+  // The third: 70 frames, the chains through key frames 2 apart (chained_fit.h, chainFrames).
+  const struct {
+    synth::BodyPlan plan;
+    int frames, points;
+  } cases[] = {{synth::BodyPlan::Humanoid, 16, 4000},
+               {synth::BodyPlan::Hand, 16, 4000},
+               {synth::BodyPlan::Humanoid, 70, 800}};
+  for (const auto& c : cases) {
+    const auto plan = c.plan;
     synth::SynthParams sp;
     sp.plan = plan;
-    sp.frames = 16;
-    sp.points = 4000;
+    sp.frames = c.frames;
+    sp.points = c.points;
     sp.seed = 7;
     const auto frames = synth::generate(sp);
     const pcl_animseg::PointCloudSequence seq = synth::toSequence(frames);
@@ -211,9 +229,9 @@ TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
       ASSERT_EQ(dev_chained.size(), cpu_chained.size());
       for (std::size_t p = 0; p < cpu_chained.size(); ++p) compare(dev_chained[p], cpu_chained[p]);
       std::printf(
-          "%s, cluster %d (last batch %d blocks per fit): %d transforms, %lld GPU fits in %lld "
-          "batches; %d differ from the CPU's\n",
-          synth::toString(plan).c_str(), cluster, device.lastClusterSize(), transforms,
+          "%s, %d frames, cluster %d (last batch %d blocks per fit): %d transforms, %lld GPU "
+          "fits in %lld batches; %d differ from the CPU's\n",
+          synth::toString(plan).c_str(), c.frames, cluster, device.lastClusterSize(), transforms,
           device.fits(), device.batches(), differ);
       EXPECT_EQ(differ, 0) << synth::toString(plan) << ", cluster " << cluster;
       EXPECT_GT(device.fits(), 0);

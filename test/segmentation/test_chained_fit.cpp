@@ -43,13 +43,12 @@ struct Toy {
   }
   std::vector<double> run(int ref, bool parallel, int* wins = nullptr) const {
     const int T = static_cast<int>(target.size());
-    auto starts = [&](int t, int dir, const std::vector<double>* fit) {
+    auto starts = [&](int t, const seg::ChainStep& st, const std::vector<double>* fit) {
       std::vector<seg::ChainStart<double>> s{{a[t], false}};
-      if (fit) s.push_back({(*fit)[t - dir], true});
+      if (fit) s.push_back({(*fit)[st.before], true});
       s.push_back({b[t], false});
-      const int tpp = t - 2 * dir;
-      if (fit && tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
-        s.push_back({2.0 * (*fit)[t - dir] - (*fit)[tpp], true});
+      if (fit && st.two_before >= 0)
+        s.push_back({2.0 * (*fit)[st.before] - (*fit)[st.two_before], true});
       if (wins && fit) {  // serial run: which start wins (the first of the lowest score)
         std::size_t best = 0;
         for (std::size_t k = 1; k < s.size(); ++k)
@@ -71,22 +70,71 @@ TEST(ChainedFit, ParallelEqualsSerialWhicheverStartWins) {
   const int before = omp_get_max_threads();
   omp_set_num_threads(4);
   int total_wins = 0;
-  for (unsigned seed = 1; seed <= 20; ++seed) {
-    const Toy toy(48, seed);
-    for (int ref : {0, 23, 47}) {
-      int wins = 0;
-      const std::vector<double> serial = toy.run(ref, false, &wins);
-      total_wins += wins;
-      const std::vector<double> parallel = toy.run(ref, true);
-      ASSERT_EQ(serial.size(), 48u);
-      EXPECT_EQ(serial[ref], 0.0) << "the reference frame keeps the identity";
-      for (int t = 0; t < 48; ++t)
-        EXPECT_EQ(serial[t], parallel[t]) << "seed " << seed << " ref " << ref << " frame " << t;
+  // 48 frames: single steps; 130: key frames (3 apart from the first or the last frame, 2 from
+  // the middle).
+  for (const int T : {48, 130})
+    for (unsigned seed = 1; seed <= 20; ++seed) {
+      const Toy toy(T, seed);
+      for (int ref : {0, T / 2 - 1, T - 1}) {
+        int wins = 0;
+        const std::vector<double> serial = toy.run(ref, false, &wins);
+        total_wins += wins;
+        const std::vector<double> parallel = toy.run(ref, true);
+        ASSERT_EQ(serial.size(), static_cast<std::size_t>(T));
+        EXPECT_EQ(serial[ref], 0.0) << "the reference frame keeps the identity";
+        for (int t = 0; t < T; ++t)
+          EXPECT_EQ(serial[t], parallel[t])
+              << "T " << T << " seed " << seed << " ref " << ref << " frame " << t;
+      }
     }
-  }
   omp_set_num_threads(before);
   // The chained starts won in many frames (the lost ones): the check pass was exercised.
   EXPECT_GT(total_wins, 100);
+}
+
+// chainFrames: single steps up to 48 frames on a side; longer sides through key frames at most 4
+// apart, each frame after one nearer the reference, no frame much more than 48 steps from it.
+TEST(ChainedFit, KeyFramesOnLongSides) {
+  auto depthOf = [](const seg::ChainFrames& c, int ref) {
+    std::vector<int> depth(c.step.size(), 0);
+    int deepest = 0;
+    for (int t : c.order) {
+      EXPECT_GE(c.step[t].before, 0) << t;
+      EXPECT_EQ(depth[t], 0) << t << " listed twice";
+      depth[t] = depth[c.step[t].before] + 1;  // its frame before was listed before it
+      EXPECT_NE(t, ref);
+      EXPECT_LT(std::abs(c.step[t].before - ref), std::abs(t - ref)) << t;
+      deepest = std::max(deepest, depth[t]);
+    }
+    return deepest;
+  };
+  const seg::ChainFrames short_side = seg::chainFrames(49, 0);
+  ASSERT_EQ(short_side.order.size(), 48u);
+  for (int t = 1; t < 49; ++t) {
+    EXPECT_EQ(short_side.step[t].before, t - 1);
+    EXPECT_EQ(short_side.step[t].two_before, t >= 2 ? t - 2 : -1);
+  }
+  EXPECT_EQ(depthOf(short_side, 0), 48);
+  const seg::ChainFrames middle = seg::chainFrames(60, 30);  // 30 and 29 frames a side
+  EXPECT_EQ(middle.step[31].before, 30);
+  EXPECT_EQ(middle.step[29].before, 30);
+  EXPECT_EQ(middle.step[27].two_before, 29);
+  const seg::ChainFrames long_side = seg::chainFrames(160, 0);  // key frames 4 apart
+  ASSERT_EQ(long_side.order.size(), 159u);
+  EXPECT_EQ(long_side.step[4].before, 0);
+  EXPECT_EQ(long_side.step[4].two_before, -1);
+  EXPECT_EQ(long_side.step[8].before, 4);
+  EXPECT_EQ(long_side.step[8].two_before, 0);
+  EXPECT_EQ(long_side.step[9].before, 8);
+  EXPECT_EQ(long_side.step[9].two_before, -1);
+  EXPECT_EQ(long_side.step[11].two_before, 9);
+  EXPECT_LE(depthOf(long_side, 0), 48 + 3);
+  const seg::ChainFrames very_long = seg::chainFrames(1000, 500);  // at most 4 apart
+  EXPECT_EQ(very_long.step[504].before, 500);
+  EXPECT_EQ(very_long.step[496].before, 500);
+  EXPECT_LE(depthOf(very_long, 500), 125 + 3);
+  EXPECT_TRUE(seg::chainFrames(1, 0).order.empty());
+  EXPECT_TRUE(seg::chainFrames(0, 0).order.empty());
 }
 
 TEST(ChainedFit, ChainedStartsRecoverLostFrames) {
@@ -104,7 +152,7 @@ TEST(ChainedFit, ChainedStartsRecoverLostFrames) {
 }
 
 TEST(ChainedFit, SingleFrameAndEmptySequence) {
-  auto starts = [](int, int, const std::vector<double>*) {
+  auto starts = [](int, const seg::ChainStep&, const std::vector<double>*) {
     return std::vector<seg::ChainStart<double>>{{1.0, false}};
   };
   auto score = [](int, double p) { return p; };
@@ -118,91 +166,94 @@ TEST(ChainedFit, SingleFrameAndEmptySequence) {
 }
 
 TEST(ChainedFit, SeveralChainsAtOnceEqualEachChainAlone) {
-  // fitAlongChains over 12 toy chains (each its own seed) must give each chain's serial fits.
-  const int chains = 12, T = 48;
-  std::vector<Toy> toys;
-  for (int c = 0; c < chains; ++c) toys.emplace_back(T, 100 + c);
+  // fitAlongChains over 12 toy chains (each its own seed) must give each chain's serial fits; 48
+  // frames, and 110 (key frames 3 apart from frame 0, single steps from frame 60).
+  const int chains = 12;
   const int before = omp_get_max_threads();
-  omp_set_num_threads(4);
-  for (int ref : {0, 30}) {
-    auto starts = [&](int c, int t, int dir, const std::vector<double>* fit) {
-      const Toy& y = toys[c];
-      std::vector<seg::ChainStart<double>> s{{y.a[t], false}};
-      if (fit) s.push_back({(*fit)[t - dir], true});
-      s.push_back({y.b[t], false});
-      const int tpp = t - 2 * dir;
-      if (fit && tpp >= 0 && tpp < T && (tpp - ref) * dir >= 0)
-        s.push_back({2.0 * (*fit)[t - dir] - (*fit)[tpp], true});
-      return s;
-    };
-    auto score = [&](int c, int t, double p) { return toys[c].score(t, p); };
-    auto fit = [&](int c, int t, double p, double r0) { return toys[c].fitFrom(t, p, r0); };
-    auto same = [](double p, double q) { return p == q; };
-    // fitChains: 12 chains on 4 threads speculate (fitAlongChains), on 2 threads each is a serial
-    // chain; the same fits.
-    for (int threads : {4, 2}) {
-      omp_set_num_threads(threads);
-      const std::vector<std::vector<double>> all =
-          seg::fitChains(chains, T, ref, 0.0, starts, score, fit, same);
-      ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
-      for (int c = 0; c < chains; ++c)
-        EXPECT_EQ(all[c], toys[c].run(ref, false)) << "chain " << c << " threads " << threads;
-    }
+  for (const int T : {48, 110}) {
+    std::vector<Toy> toys;
+    for (int c = 0; c < chains; ++c) toys.emplace_back(T, 100 + c);
     omp_set_num_threads(4);
-    // With 0 to 8 parallel rounds before the serial check (the default on 4 threads: 6).
-    for (int rounds : {0, 1, 3, 8, -1}) {
-      const std::vector<std::vector<double>> all =
-          seg::fitAlongChains(chains, T, ref, 0.0, starts, score, fit, same, rounds);
-      ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
-      for (int c = 0; c < chains; ++c) {
-        const std::vector<double> alone = toys[c].run(ref, false);
-        for (int t = 0; t < T; ++t)
-          EXPECT_EQ(all[c][t], alone[t])
-              << "chain " << c << " ref " << ref << " frame " << t << " rounds " << rounds;
-      }
-    }
-    // fitChainsBatched with the scores and the fits in batches, as a device takes them (each
-    // batch scored back to front, to check that the scores are matched to their starts): the
-    // serial chains' fits, with and without speculation.
-    for (bool speculate : {true, false}) {
-      int score_batches = 0;
-      std::size_t largest = 0;
-      auto scoreBatch = [&](const std::vector<seg::ChainScore<double>>& items) {
-        ++score_batches;
-        largest = std::max(largest, items.size());
-        std::vector<double> out(items.size());
-        for (std::size_t i = items.size(); i-- > 0;)
-          out[i] = toys[items[i].chain].score(items[i].frame, items[i].pose);
-        return out;
+    for (int ref : {0, T == 48 ? 30 : 60}) {
+      auto starts = [&](int c, int t, const seg::ChainStep& st, const std::vector<double>* fit) {
+        const Toy& y = toys[c];
+        std::vector<seg::ChainStart<double>> s{{y.a[t], false}};
+        if (fit) s.push_back({(*fit)[st.before], true});
+        s.push_back({y.b[t], false});
+        if (fit && st.two_before >= 0)
+          s.push_back({2.0 * (*fit)[st.before] - (*fit)[st.two_before], true});
+        return s;
       };
-      auto fitBatch = [&](const std::vector<seg::ChainFit<double>>& jobs) {
-        std::vector<double> out;
-        for (const auto& j : jobs) out.push_back(toys[j.chain].fitFrom(j.frame, j.start, j.score));
-        return out;
-      };
-      const std::vector<std::vector<double>> all = seg::fitChainsBatched(
-          chains, T, ref, 0.0, starts, scoreBatch, fitBatch, same, speculate, 6);
-      ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
-      for (int c = 0; c < chains; ++c)
-        EXPECT_EQ(all[c], toys[c].run(ref, false)) << "chain " << c << " speculate " << speculate;
-      // Speculation scores every frame's unchained starts in one batch.
-      if (speculate) {
-        EXPECT_GE(largest, static_cast<std::size_t>(2 * chains * (T - 1)));
+      auto score = [&](int c, int t, double p) { return toys[c].score(t, p); };
+      auto fit = [&](int c, int t, double p, double r0) { return toys[c].fitFrom(t, p, r0); };
+      auto same = [](double p, double q) { return p == q; };
+      // fitChains: 12 chains on 4 threads speculate (fitAlongChains), on 2 threads each is a serial
+      // chain; the same fits.
+      for (int threads : {4, 2}) {
+        omp_set_num_threads(threads);
+        const std::vector<std::vector<double>> all =
+            seg::fitChains(chains, T, ref, 0.0, starts, score, fit, same);
+        ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
+        for (int c = 0; c < chains; ++c)
+          EXPECT_EQ(all[c], toys[c].run(ref, false)) << "chain " << c << " threads " << threads;
       }
-      EXPECT_GT(score_batches, 0);
-      EXPECT_THROW(seg::fitChainsBatched(
-                       chains, T, ref, 0.0, starts,
-                       [](const std::vector<seg::ChainScore<double>>&) {
-                         return std::vector<double>(1, 0.0);
-                       },
-                       fitBatch, same, speculate, 6),
-                   pcl_animseg::Error);
+      omp_set_num_threads(4);
+      // With 0 to 8 parallel rounds before the serial check (the default on 4 threads: 6).
+      for (int rounds : {0, 1, 3, 8, -1}) {
+        const std::vector<std::vector<double>> all =
+            seg::fitAlongChains(chains, T, ref, 0.0, starts, score, fit, same, rounds);
+        ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
+        for (int c = 0; c < chains; ++c) {
+          const std::vector<double> alone = toys[c].run(ref, false);
+          for (int t = 0; t < T; ++t)
+            EXPECT_EQ(all[c][t], alone[t])
+                << "chain " << c << " ref " << ref << " frame " << t << " rounds " << rounds;
+        }
+      }
+      // fitChainsBatched with the scores and the fits in batches, as a device takes them (each
+      // batch scored back to front, to check that the scores are matched to their starts): the
+      // serial chains' fits, with and without speculation.
+      for (bool speculate : {true, false}) {
+        int score_batches = 0;
+        std::size_t largest = 0;
+        auto scoreBatch = [&](const std::vector<seg::ChainScore<double>>& items) {
+          ++score_batches;
+          largest = std::max(largest, items.size());
+          std::vector<double> out(items.size());
+          for (std::size_t i = items.size(); i-- > 0;)
+            out[i] = toys[items[i].chain].score(items[i].frame, items[i].pose);
+          return out;
+        };
+        auto fitBatch = [&](const std::vector<seg::ChainFit<double>>& jobs) {
+          std::vector<double> out;
+          for (const auto& j : jobs)
+            out.push_back(toys[j.chain].fitFrom(j.frame, j.start, j.score));
+          return out;
+        };
+        const std::vector<std::vector<double>> all = seg::fitChainsBatched(
+            chains, T, ref, 0.0, starts, scoreBatch, fitBatch, same, speculate, 6);
+        ASSERT_EQ(all.size(), static_cast<std::size_t>(chains));
+        for (int c = 0; c < chains; ++c)
+          EXPECT_EQ(all[c], toys[c].run(ref, false)) << "chain " << c << " speculate " << speculate;
+        // Speculation scores every frame's unchained starts in one batch.
+        if (speculate) {
+          EXPECT_GE(largest, static_cast<std::size_t>(2 * chains * (T - 1)));
+        }
+        EXPECT_GT(score_batches, 0);
+        EXPECT_THROW(seg::fitChainsBatched(
+                         chains, T, ref, 0.0, starts,
+                         [](const std::vector<seg::ChainScore<double>>&) {
+                           return std::vector<double>(1, 0.0);
+                         },
+                         fitBatch, same, speculate, 6),
+                     pcl_animseg::Error);
+      }
     }
   }
   omp_set_num_threads(before);
   EXPECT_TRUE(seg::fitAlongChains(
                   0, 10, 0, 0.0,
-                  [](int, int, int, const std::vector<double>*) {
+                  [](int, int, const seg::ChainStep&, const std::vector<double>*) {
                     return std::vector<seg::ChainStart<double>>{};
                   },
                   [](int, int, double) { return 0.0; },

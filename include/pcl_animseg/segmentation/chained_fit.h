@@ -3,6 +3,7 @@
 #include <omp.h>
 #include <pcl_animseg/error.h>
 
+#include <algorithm>
 #include <cstddef>
 #include <limits>
 #include <string>
@@ -17,6 +18,56 @@ struct ChainStart {
   Pose pose;
   bool chained = false;
 };
+
+/** \brief Where a frame's chained starts come from: the frame it is fitted after (`before`; -1
+ * for the reference) and the frame before that (`two_before`: with `before`, a constant-velocity
+ * guess; -1: none). */
+struct ChainStep {
+  int before = -1, two_before = -1;
+};
+
+/** \brief The frames of a chain away from a reference frame: `order`, a serial run's (each frame
+ * after the one it is fitted after; forwards first, then backwards), and each frame's step.
+ *
+ * A chain of small fits drifts: what a fit hardly constrains moves a little at every step, and
+ * the drift adds up with the steps (the motion method's samples on a 160-frame humanoid: a mean
+ * ICP residual of 0.40 spacings in the frames where a 48-frame one of the same motion has 0.28).
+ * So a side of the reference longer than kMaxChainSteps frames goes through key frames `stride`
+ * apart (each fitted after the key frame before it), and each frame between after the frame
+ * before it, back to a key frame: no frame is more than about kMaxChainSteps + stride steps from
+ * the reference, and a chain's fits need about as many rounds. A side of at most kMaxChainSteps
+ * frames is one chain of single steps. The stride is at most kMaxStride: a key frame's step is
+ * that many frames' motion, and the tracking holds steps of about 50 degrees at a joint
+ * (generated gallops in 20 frames), while a capture at 30 frames a second moves a fast limb up to
+ * about 10 degrees a frame; longer sides get longer chains of key frames instead. */
+struct ChainFrames {
+  std::vector<int> order;
+  std::vector<ChainStep> step;  ///< per frame (the reference's: none)
+};
+constexpr int kMaxChainSteps = 48;
+constexpr int kMaxStride = 4;
+inline ChainFrames chainFrames(int T, int ref) {
+  ChainFrames c;
+  c.step.assign(static_cast<std::size_t>(T > 0 ? T : 0), ChainStep());
+  for (int dir : {+1, -1}) {
+    const int n = dir > 0 ? T - 1 - ref : ref;
+    if (n <= 0) continue;
+    const int stride = std::clamp((n + kMaxChainSteps - 1) / kMaxChainSteps, 1, kMaxStride);
+    for (int d = 1; d <= n; ++d) {
+      const int t = ref + dir * d, r = d % stride;
+      c.order.push_back(t);
+      ChainStep& st = c.step[t];
+      if (r == 0) {  // a key frame (every frame when the stride is 1)
+        st.before = t - dir * stride;
+        if (d >= 2 * stride) st.two_before = t - 2 * dir * stride;
+      } else {  // between key frames: after the frame before, the same step as it took
+        st.before = t - dir;
+        if (r >= 2) st.two_before = t - 2 * dir;
+      }
+    }
+  }
+  return c;
+}
 
 /** \brief A fit that fitChainsBatched asks for: frame `frame` of chain `chain` from `start`, which
  * scored `score`. */
@@ -73,13 +124,14 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
                                               Same same, int extra_rounds = -1);
 
 /** \brief Fits every frame 0..T-1 but `ref` (which gets `identity`), in order away from `ref`
- * (ref+1, ref+2, ..., then ref-1, ref-2, ...), each from the first of its starts with the lowest
- * score.
+ * (chainFrames: ref+1, ref+2, ..., then ref-1, ref-2, ..., through key frames on a side longer
+ * than kMaxChainSteps), each from the first of its starts with the lowest score.
  *
- * - `starts(t, dir, fits)` returns frame t's starts in their order (a std::vector of
+ * - `starts(t, step, fits)` returns frame t's starts in their order (a std::vector of
  *   ChainStart<Pose>; at least one). With `fits` null it must return only the unchained ones (the
  *   same poses in the same relative order); otherwise the chained ones may use
- *   `(*fits)[t - dir]` and `(*fits)[t - 2 * dir]` (final when called), and no other fit.
+ *   `(*fits)[step.before]` and `(*fits)[step.two_before]` (final when called; `step` is frame
+ *   t's ChainStep in chainFrames(T, ref)), and no other fit.
  * - `score(t, pose)` scores a start (lower is better).
  * - `fitFrom(t, pose, score)` returns the fit from the winning start and its score.
  * - `same(p, q)`: whether two poses are equal (bit for bit).
@@ -101,23 +153,23 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
                                 FitFrom fitFrom, Same same, bool parallel) {
   if (!parallel) {
     std::vector<Pose> fit(T > 0 ? T : 0, identity);
-    for (int dir : {+1, -1})
-      for (int t = ref + dir; t >= 0 && t < T; t += dir) {
-        const auto s = starts(t, dir, &fit);
-        std::size_t best = 0;
-        double r0 = std::numeric_limits<double>::max();
-        for (std::size_t k = 0; k < s.size(); ++k) {
-          const double r = score(t, s[k].pose);
-          if (r < r0) r0 = r, best = k;
-        }
-        fit[t] = fitFrom(t, s[best].pose, r0);
+    const ChainFrames frames = chainFrames(T, ref);
+    for (int t : frames.order) {
+      const auto s = starts(t, frames.step[t], &fit);
+      std::size_t best = 0;
+      double r0 = std::numeric_limits<double>::max();
+      for (std::size_t k = 0; k < s.size(); ++k) {
+        const double r = score(t, s[k].pose);
+        if (r < r0) r0 = r, best = k;
       }
+      fit[t] = fitFrom(t, s[best].pose, r0);
+    }
     return fit;
   }
   return fitAlongChains(
              1, T, ref, identity,
-             [&](int, int t, int dir, const std::vector<Pose>* fits) {
-               return starts(t, dir, fits);
+             [&](int, int t, const ChainStep& step, const std::vector<Pose>* fits) {
+               return starts(t, step, fits);
              },
              [&](int, int t, const Pose& pose) { return score(t, pose); },
              [&](int, int t, const Pose& pose, double r0) { return fitFrom(t, pose, r0); }, same)
@@ -125,7 +177,7 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
 }
 
 /** \brief fitAlongChain's parallel steps for `chains` independent chains at once, each of T
- * frames with the same reference: `starts(c, t, dir, fits)`, `score(c, t, pose)` and
+ * frames with the same reference: `starts(c, t, step, fits)`, `score(c, t, pose)` and
  * `fitFrom(c, t, pose, r0)` as in fitAlongChain with the chain c first. Steps 1 and 2 of all the
  * chains' frames are one parallel loop each, and step 3 runs the chains side by side, so that a
  * few short chains keep many cores busy (the parts of a labelling fitted one after the other,
@@ -149,16 +201,17 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
  * fitAlongChain), with every fit and every score asked for in batches: `fitBatch(jobs)` returns,
  * for each ChainFit, fitFrom(chain, frame, start, score), and `scoreBatch(items)`, for each
  * ChainScore, score(chain, frame, pose), both in their input's order. Step 3 walks the chains
- * side by side, one frame position at a time, so that a position of all the chains is one
- * batch. For a device that fits and scores many frames at once (the CUDA module); on the CPU
- * fitEach and scoreEach are the batches. The same fits as fitAlongChains and the serial
- * chains. */
+ * side by side, the frames as many steps from the reference at a time (both sides', and between
+ * key frames every stretch's), so that those of all the chains are one batch. For a device that
+ * fits and scores many frames at once (the CUDA module); on the CPU fitEach and scoreEach are the
+ * batches. The same fits as fitAlongChains and the serial chains. */
 template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same>
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
                                                 Starts starts, ScoreBatch scoreBatch,
                                                 FitBatch fitBatch, Same same, bool speculate,
                                                 int extra_rounds) {
   const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
+  const ChainFrames chain = chainFrames(F, ref);
   // Default: 6 more rounds on 4 threads or more (each costs fits that step 3 might not need;
   // on 2 threads step 3's chains side by side keep both busy).
   if (extra_rounds < 0) extra_rounds = omp_get_max_threads() >= 4 ? 6 : 0;
@@ -203,7 +256,7 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
 #pragma omp parallel for schedule(dynamic, 4) if (n > 1 && !omp_in_parallel())
     for (long j = 0; j < n; ++j) {
       const auto [c, t] = todo[j];
-      s[j] = starts(c, t, t > ref ? +1 : -1, from ? &(*from)[c] : nullptr);
+      s[j] = starts(c, t, chain.step[t], from ? &(*from)[c] : nullptr);
     }
     std::vector<ChainScore<Pose>> items;
     at.assign(todo.size() + 1, 0);
@@ -255,14 +308,12 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     }
     fitMarked(job, fitted, out);
   };
-  // Whether the fits that frame t's chained starts may use are the same in a and b: t - dir, and
-  // t - 2 dir where it is on this side of the reference (the other side's fits are not final
-  // yet).
+  // Whether the fits that frame t's chained starts may use are the same in a and b: the frame
+  // before it and the frame two before (chainFrames).
   auto sameInputs = [&](int c, int t, const std::vector<std::vector<Pose>>& a,
                         const std::vector<std::vector<Pose>>& b) {
-    const int dir = t > ref ? +1 : -1, t1 = t - dir, t2 = t - 2 * dir;
-    const bool t2_used = t2 >= 0 && t2 < F && (t2 - ref) * dir >= 0;
-    return same(a[c][t1], b[c][t1]) && (!t2_used || same(a[c][t2], b[c][t2]));
+    const int t1 = chain.step[t].before, t2 = chain.step[t].two_before;
+    return same(a[c][t1], b[c][t1]) && (t2 < 0 || same(a[c][t2], b[c][t2]));
   };
   std::vector<std::vector<Pose>> guess(C, frames_of), before;
   if (speculate) {
@@ -311,20 +362,29 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
       guess.swap(next);
     }
   }
-  // Step 3, one frame position of every chain at a time: the last round's fit stands where the
-  // frames before it are as it assumed (most frames); otherwise the frame's starts are scored,
-  // and it is fitted, again. spec[c][ref] is the identity, as fit[c][ref] is.
-  for (int dir : {+1, -1})
-    for (int t = ref + dir; t >= 0 && t < F; t += dir) {
-      std::vector<std::pair<int, int>> redo;
+  // Step 3, the frames as many steps from the reference (chainFrames: the frames both sides of
+  // it, and between key frames those of every stretch) of every chain at a time: the last
+  // round's fit stands where the frames before it are as it assumed (most frames); otherwise the
+  // frame's starts are scored, and it is fitted, again. spec[c][ref] is the identity, as
+  // fit[c][ref] is.
+  std::vector<int> depth(static_cast<std::size_t>(F), 0);
+  std::vector<std::vector<int>> at_depth;
+  for (int t : chain.order) {
+    depth[t] = depth[chain.step[t].before] + 1;
+    if (static_cast<int>(at_depth.size()) < depth[t]) at_depth.resize(depth[t]);
+    at_depth[depth[t] - 1].push_back(t);
+  }
+  for (const std::vector<int>& frames : at_depth) {
+    std::vector<std::pair<int, int>> redo;
+    for (int t : frames)
       for (int c = 0; c < C; ++c) {
         if (speculate && sameInputs(c, t, fit, before))
           fit[c][t] = guess[c][t];
         else
           redo.push_back({c, t});
       }
-      fitGivenAll(redo, fit, fit);
-    }
+    fitGivenAll(redo, fit, fit);
+  }
   return fit;
 }
 
@@ -345,7 +405,9 @@ std::vector<std::vector<Pose>> fitChains(int chains, int T, int ref, const Pose&
   for (int c = 0; c < C; ++c)
     out[c] = fitAlongChain(
         T, ref, identity,
-        [&](int t, int dir, const std::vector<Pose>* fit) { return starts(c, t, dir, fit); },
+        [&](int t, const ChainStep& step, const std::vector<Pose>* fit) {
+          return starts(c, t, step, fit);
+        },
         [&](int t, const Pose& P) { return score(c, t, P); },
         [&](int t, const Pose& P, double r0) { return fitFrom(c, t, P, r0); }, same, false);
   return out;

@@ -19,7 +19,8 @@
  *    constrain (along a capsule) keeps the neighbour's motion instead of sliding. Such
  *    directions still drift a little at every step, so a side of the reference longer than 48
  *    frames is tracked through key frames (every ceil(n / 48)-th frame, at most every 4th, each
- *    from the key frame before), and the frames between each from the frame before it.
+ *    from the key frame before), and the frames between each from the frame before it
+ *    (chained_fit.h, chainFrames; the parts' motions of steps 3 and 4 follow the same chain).
  * 3. Clustering, in two phases. Residuals are surface errors: the distance to the nearest
  *    point's tangent plane (blind to the sampling of the two clouds and to a sample sliding along
  *    a capsule), in point spacings.

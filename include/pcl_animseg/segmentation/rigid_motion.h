@@ -5,7 +5,8 @@
  * What a rigging or skinning user needs from a decomposition (the paper's rigid-bone application):
  * for each part, the rotation and translation that best map its points in frame 0 onto the same
  * part in frame t. Frames share no vertex order, so the fit is ICP (point-to-point passes, then
- * point-to-plane), chained along the sequence: frame t starts from frame t-1's transform. The
+ * point-to-plane), chained along the sequence: frame t starts from frame t-1's transform (on a
+ * sequence of more than 49 frames, through key frames: chained_fit.h, chainFrames). The
  * passes are those of PCL's IterativeClosestPoint and IterativeClosestPointWithNormals (which
  * ran them before), written out in segmentation/icp_step.h's arithmetic so that a RigidFitDevice
  * (the CUDA module's gpu::RigidFits) gives the same motions bit for bit.
