@@ -34,6 +34,12 @@ namespace synth = pcl_animseg::synth;
 
 namespace {
 
+// A generated sequence of the tests below.
+struct SequenceCase {
+  synth::BodyPlan plan;
+  int frames, points;
+};
+
 pcl_animseg::PointCloudSequence::Ptr generated(synth::BodyPlan plan, int frames, int points,
                                                unsigned seed) {
   return std::make_shared<pcl_animseg::PointCloudSequence>(
@@ -45,14 +51,11 @@ pcl_animseg::PointCloudSequence::Ptr generated(synth::BodyPlan plan, int frames,
 TEST(GpuTracking, PosesAreTheCpusBitForBit) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  // The third: 100 frames, tracked through key frames 3 apart (motion_tracking.cpp,
-  // trackingChain), each frame between from the one before.
-  const struct {
-    synth::BodyPlan plan;
-    int frames, points;
-  } cases[] = {{synth::BodyPlan::Humanoid, 16, 4000},
-               {synth::BodyPlan::Hand, 16, 4000},
-               {synth::BodyPlan::Humanoid, 100, 600}};
+  // The third: 100 frames, tracked through key frames 3 apart (chained_fit.h,
+  // chainFrames), each frame between from the one before.
+  const SequenceCase cases[] = {{synth::BodyPlan::Humanoid, 16, 4000},
+                                {synth::BodyPlan::Hand, 16, 4000},
+                                {synth::BodyPlan::Humanoid, 100, 600}};
   for (const auto& c : cases) {
     const auto plan = c.plan;
     const auto seq = generated(plan, c.frames, c.points, 7);
@@ -125,14 +128,11 @@ TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
   // The last: 70 frames, every chain through key frames 2 apart (chainFrames).
-  const struct {
-    synth::BodyPlan plan;
-    int frames, points;
-  } cases[] = {{synth::BodyPlan::Humanoid, 20, 4000},
-               {synth::BodyPlan::Quadruped, 20, 4000},
-               {synth::BodyPlan::Hand, 20, 4000},
-               {synth::BodyPlan::Spider, 20, 4000},
-               {synth::BodyPlan::Humanoid, 70, 1000}};
+  const SequenceCase cases[] = {{synth::BodyPlan::Humanoid, 20, 4000},
+                                {synth::BodyPlan::Quadruped, 20, 4000},
+                                {synth::BodyPlan::Hand, 20, 4000},
+                                {synth::BodyPlan::Spider, 20, 4000},
+                                {synth::BodyPlan::Humanoid, 70, 1000}};
   for (const auto& c : cases) {
     const auto plan = c.plan;
     const auto seq = generated(plan, c.frames, c.points, 8);
@@ -168,12 +168,9 @@ TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
   // The third: 70 frames, the chains through key frames 2 apart (chained_fit.h, chainFrames).
-  const struct {
-    synth::BodyPlan plan;
-    int frames, points;
-  } cases[] = {{synth::BodyPlan::Humanoid, 16, 4000},
-               {synth::BodyPlan::Hand, 16, 4000},
-               {synth::BodyPlan::Humanoid, 70, 800}};
+  const SequenceCase cases[] = {{synth::BodyPlan::Humanoid, 16, 4000},
+                                {synth::BodyPlan::Hand, 16, 4000},
+                                {synth::BodyPlan::Humanoid, 70, 800}};
   for (const auto& c : cases) {
     const auto plan = c.plan;
     synth::SynthParams sp;
