@@ -273,7 +273,7 @@ TEST(MotionQuality, SameSeedSameLabels) {
 // merged part's motion is fitted in every frame at once and then checked against the chain of
 // frames (fitPart): the labels, merges and costs must not depend on how many threads ran them.
 // The reference frame first (the default: one chain of frames) and in the middle (two chains);
-// and a sequence long enough to be tracked through key frames (trackingChain).
+// and a sequence long enough to be tracked through key frames (chainFrames).
 TEST(MotionQuality, SameLabelsOnAnyThreadCount) {
   const auto frames = synth::generate(sequenceParams(synth::BodyPlan::Humanoid, 8, 1500, 4));
   const auto seq = synth::toSequence(frames);
