@@ -44,8 +44,8 @@ int main(int argc, char** argv) {
       "animseg_meanshift --input SEQ --output DIR [--bandwidth w] [--weights w1,w2,w3,w4] "
       "[--method motion|paper] [--backend exact|gkdtree] [--parts N] [--motion-threshold T] "
       "[--crease-cost C] [--border-smoothness S] [--dissolve-ratio R] [--joint-weight J] "
-      "[--sliver-fraction F] [--reference-frame R] [--exact-steps K] [--cell-extent E] [--cell-min-points M] "
-      "[--no-features] [--seed S]",
+      "[--sliver-fraction F] [--reference-frame R] [--exact-steps K] [--cell-extent E] "
+      "[--cell-min-points M] [--no-features] [--seed S]",
       od, [&](const pcl_animseg::tools::ToolContext& ctx) {
         pcl_animseg::Progress progress(ctx.quiet, ctx.verbose);
         seg::MeanShiftParams params;

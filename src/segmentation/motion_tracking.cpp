@@ -235,6 +235,26 @@ inline bool matchTerms(const Source& src, Eigen::Index i, const double* y, const
   return true;
 }
 
+/** The surface error (surfaceError) of source point i under the pose R. */
+inline double pointError(const Source& src, Eigen::Index i, const icp_step::Rigid& R,
+                         const Frame& f) {
+  double y[3], n[3];
+  icp_step::apply(R, src.p.col(i).data(), y);
+  icp_step::rotate(R, src.n.col(i).data(), n);
+  return surfaceError(y, n, f);
+}
+
+/** An ICP iteration's step from its summed terms (`used` points matched), about the centroid c:
+ * T moved by it. False where the iterations stop: too few matches or no step (T unchanged), or
+ * the step converged (T moved). */
+inline bool takeStep(const double* sums, int used, const double* c, double spacing,
+                     icp_step::Rigid& T) {
+  double x[6];
+  if (used < 6 || !icp_step::solveStep(sums, x)) return false;
+  T = icp_step::compose(icp_step::stepMotion(x, c), T);
+  return !icp_step::converged(x, spacing);
+}
+
 /** RMS over the source of the surface error (in the frame's spacings); the errors are added in
  * point order. A source that searches in parallel (searchInParallel) goes through residualsOf. */
 std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& poses, const Frame& f);
@@ -244,12 +264,7 @@ double residual(const Source& src, const Pose& T, const Frame& f) {
   if (searchInParallel(src)) return residualsOf(src, {T}, f).front();
   const icp_step::Rigid R = toRigid(T);
   double sum = 0.0;
-  for (Eigen::Index i = 0; i < m; ++i) {
-    double y[3], n[3];
-    icp_step::apply(R, src.p.col(i).data(), y);
-    icp_step::rotate(R, src.n.col(i).data(), n);
-    sum += surfaceError(y, n, f);
-  }
+  for (Eigen::Index i = 0; i < m; ++i) sum += pointError(src, i, R, f);
   return std::sqrt(sum / static_cast<double>(m));
 }
 
@@ -283,11 +298,7 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
       ++used;
       for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
     }
-    if (used < 6) break;
-    double x[6];
-    if (!icp_step::solveStep(sums, x)) break;
-    T = icp_step::compose(icp_step::stepMotion(x, c), T);
-    if (icp_step::converged(x, f.spacing)) break;
+    if (!takeStep(sums, used, c, f.spacing, T)) break;
   }
   return toPose(T);
 }
@@ -355,13 +366,7 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
         const double* terms = &point_terms[slot * icp_step::kTerms];
         for (int q = 0; q < icp_step::kTerms; ++q) sums[q] += terms[q];
       }
-      double x[6];
-      if (used < 6 || !icp_step::solveStep(sums, x)) {
-        running[c] = 0;
-        continue;
-      }
-      T[c] = icp_step::compose(icp_step::stepMotion(x, centroid[c].data()), T[c]);
-      if (icp_step::converged(x, f.spacing)) running[c] = 0;
+      if (!takeStep(sums, used, centroid[c].data(), f.spacing, T[c])) running[c] = 0;
     }
   }
   for (std::size_t c = 0; c < n; ++c) out.push_back(toPose(T[c]));
@@ -385,12 +390,7 @@ std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& pose
   const Eigen::Index items = static_cast<Eigen::Index>(e.size());
 #pragma omp parallel for schedule(static)
   for (Eigen::Index q = 0; q < items; ++q) {
-    const std::size_t c = static_cast<std::size_t>(q / m);
-    const Eigen::Index i = q % m;
-    double y[3], nr[3];
-    icp_step::apply(R[c], src.p.col(i).data(), y);
-    icp_step::rotate(R[c], src.n.col(i).data(), nr);
-    e[q] = surfaceError(y, nr, f);
+    e[q] = pointError(src, q % m, R[static_cast<std::size_t>(q / m)], f);
   }
   for (std::size_t c = 0; c < n; ++c) {
     double sum = 0.0;

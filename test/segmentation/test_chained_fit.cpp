@@ -41,14 +41,20 @@ struct Toy {
     const double q = p + 0.5 * (target[t] - p);
     return score(t, q) <= r0 ? q : p;
   }
+  // Frame t's starts, in the motion method's order.
+  std::vector<seg::ChainStart<double>> starts(int t, const seg::ChainStep& st,
+                                              const std::vector<double>* fit) const {
+    std::vector<seg::ChainStart<double>> s{{a[t], false}};
+    if (fit) s.push_back({(*fit)[st.before], true});
+    s.push_back({b[t], false});
+    if (fit && st.two_before >= 0)
+      s.push_back({2.0 * (*fit)[st.before] - (*fit)[st.two_before], true});
+    return s;
+  }
   std::vector<double> run(int ref, bool parallel, int* wins = nullptr) const {
     const int T = static_cast<int>(target.size());
     auto starts = [&](int t, const seg::ChainStep& st, const std::vector<double>* fit) {
-      std::vector<seg::ChainStart<double>> s{{a[t], false}};
-      if (fit) s.push_back({(*fit)[st.before], true});
-      s.push_back({b[t], false});
-      if (fit && st.two_before >= 0)
-        s.push_back({2.0 * (*fit)[st.before] - (*fit)[st.two_before], true});
+      const std::vector<seg::ChainStart<double>> s = this->starts(t, st, fit);
       if (wins && fit) {  // serial run: which start wins (the first of the lowest score)
         std::size_t best = 0;
         for (std::size_t k = 1; k < s.size(); ++k)
@@ -176,13 +182,7 @@ TEST(ChainedFit, SeveralChainsAtOnceEqualEachChainAlone) {
     omp_set_num_threads(4);
     for (int ref : {0, T == 48 ? 30 : 60}) {
       auto starts = [&](int c, int t, const seg::ChainStep& st, const std::vector<double>* fit) {
-        const Toy& y = toys[c];
-        std::vector<seg::ChainStart<double>> s{{y.a[t], false}};
-        if (fit) s.push_back({(*fit)[st.before], true});
-        s.push_back({y.b[t], false});
-        if (fit && st.two_before >= 0)
-          s.push_back({2.0 * (*fit)[st.before] - (*fit)[st.two_before], true});
-        return s;
+        return toys[c].starts(t, st, fit);
       };
       auto score = [&](int c, int t, double p) { return toys[c].score(t, p); };
       auto fit = [&](int c, int t, double p, double r0) { return toys[c].fitFrom(t, p, r0); };
