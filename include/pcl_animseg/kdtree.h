@@ -122,6 +122,21 @@ class KdTree {
     return row < 0 ? -1 : map_[row];
   }
 
+  /** \brief nearest(), the same point and distance, with a guess: `hint` (a cloud index of a
+   * finite point, or -1 for none), usually the query's nearest point a moment ago (an ICP's
+   * match of the iteration before). The search is bounded by the guess's distance as well: the
+   * walk is the same but leaves out cells farther than the guess, which cannot hold the nearest
+   * point nor a tie visited before it, so the result is nearest()'s bit for bit. */
+  int nearest(float x, float y, float z, float max_sqr_distance, int hint,
+              float& sqr_distance) const {
+    if (hint >= 0 && std::isfinite(x) && std::isfinite(y) && std::isfinite(z)) {
+      const PointT& h = (*cloud_)[static_cast<std::size_t>(hint)];
+      const float q[3] = {x, y, z}, p[3] = {h.x, h.y, h.z};
+      max_sqr_distance = std::min(max_sqr_distance, FlatKdTree3::distance2(q, p));
+    }
+    return nearest(x, y, z, max_sqr_distance, sqr_distance);
+  }
+
   /** \brief The nearest point (the lowest index among equal distances) and whether another
    * point lies at exactly the same distance (`tied`); -1 for an empty tree or a non-finite
    * query. Its squared distance in `sqr_distance`. Without a tie it is the first point of

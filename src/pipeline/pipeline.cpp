@@ -9,6 +9,8 @@
 #include <pcl_animseg/gpu/rigid_fits.h>
 #endif
 
+#include <omp.h>
+
 #include <algorithm>
 #include <cmath>
 #include <memory>
@@ -158,7 +160,21 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   segmentation::SegmentationResult clusters;
 #ifdef PCL_ANIMSEG_HAVE_CUDA
   bool gpu_check_pending = false;  // the GPU's check ran on a DeviceWarmUp's thread
+  // The ICP fits of the refinement and the rigid motions (see below), made here for the
+  // refinement's frames prepared beside the clustering.
+  std::unique_ptr<gpu::RigidFits> gpu_fits;
 #endif
+  // The refinement (3. below) is made now: what it needs of the frames alone (their trees and
+  // spacings, every point's nearest points) is built beside the motion method's clustering,
+  // whose chains of device calls leave most cores idle, on half the threads (the same results).
+  segmentation::GMMBoundaryRefinement gmm;
+  gmm.setInputSequence(&seq);
+  bool prepared = false;
+  {
+    segmentation::RefinementParams rp = params.refinement;
+    rp.seed = msp.seed;
+    gmm.setParams(rp);
+  }
   {
     segmentation::MeanShiftSegmentation ms;
     ms.setInputSequence(shared);
@@ -174,6 +190,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
         gpu::resetPeakDeviceBytes();  // the run's peak, reported in summary.json
         ms.setDeviceBackend(gpu::makeMeanShiftBackend(/*check_now=*/false),
                             /*cpu_fallback=*/params.device == "auto");
+        gpu_fits = std::make_unique<gpu::RigidFits>();
         why.clear();
       }
 #else
@@ -189,6 +206,19 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       ms.setSignatures(std::move(features.signatures));
       ms.setKeypoints(features.keypoints);
       features = SequenceFeatures();
+    }
+    if (params.refine && motion_method) {
+      segmentation::RigidFitDevice* prep_device = nullptr;
+#ifdef PCL_ANIMSEG_HAVE_CUDA
+      prep_device = gpu_fits.get();
+#endif
+      ms.setBesideClustering([&gmm, &prepared, prep_device, threads = omp_get_max_threads()] {
+        if (prepared) return;  // once (a device failure reruns the method on the CPU)
+        prepared = true;
+        omp_set_num_threads(std::max(1, threads / 2));
+        gmm.setRigidFitDevice(prep_device);
+        gmm.prepareFrames();
+      });
     }
     ms.setProgress(&progress);
     progress.begin("mean_shift");
@@ -234,11 +264,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   // the stage runs again on the CPU, as do the later ones.
   segmentation::RigidFitDevice* fit_device = nullptr;
 #ifdef PCL_ANIMSEG_HAVE_CUDA
-  std::unique_ptr<gpu::RigidFits> gpu_fits;
-  if (r.device_used != "cpu") {
-    gpu_fits = std::make_unique<gpu::RigidFits>();
-    fit_device = gpu_fits.get();
-  }
+  if (r.device_used != "cpu" && gpu_fits) fit_device = gpu_fits.get();
 #endif
   auto onDevice = [&](const std::string& what, const auto& stage) {
     if (fit_device) {
@@ -260,6 +286,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   // refinement and the rigid motions, which measured them twice each.
   std::vector<double> spacings;
   auto frameSpacings = [&]() {
+    if (spacings.empty()) spacings = gmm.preparedSpacings();  // the same values
     if (spacings.empty()) spacings = meanSpacings(seq);
     return spacings;
   };
@@ -269,11 +296,6 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
   std::vector<segmentation::PartMotion> refinement_motions;
   if (params.refine && clusters.num_clusters > 1) {
     progress.begin("refine");
-    segmentation::GMMBoundaryRefinement gmm;
-    gmm.setInputSequence(&seq);
-    segmentation::RefinementParams rp = params.refinement;
-    rp.seed = msp.seed;
-    gmm.setParams(rp);
     gmm.setSpacings(frameSpacings());
     onDevice("refinement", [&](segmentation::RigidFitDevice* device) {
       gmm.setRigidFitDevice(device);

@@ -119,16 +119,19 @@ class NeighbourLists {
     std::vector<int> rows, count;
   };
   /** The same lists as a view into `lists`, whose queries `first`, `first` + 1, ... are this
-   * frame's labelled points in point order, rows of `tree`'s flat tree. */
+   * frame's labelled points in point order (`every_point`: all its points), rows of `tree`'s
+   * flat tree. */
   void view(std::shared_ptr<const DeviceLists> lists, std::size_t first, const Cloud& cloud,
-            const pcl_animseg::KdTree<pcl::PointNormal>& tree, const std::vector<int>& lab) {
+            const pcl_animseg::KdTree<pcl::PointNormal>& tree, const std::vector<int>& lab,
+            bool every_point = false) {
     lists_ = std::move(lists);
     cloud_ = &cloud;
     tree_ = &tree;
     k_ = lists_->k;
     first_ = first;
     slot_.clear();
-    if (std::find_if(lab.begin(), lab.end(), [](int l) { return l < 0; }) != lab.end()) {
+    if (!every_point &&
+        std::find_if(lab.begin(), lab.end(), [](int l) { return l < 0; }) != lab.end()) {
       slot_.assign(lab.size(), -1);
       long q = static_cast<long>(first);
       for (std::size_t j = 0; j < lab.size(); ++j)
@@ -383,6 +386,67 @@ void validate(const RefinementParams& p) {
                 std::to_string(p.motion_tolerance) + ", " + std::to_string(p.motion_cap) + ")");
 }
 
+struct GMMBoundaryRefinement::Prepared {
+  const PointCloudSequence* sequence = nullptr;
+  std::vector<std::size_t> sizes;  // each frame's point count
+  std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees;
+  std::vector<double> spacings;
+  // Every point's nearest points, the frames one after the other (null: none were searched).
+  std::shared_ptr<const NeighbourLists::DeviceLists> lists;
+};
+
+void GMMBoundaryRefinement::prepareFrames() {
+  prepared_.reset();
+  if (!sequence_ || sequence_->empty()) return;
+  detail::StageTimer timer("refine");
+  auto prep = std::make_shared<Prepared>();
+  const std::size_t frames = sequence_->size();
+  prep->sequence = sequence_;
+  for (std::size_t t = 0; t < frames; ++t) prep->sizes.push_back(sequence_->frame(t)->size());
+  prep->trees.resize(frames);
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < static_cast<int>(frames); ++t)
+    prep->trees[t].setInputCloud(sequence_->frame(t));
+  prep->spacings =
+      meanSpacings(*sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
+        return prep->trees[t];
+      });
+  if (device_ && params_.max_iterations > 0 && params_.boundary_k >= 2) {
+    // refine()'s lists are those of its labelled points; these are every point's, of which it
+    // views the labelled ones (a point's nearest points do not depend on the other queries).
+    std::vector<std::size_t> first(frames + 1, 0);
+    for (std::size_t t = 0; t < frames; ++t) first[t + 1] = first[t] + prep->sizes[t];
+    std::vector<float> queries(3 * first[frames]);
+    std::vector<int> tree_of(first[frames]);
+    std::vector<const FlatKdTree3*> flat(frames);
+#pragma omp parallel for schedule(dynamic)
+    for (int t = 0; t < static_cast<int>(frames); ++t) {
+      flat[t] = &prep->trees[t].flatTree();
+      const Cloud& cloud = *sequence_->frame(t);
+      for (std::size_t j = 0, q = first[t]; j < cloud.size(); ++j, ++q) {
+        queries[3 * q] = cloud[j].x, queries[3 * q + 1] = cloud[j].y,
+                    queries[3 * q + 2] = cloud[j].z;
+        tree_of[q] = static_cast<int>(t);
+      }
+    }
+    auto lists = std::make_shared<NeighbourLists::DeviceLists>();
+    lists->k = params_.boundary_k + 1;
+    try {
+      if (device_->knn(flat, lists->k, queries, tree_of, lists->rows, lists->count) &&
+          lists->count.size() == tree_of.size() && lists->rows.size() == tree_of.size() * lists->k)
+        prep->lists = std::move(lists);
+    } catch (const Error&) {
+      // refine() searches again, and a device that fails there is reported there.
+    }
+  }
+  prepared_ = std::move(prep);
+  timer.lap("frames prepared ahead (trees, spacings, neighbour lists)");
+}
+
+std::vector<double> GMMBoundaryRefinement::preparedSpacings() const {
+  return prepared_ ? prepared_->spacings : std::vector<double>();
+}
+
 void GMMBoundaryRefinement::refine(const SegmentationResult& input, SegmentationResult& output) {
   if (!sequence_ || sequence_->empty()) throw Error("GMM refinement: no input sequence");
   const RefinementParams& p = params_;
@@ -409,17 +473,33 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   if (!spacings_.empty() && spacings_.size() != frames)
     throw Error("refinement: " + std::to_string(spacings_.size()) + " spacings for " +
                 std::to_string(frames) + " frames");
-  std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees(frames);
+  // What prepareFrames() built for this sequence, taken over (and released with this call).
+  std::shared_ptr<Prepared> prep = std::move(prepared_);
+  auto sameFrames = [&](const Prepared& pr) {
+    if (pr.sequence != sequence_ || pr.sizes.size() != frames) return false;
+    for (std::size_t t = 0; t < frames; ++t)
+      if (pr.sizes[t] != sequence_->frame(t)->size()) return false;
+    return true;
+  };
+  if (prep && !sameFrames(*prep)) prep.reset();
+  const bool prepared_lists = prep && prep->lists && prep->lists->k == p.boundary_k + 1;
+  std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees;
+  if (prep) {
+    trees = std::move(prep->trees);
+  } else {
+    trees.resize(frames);
 #pragma omp parallel for schedule(dynamic)
-  for (int t = 0; t < static_cast<int>(frames); ++t) trees[t].setInputCloud(sequence_->frame(t));
+    for (int t = 0; t < static_cast<int>(frames); ++t) trees[t].setInputCloud(sequence_->frame(t));
+  }
   // The spacings given, or measured from the trees (meanSpacings' values).
   const std::vector<double> spacing =
-      !spacings_.empty()
-          ? spacings_
-          : meanSpacings(*sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
-              return trees[t];
-            });
-  timer.lap("trees");
+      !spacings_.empty() ? spacings_
+      : prep             ? prep->spacings
+                         : meanSpacings(*sequence_,
+                                        [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
+                                          return trees[t];
+                                        });
+  timer.lap(prep ? "trees (prepared)" : "trees");
   double mean_spacing = 0.0;
   for (double s : spacing) mean_spacing += s / static_cast<double>(frames);
 
@@ -491,6 +571,13 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   for (std::size_t t = 0; t < frames; ++t) flat[t] = &trees[t].flatTree();
   auto deviceLists = [&]() {
     const int k = p.boundary_k + 1;
+    if (prepared_lists) {  // every point's, searched ahead
+      for (std::size_t t = 0, first = 0; t < frames; first += prep->sizes[t++])
+        knn[t].view(prep->lists, first, *sequence_->frame(t), trees[t], labels[t], true);
+      prep.reset();
+      timer.lap("neighbour lists (prepared)");
+      return;
+    }
     std::vector<std::size_t> first(frames + 1, 0);  // each frame's first query
     for (std::size_t t = 0; t < frames; ++t) {
       first[t + 1] =
@@ -630,7 +717,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // a device, those run beside the fits (RigidMotionEstimation::computeBeside), the same
   // results. The neighbour lists (one device call) come first: beside the fits, each fit call
   // waited for them (800k humanoid: the fits' chain 0.074 s alone, 0.148 s beside the lists).
-  if (device_ && p.max_iterations > 0) deviceLists();
+  if ((device_ || prepared_lists) && p.max_iterations > 0) deviceLists();
   bool first_bands = false, have_pairs = false;
   if ((pool || check_motion) && given) {
     parts = givenMotions(input.motions, labels, num_labels, RigidMotionParams().min_points);

@@ -105,10 +105,12 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, 
                   const Eigen::VectorXf& point_density, SegmentationResult& result);
 
 /** The motion method; fills the flat labels, num_clusters, merges and the parts' motions from
- * frame 0 (segmentByTracking). `tracking` (nullptr: the CPU) fits the tracked samples' poses. */
+ * frame 0 (segmentByTracking). `tracking` (nullptr: the CPU) fits the tracked samples' poses;
+ * `beside` runs beside its clustering (MotionTrackingParams::beside_clustering). */
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, MotionDevice* tracking,
                std::vector<int>& flat_labels, int& num_clusters, std::vector<ClusterMerge>& merges,
-               std::vector<std::vector<Eigen::Isometry3d>>& motions, Progress* progress);
+               std::vector<std::vector<Eigen::Isometry3d>>& motions, Progress* progress,
+               const std::function<void()>& beside = {});
 
 }  // namespace detail
 }  // namespace segmentation

@@ -34,7 +34,8 @@ MotionTrackingParams motionTrackingParams(const MeanShiftParams& params) {
 
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, MotionDevice* tracking,
                std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
-               std::vector<std::vector<Eigen::Isometry3d>>& motions, Progress* progress) {
+               std::vector<std::vector<Eigen::Isometry3d>>& motions, Progress* progress,
+               const std::function<void()>& beside) {
   if (!(sequenceScale(seq) > 0.0)) {
     // Every point of every frame coincides: one part, nothing to track (and no point spacing).
     flat.assign(seq.totalPoints(), 0);
@@ -45,6 +46,7 @@ void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, Mot
   }
   MotionTrackingParams mp = motionTrackingParams(params);
   mp.device = tracking;
+  mp.beside_clustering = beside;
   segmentByTracking(seq, mp, flat, num_clusters, merges, progress, &motions);
 }
 

@@ -107,6 +107,53 @@ TEST(KdTree, BoundedNearestAgreesWithBruteForce) {
   EXPECT_EQ(tree.nearest(std::numeric_limits<float>::quiet_NaN(), 0.0f, 0.0f, 1.0f, unused), -1);
 }
 
+// nearest() with a guess (an ICP's match of the iteration before): the point and distance of
+// nearest() without one, whatever the guess (the true nearest point, a near one, a far one,
+// beyond the bound), also among ties: an integer grid with duplicates, queried at grid points,
+// cell centres and edge midpoints (2 to 8 equidistant points) and at random places.
+TEST(KdTree, NearestWithAGuessIsNearest) {
+  Cloud::Ptr cloud(new Cloud);
+  for (int x = 0; x < 12; ++x)
+    for (int y = 0; y < 12; ++y)
+      for (int z = 0; z < 3; ++z) {
+        pcl::PointNormal p;
+        p.x = static_cast<float>(x), p.y = static_cast<float>(y), p.z = static_cast<float>(z);
+        cloud->push_back(p);
+        if ((x + y + z) % 7 == 0) cloud->push_back(p);  // a duplicate
+      }
+  pcl_animseg::KdTree<pcl::PointNormal> tree;
+  tree.setInputCloud(cloud);
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<float> u(-1.0f, 13.0f);
+  std::uniform_int_distribution<int> any(0, static_cast<int>(cloud->size()) - 1);
+  int tied_queries = 0, guesses = 0;
+  for (int n = 0; n < 3000; ++n) {
+    float q[3];
+    if (n % 3 == 0) {  // on the grid's half steps: ties
+      for (float& c : q) c = 0.5f * static_cast<float>(std::uniform_int_distribution<int>(0, 22)(rng));
+    } else {
+      for (float& c : q) c = u(rng);
+    }
+    const float bound = n % 5 == 0 ? 0.3f : 4.0f;
+    float d_plain = -1.0f;
+    const int plain = tree.nearest(q[0], q[1], q[2], bound, d_plain);
+    std::vector<int> idx;
+    std::vector<float> d2;
+    tree.nearestKSearch(q[0], q[1], q[2], 2, idx, d2);
+    tied_queries += d2.size() == 2 && d2[0] == d2[1];
+    const int knn_first = idx.empty() ? -1 : idx[0];
+    for (int hint : {-1, plain, knn_first, any(rng), any(rng)}) {
+      float d = -1.0f;
+      const int got = tree.nearest(q[0], q[1], q[2], bound, hint, d);
+      ASSERT_EQ(got, plain) << n << " hint " << hint;
+      if (plain >= 0) EXPECT_EQ(d, d_plain) << n;
+      ++guesses;
+    }
+  }
+  EXPECT_GT(tied_queries, 300);
+  EXPECT_EQ(guesses, 15000);
+}
+
 // Several points at exactly the same place (duplicates in merged scans): every one of them is
 // returned by the k-NN and radius queries, and the nearest is one of them.
 TEST(KdTree, DuplicatePoints) {

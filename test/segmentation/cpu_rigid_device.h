@@ -49,6 +49,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
            const std::vector<float>& queries, const std::vector<int>& tree_of,
            std::vector<int>& rows, std::vector<int>& count) override {
     if (!offer_knn) return false;
+    if (fail_knn) throw pcl_animseg::Error("test device: k-NN kernel failed");
     ++knn_calls;
     knn_thread = std::this_thread::get_id();
     knn_k.push_back(k);
@@ -65,7 +66,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
     }
     return true;
   }
-  bool offer_knn = true;
+  bool offer_knn = true, fail_knn = false;
   int knn_calls = 0;
   std::vector<int> knn_k;  // each call's k
   std::vector<pcl_animseg::FlatKdTree3> trees;

@@ -293,6 +293,58 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   EXPECT_EQ(fits_only.knn_calls, 0);
 }
 
+// The frames prepared ahead on another thread (prepareFrames, as the pipeline does beside the
+// motion method's clustering): every point's lists in that one call, of which refine() views
+// the labelled ones, and the same labels as refine() alone gives; released by refine(). A
+// preparation for another sequence, or one whose device failed, is not used: the same labels.
+TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
+  ShiftedChain c;
+  // Some points unlabelled: the prepared lists are every point's, refine()'s its labelled ones'.
+  for (auto& frame : c.in.labels)
+    for (std::size_t j = 0; j < frame.size(); j += 37) frame[j] = -1;
+  GMMBoundaryRefinement alone;
+  const SegmentationResult expected = c.refinedBy(alone);
+  ASSERT_NE(expected.labels, c.in.labels);  // the refinement moves points
+
+  animseg_test::CpuRigidDevice dev;
+  GMMBoundaryRefinement prepared;
+  prepared.setInputSequence(&c.chain.sequence);
+  prepared.setRigidFitDevice(&dev);
+  EXPECT_TRUE(prepared.preparedSpacings().empty());
+  std::thread ahead([&] { prepared.prepareFrames(); });
+  ahead.join();
+  EXPECT_EQ(dev.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
+  EXPECT_NE(dev.knn_thread, std::this_thread::get_id());
+  EXPECT_EQ(prepared.preparedSpacings(), pcl_animseg::meanSpacings(c.chain.sequence));
+  EXPECT_EQ(c.refinedBy(prepared).labels, expected.labels);
+  // refine() searched only the motion check's nearest points (k = 1), and released the rest.
+  EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  EXPECT_TRUE(prepared.preparedSpacings().empty());
+
+  // Prepared for another sequence: refine() searches its own lists.
+  const ShiftedChain other;
+  animseg_test::CpuRigidDevice dev2;
+  GMMBoundaryRefinement moved_on;
+  moved_on.setRigidFitDevice(&dev2);
+  moved_on.setInputSequence(&other.chain.sequence);
+  moved_on.prepareFrames();
+  EXPECT_EQ(c.refinedBy(moved_on).labels, expected.labels);
+  EXPECT_EQ(dev2.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1,
+                                          RefinementParams().boundary_k + 1, 1}));
+
+  // A device whose k-NN fails while preparing: no error there; refine() searches on its own.
+  animseg_test::CpuRigidDevice failing;
+  failing.fail_knn = true;
+  GMMBoundaryRefinement after_failure;
+  after_failure.setInputSequence(&c.chain.sequence);
+  after_failure.setRigidFitDevice(&failing);
+  EXPECT_NO_THROW(after_failure.prepareFrames());
+  EXPECT_FALSE(after_failure.preparedSpacings().empty());
+  failing.fail_knn = false;
+  EXPECT_EQ(c.refinedBy(after_failure).labels, expected.labels);
+  EXPECT_EQ(failing.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+}
+
 // Spacings given by the caller (the pipeline measures them once) are the ones measured: the
 // same result; spacings of another frame count are an error, and others than measured are used.
 TEST(GMMRefinement, SpacingsGivenAreUsed) {

@@ -14,6 +14,7 @@
 #include <limits>
 #include <map>
 #include <random>
+#include <thread>
 
 namespace seg = pcl_animseg::segmentation;
 using pcl_animseg::PointCloudSequence;
@@ -541,4 +542,31 @@ TEST(MeanShift, DeviceExactSumsRunTheExactSteps) {
     expectSame(on_device, segment(without));
     EXPECT_EQ(without->calls, 0);
   }
+}
+
+// The caller's work beside the motion method's clustering (setBesideClustering): it runs once,
+// on a thread of its own, and the labels are those of a run without it.
+TEST(MeanShift, WorkBesideTheClusteringRunsOnItsOwnThread) {
+  const auto seq = boxChain();
+  const seg::SegmentationResult plain = run(seq, threePartsByMotion());
+  seg::MeanShiftSegmentation ms;
+  ms.setInputSequence(seq);
+  ms.setParams(threePartsByMotion());
+  int runs = 0;
+  std::thread::id where;
+  ms.setBesideClustering([&] {
+    ++runs;
+    where = std::this_thread::get_id();
+  });
+  seg::SegmentationResult r;
+  ms.segment(r);
+  EXPECT_EQ(runs, 1);
+  EXPECT_NE(where, std::this_thread::get_id());
+  EXPECT_EQ(r.labels, plain.labels);
+  // The paper method has no clustering of tracks: the work does not run.
+  seg::MeanShiftParams paper;
+  paper.method = seg::MeanShiftMethod::Paper;
+  ms.setParams(paper);
+  ms.segment(r);
+  EXPECT_EQ(runs, 1);
 }

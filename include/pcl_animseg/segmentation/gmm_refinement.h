@@ -169,6 +169,19 @@ class GMMBoundaryRefinement {
    * refine() throws Error when their count is not the frame count. */
   void setSpacings(std::vector<double> spacings) { spacings_ = std::move(spacings); }
 
+  /** \brief Builds now what refine() needs of the frames alone, not of the labels: each frame's
+   * kd-tree and mean spacing and, with a device (setRigidFitDevice), every point's boundary_k + 1
+   * nearest points in one device call. A caller can run it on a thread of its own while an
+   * earlier stage leaves the cores idle (the pipeline: beside the motion method's chains of
+   * device calls); the next refine() of the same sequence then starts from them, with the same
+   * results, and releases them. Without it refine() builds them itself. A device failure here is
+   * not thrown: refine() then searches on its own and reports it. Not thread-safe with any other
+   * call on this object. */
+  void prepareFrames();
+  /** \brief The mean spacings prepareFrames() measured (meanSpacings' values), until refine()
+   * releases them; empty without. */
+  std::vector<double> preparedSpacings() const;
+
   /** \brief Output is the input with refined labels (num_clusters, modes, densities and saddles
    * copied unchanged). Throws pcl_animseg::Error for labels that do not match the sequence or
    * inconsistent parameters. */
@@ -190,6 +203,8 @@ class GMMBoundaryRefinement {
   std::vector<PartMotion> motions_;
   RigidFitDevice* device_ = nullptr;
   std::vector<double> spacings_;
+  struct Prepared;  ///< what prepareFrames() built (gmm_refinement.cpp)
+  std::shared_ptr<Prepared> prepared_;
 };
 
 }  // namespace segmentation

@@ -54,6 +54,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <functional>
 #include <vector>
 
 namespace pcl_animseg {
@@ -133,6 +134,10 @@ struct MotionTrackingParams {
    * segmentByTracking hand it the frames). nullptr: the CPU. The results are the CPU's bit for
    * bit. */
   MotionDevice* device = nullptr;
+  /** The caller's own work, run on a thread of its own while the clustering's chains of device
+   * calls and host steps leave most cores idle: segmentByTracking starts it when the clustering
+   * starts and joins it before it returns. It must not throw. Empty (the default): none. */
+  std::function<void()> beside_clustering;
 };
 
 /** \brief Trajectories of the tracked samples. */
