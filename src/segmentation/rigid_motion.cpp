@@ -525,7 +525,7 @@ std::vector<std::vector<ChainedPart::Link>> fitOnDevice(const std::vector<Chaine
         auto score = [&](int c, int t, const Link& x) { return act[c]->score(t, x); };
         return scoreEach(items, score);
       },
-      fitBatch, ChainedPart::same, speculate, speculate ? 6 : 0);
+      fitBatch, ChainedPart::same, speculate, speculate ? 6 : 0, p.max_chain_steps);
 }
 
 // The motions of several parts (fitChained each), their frames side by side (fitChains).
@@ -548,7 +548,7 @@ void fitChainedParts(std::vector<std::unique_ptr<ChainedPart>>& parts, std::size
       },
       [&](int c, int t, const Link& x) { return act[c]->score(t, x); },
       [&](int c, int t, const Link& x, double) { return act[c]->fitFrom(t, x); },
-      ChainedPart::same);
+      ChainedPart::same, p.max_chain_steps);
   for (std::size_t c = 0; c < act.size(); ++c) act[c]->finish(chains[c]);
 }
 
@@ -565,7 +565,8 @@ void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
         return c.starts(t, step.before, fits);
       },
       [&](int t, const Link& x) { return c.score(t, x); },
-      [&](int t, const Link& x, double) { return c.fitFrom(t, x); }, ChainedPart::same, false));
+      [&](int t, const Link& x, double) { return c.fitFrom(t, x); }, ChainedPart::same, false,
+      p.max_chain_steps));
 }
 
 // The motions of merged parts of a nested level from those of the level below (children), each

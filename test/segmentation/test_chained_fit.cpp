@@ -141,6 +141,15 @@ TEST(ChainedFit, KeyFramesOnLongSides) {
   EXPECT_LE(depthOf(very_long, 500), 125 + 3);
   EXPECT_TRUE(seg::chainFrames(1, 0).order.empty());
   EXPECT_TRUE(seg::chainFrames(0, 0).order.empty());
+  // Shorter chains asked for (the rigid motions' 12 steps): 48 frames through key frames 4
+  // apart, 14 steps deep; 20 frames 2 apart; 13 frames single steps.
+  const seg::ChainFrames rigid48 = seg::chainFrames(48, 0, 12);
+  EXPECT_EQ(rigid48.step[4].before, 0);
+  EXPECT_EQ(rigid48.step[5].before, 4);
+  EXPECT_EQ(depthOf(rigid48, 0), 14);
+  EXPECT_EQ(seg::chainFrames(20, 0, 12).step[2].before, 0);
+  EXPECT_EQ(depthOf(seg::chainFrames(13, 0, 12), 0), 12);
+  EXPECT_EQ(depthOf(seg::chainFrames(13, 0, 0), 0), 5);  // at least one step: 4 apart
 }
 
 TEST(ChainedFit, ChainedStartsRecoverLostFrames) {

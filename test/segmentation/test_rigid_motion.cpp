@@ -384,6 +384,39 @@ TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
   EXPECT_THROW(gpu_like.computeLevels(levels), pcl_animseg::Error);
 }
 
+// A 48-frame sequence: the parts' chains go through key frames (RigidMotionParams::
+// max_chain_steps, 12: key frames 4 apart), so a device fits them in 14 batches one after the
+// other instead of 47, the CPU's motions bit for bit; each part's motion in every frame still
+// matches the Kabsch fit of its true correspondences, as the chain of single steps does.
+TEST(RigidMotion, LongChainsGoThroughKeyFrames) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(48, 1500, true, 9);
+  RigidMotionEstimation cpu;
+  cpu.setInputSequence(&chain.sequence);
+  ASSERT_EQ(cpu.getParams().max_chain_steps, 12);
+  const std::vector<PartMotion> expected = cpu.compute(chain.truth);
+  animseg_test::CpuRigidDevice dev;
+  RigidMotionEstimation on_device = cpu;
+  on_device.setDevice(&dev);
+  const std::vector<PartMotion> got = on_device.compute(chain.truth);
+  ASSERT_EQ(got.size(), expected.size());
+  for (std::size_t p = 0; p < got.size(); ++p) {
+    expectSameMotion(got[p], expected[p], "part " + std::to_string(p));
+    expectMatchesKabsch(chain, static_cast<int>(p), got[p], "key frames, part " + std::to_string(p));
+  }
+  EXPECT_EQ(dev.batches, 14);
+  // Single steps: 47 batches, and the same accuracy.
+  pcl_animseg::segmentation::RigidMotionParams single;
+  single.max_chain_steps = 48;
+  animseg_test::CpuRigidDevice dev_single;
+  on_device.setParams(single);
+  on_device.setDevice(&dev_single);
+  const std::vector<PartMotion> stepwise = on_device.compute(chain.truth);
+  EXPECT_EQ(dev_single.batches, 47);
+  for (std::size_t p = 0; p < stepwise.size(); ++p)
+    expectMatchesKabsch(chain, static_cast<int>(p), stepwise[p],
+                        "single steps, part " + std::to_string(p));
+}
+
 // computeBeside: the caller's work runs on the calling thread while the fits run on a thread of
 // their own (with a device), the same motions as compute(); an exception of either is thrown
 // after both have ended; without a device the caller's work runs first.

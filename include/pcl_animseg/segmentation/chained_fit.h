@@ -32,11 +32,11 @@ struct ChainStep {
  * A chain of small fits drifts: what a fit hardly constrains moves a little at every step, and
  * the drift adds up with the steps (the motion method's samples on a 160-frame humanoid: a mean
  * ICP residual of 0.40 spacings in the frames where a 48-frame one of the same motion has 0.28).
- * So a side of the reference longer than kMaxChainSteps frames goes through key frames `stride`
- * apart (each fitted after the key frame before it), and each frame between after the frame
- * before it, back to a key frame: no frame is more than about kMaxChainSteps + stride steps from
- * the reference, and a chain's fits need about as many rounds. A side of at most kMaxChainSteps
- * frames is one chain of single steps. The stride is at most kMaxStride: a key frame's step is
+ * So a side of the reference longer than `max_steps` frames (kMaxChainSteps unless a caller
+ * asks for shorter chains) goes through key frames `stride` apart (each fitted after the key
+ * frame before it), and each frame between after the frame before it, back to a key frame: no
+ * frame is more than about max_steps + stride steps from the reference, and a chain's fits need
+ * about as many rounds. A side of at most max_steps frames is one chain of single steps. The stride is at most kMaxStride: a key frame's step is
  * that many frames' motion, and the tracking holds steps of about 50 degrees at a joint
  * (generated gallops in 20 frames), while a capture at 30 frames a second moves a fast limb up to
  * about 10 degrees a frame; longer sides get longer chains of key frames instead. */
@@ -46,13 +46,14 @@ struct ChainFrames {
 };
 constexpr int kMaxChainSteps = 48;
 constexpr int kMaxStride = 4;
-inline ChainFrames chainFrames(int T, int ref) {
+inline ChainFrames chainFrames(int T, int ref, int max_steps = kMaxChainSteps) {
+  max_steps = std::max(1, max_steps);
   ChainFrames c;
   c.step.assign(static_cast<std::size_t>(T > 0 ? T : 0), ChainStep());
   for (int dir : {+1, -1}) {
     const int n = dir > 0 ? T - 1 - ref : ref;
     if (n <= 0) continue;
-    const int stride = std::clamp((n + kMaxChainSteps - 1) / kMaxChainSteps, 1, kMaxStride);
+    const int stride = std::clamp((n + max_steps - 1) / max_steps, 1, kMaxStride);
     for (int d = 1; d <= n; ++d) {
       const int t = ref + dir * d, r = d % stride;
       c.order.push_back(t);
@@ -115,23 +116,25 @@ template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
                                                 Starts starts, ScoreBatch scoreBatch,
                                                 FitBatch fitBatch, Same same, bool speculate,
-                                                int extra_rounds);
+                                                int extra_rounds,
+                                                int max_steps = kMaxChainSteps);
 
 // The parallel steps of fitAlongChain, for several chains at once (defined below).
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
                                               Starts starts, Score score, FitFrom fitFrom,
-                                              Same same, int extra_rounds = -1);
+                                              Same same, int extra_rounds = -1,
+                                              int max_steps = kMaxChainSteps);
 
 /** \brief Fits every frame 0..T-1 but `ref` (which gets `identity`), in order away from `ref`
- * (chainFrames: ref+1, ref+2, ..., then ref-1, ref-2, ..., through key frames on a side longer
- * than kMaxChainSteps), each from the first of its starts with the lowest score.
+ * (chainFrames(T, ref, max_steps): ref+1, ref+2, ..., then ref-1, ref-2, ..., through key frames
+ * on a side longer than max_steps), each from the first of its starts with the lowest score.
  *
  * - `starts(t, step, fits)` returns frame t's starts in their order (a std::vector of
  *   ChainStart<Pose>; at least one). With `fits` null it must return only the unchained ones (the
  *   same poses in the same relative order); otherwise the chained ones may use
  *   `(*fits)[step.before]` and `(*fits)[step.two_before]` (final when called; `step` is frame
- *   t's ChainStep in chainFrames(T, ref)), and no other fit.
+ *   t's ChainStep in chainFrames(T, ref, max_steps)), and no other fit.
  * - `score(t, pose)` scores a start (lower is better).
  * - `fitFrom(t, pose, score)` returns the fit from the winning start and its score.
  * - `same(p, q)`: whether two poses are equal (bit for bit).
@@ -150,10 +153,11 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
  * Written by us: the speculation is specific to this fit. */
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts starts, Score score,
-                                FitFrom fitFrom, Same same, bool parallel) {
+                                FitFrom fitFrom, Same same, bool parallel,
+                                int max_steps = kMaxChainSteps) {
   if (!parallel) {
     std::vector<Pose> fit(T > 0 ? T : 0, identity);
-    const ChainFrames frames = chainFrames(T, ref);
+    const ChainFrames frames = chainFrames(T, ref, max_steps);
     for (int t : frames.order) {
       const auto s = starts(t, frames.step[t], &fit);
       std::size_t best = 0;
@@ -172,7 +176,8 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
                return starts(t, step, fits);
              },
              [&](int, int t, const Pose& pose) { return score(t, pose); },
-             [&](int, int t, const Pose& pose, double r0) { return fitFrom(t, pose, r0); }, same)
+             [&](int, int t, const Pose& pose, double r0) { return fitFrom(t, pose, r0); }, same,
+             -1, max_steps)
       .front();
 }
 
@@ -188,12 +193,12 @@ std::vector<Pose> fitAlongChain(int T, int ref, const Pose& identity, Starts sta
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const Pose& identity,
                                               Starts starts, Score score, FitFrom fitFrom,
-                                              Same same, int extra_rounds) {
+                                              Same same, int extra_rounds, int max_steps) {
   return fitChainsBatched(
       chains, T, ref, identity, starts,
       [&](const std::vector<ChainScore<Pose>>& items) { return scoreEach(items, score); },
       [&](const std::vector<ChainFit<Pose>>& jobs) { return fitEach(jobs, fitFrom); }, same, true,
-      extra_rounds);
+      extra_rounds, max_steps);
 }
 
 /** \brief fitAlongChains (`speculate`: its steps 1, 2, 2b and 3) or the chains frame after frame
@@ -209,9 +214,9 @@ template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
                                                 Starts starts, ScoreBatch scoreBatch,
                                                 FitBatch fitBatch, Same same, bool speculate,
-                                                int extra_rounds) {
+                                                int extra_rounds, int max_steps) {
   const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
-  const ChainFrames chain = chainFrames(F, ref);
+  const ChainFrames chain = chainFrames(F, ref, max_steps);
   // Default: 6 more rounds on 4 threads or more (each costs fits that step 3 might not need;
   // on 2 threads step 3's chains side by side keep both busy).
   if (extra_rounds < 0) extra_rounds = omp_get_max_threads() >= 4 ? 6 : 0;
@@ -395,11 +400,12 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
  * either way. */
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
 std::vector<std::vector<Pose>> fitChains(int chains, int T, int ref, const Pose& identity,
-                                         Starts starts, Score score, FitFrom fitFrom, Same same) {
+                                         Starts starts, Score score, FitFrom fitFrom, Same same,
+                                         int max_steps = kMaxChainSteps) {
   const int C = chains > 0 ? chains : 0;
   const int threads = omp_in_parallel() ? 1 : omp_get_max_threads();
   if (threads > 1 && C < 4 * threads)
-    return fitAlongChains(C, T, ref, identity, starts, score, fitFrom, same);
+    return fitAlongChains(C, T, ref, identity, starts, score, fitFrom, same, -1, max_steps);
   std::vector<std::vector<Pose>> out(C);
 #pragma omp parallel for schedule(dynamic, 1) if (threads > 1)
   for (int c = 0; c < C; ++c)
@@ -409,7 +415,8 @@ std::vector<std::vector<Pose>> fitChains(int chains, int T, int ref, const Pose&
           return starts(c, t, step, fit);
         },
         [&](int t, const Pose& P) { return score(c, t, P); },
-        [&](int t, const Pose& P, double r0) { return fitFrom(c, t, P, r0); }, same, false);
+        [&](int t, const Pose& P, double r0) { return fitFrom(c, t, P, r0); }, same, false,
+        max_steps);
   return out;
 }
 
