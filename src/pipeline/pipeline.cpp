@@ -161,12 +161,13 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
 #ifdef PCL_ANIMSEG_HAVE_CUDA
   bool gpu_check_pending = false;  // the GPU's check ran on a DeviceWarmUp's thread
   // The ICP fits of the refinement and the rigid motions (see below), made here for the
-  // refinement's frames prepared beside the clustering.
+  // refinement's frames prepared beside the motion method.
   std::unique_ptr<gpu::RigidFits> gpu_fits;
 #endif
   // The refinement (3. below) is made now: what it needs of the frames alone (their trees and
-  // spacings, every point's nearest points) is built beside the motion method's clustering,
-  // whose chains of device calls leave most cores idle, on half the threads (the same results).
+  // spacings, every point's nearest points) is built beside the motion method's chains of
+  // device calls (from its samples' poses on), which leave most cores idle, on half the threads
+  // (the same results).
   segmentation::GMMBoundaryRefinement gmm;
   gmm.setInputSequence(&seq);
   bool prepared = false;
@@ -212,7 +213,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
 #ifdef PCL_ANIMSEG_HAVE_CUDA
       prep_device = gpu_fits.get();
 #endif
-      ms.setBesideClustering([&gmm, &prepared, prep_device, threads = omp_get_max_threads()] {
+      ms.setBesideChains([&gmm, &prepared, prep_device, threads = omp_get_max_threads()] {
         if (prepared) return;  // once (a device failure reruns the method on the CPU)
         prepared = true;
         omp_set_num_threads(std::max(1, threads / 2));

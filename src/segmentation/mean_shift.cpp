@@ -1747,7 +1747,7 @@ void MeanShiftSegmentation::segment(SegmentationResult& result) {
     // and point-cost batches; the rest of the method runs on the CPU.
     auto motion = [&](MeanShiftDeviceBackend* d) {
       detail::runMotion(seq, params_, d ? d->motionDevice() : nullptr, flat, num_clusters,
-                        result.merges, result.motions, progress_, beside_clustering_);
+                        result.merges, result.motions, progress_, beside_chains_);
     };
     if (device && device->motionDevice())
       guarded(motion);

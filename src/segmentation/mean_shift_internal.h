@@ -106,7 +106,7 @@ void finishResult(const JointSpace& space, const std::vector<int>& flat_labels, 
 
 /** The motion method; fills the flat labels, num_clusters, merges and the parts' motions from
  * frame 0 (segmentByTracking). `tracking` (nullptr: the CPU) fits the tracked samples' poses;
- * `beside` runs beside its clustering (MotionTrackingParams::beside_clustering). */
+ * `beside` runs beside its chains (MotionTrackingParams::beside_chains). */
 void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, MotionDevice* tracking,
                std::vector<int>& flat_labels, int& num_clusters, std::vector<ClusterMerge>& merges,
                std::vector<std::vector<Eigen::Isometry3d>>& motions, Progress* progress,

@@ -46,7 +46,7 @@ void runMotion(const PointCloudSequence& seq, const MeanShiftParams& params, Mot
   }
   MotionTrackingParams mp = motionTrackingParams(params);
   mp.device = tracking;
-  mp.beside_clustering = beside;
+  mp.beside_chains = beside;
   segmentByTracking(seq, mp, flat, num_clusters, merges, progress, &motions);
 }
 

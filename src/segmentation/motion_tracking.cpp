@@ -783,8 +783,11 @@ class SpareCoreWhileStarting {
   int saved_ = 0;
 };
 
+// `before_poses`, where given, is called once the samples' poses are all that is left of the
+// tracking (their fits leave the cores idle on a device).
 SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Frame>& frames,
-                            const MotionTrackingParams& params, Progress* progress) {
+                            const MotionTrackingParams& params, Progress* progress,
+                            const std::function<void()>& before_poses = {}) {
   const int T = static_cast<int>(seq.size());
   if (T == 0) throw Error("motion tracking: the sequence has no frames");
   const int ref = params.reference_frame < 0 ? 0 : params.reference_frame;
@@ -970,9 +973,11 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     for (std::vector<int>& wave : problem.waves)
       for (int& task : wave) task = frame_order[task / S] * S + task % S;
     timer.lap("tracking: device problem");
+    if (before_poses) before_poses();
     params.device->trackSamples(problem, tr.poses, res);
     if (progress) progress->update(static_cast<std::size_t>(F));
   } else {
+    if (before_poses) before_poses();
     runTaskGraph(successors, priority, solve, [&](int task) {
       if (--left[task / S] == 0 && progress)
         progress->update(static_cast<std::size_t>(++frames_done));
@@ -2690,13 +2695,14 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
 
 namespace {
 
-// The caller's work beside the clustering (MotionTrackingParams::beside_clustering) on a thread
-// of its own, joined when this goes out of scope (also where a step throws); run here and now
-// where no thread can be started.
+// The caller's work beside the device's chains (MotionTrackingParams::beside_chains) on a
+// thread of its own from start() on, joined when this goes out of scope (also where a step
+// throws); run at once where no thread can be started.
 class BesideThread {
  public:
-  explicit BesideThread(const std::function<void()>& work) {
-    if (!work) return;
+  BesideThread() = default;
+  void start(const std::function<void()>& work) {
+    if (!work || thread_.joinable()) return;
     try {
       thread_ = std::thread(work);
     } catch (const std::system_error&) {
@@ -2728,9 +2734,11 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   if (params.device) params.device->setFrames(deviceFrames(frames));
   ftimer.lap("frames: device packing");
   spare.release();
-  const SampleTracks tr = trackSamplesOn(seq, frames, params, progress);
-  // From here on the steps are mostly chains of device calls and host steps between them.
-  const BesideThread beside(params.beside_clustering);
+  // The caller's work starts with the samples' poses: from there on the steps are mostly chains
+  // of device calls and host steps between them.
+  BesideThread beside;
+  const SampleTracks tr = trackSamplesOn(seq, frames, params, progress,
+                                         [&] { beside.start(params.beside_chains); });
   if (progress) progress->begin("clustering trajectories", 0);
   const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);
   if (progress) progress->end(std::to_string(tc.groups) + " parts");

@@ -544,9 +544,9 @@ TEST(MeanShift, DeviceExactSumsRunTheExactSteps) {
   }
 }
 
-// The caller's work beside the motion method's clustering (setBesideClustering): it runs once,
+// The caller's work beside the motion method's chains (setBesideChains): it runs once,
 // on a thread of its own, and the labels are those of a run without it.
-TEST(MeanShift, WorkBesideTheClusteringRunsOnItsOwnThread) {
+TEST(MeanShift, WorkBesideTheDeviceChainsRunsOnItsOwnThread) {
   const auto seq = boxChain();
   const seg::SegmentationResult plain = run(seq, threePartsByMotion());
   seg::MeanShiftSegmentation ms;
@@ -554,7 +554,7 @@ TEST(MeanShift, WorkBesideTheClusteringRunsOnItsOwnThread) {
   ms.setParams(threePartsByMotion());
   int runs = 0;
   std::thread::id where;
-  ms.setBesideClustering([&] {
+  ms.setBesideChains([&] {
     ++runs;
     where = std::this_thread::get_id();
   });
@@ -563,7 +563,7 @@ TEST(MeanShift, WorkBesideTheClusteringRunsOnItsOwnThread) {
   EXPECT_EQ(runs, 1);
   EXPECT_NE(where, std::this_thread::get_id());
   EXPECT_EQ(r.labels, plain.labels);
-  // The paper method has no clustering of tracks: the work does not run.
+  // The paper method has no chains of tracks: the work does not run.
   seg::MeanShiftParams paper;
   paper.method = seg::MeanShiftMethod::Paper;
   ms.setParams(paper);

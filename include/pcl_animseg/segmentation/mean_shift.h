@@ -275,10 +275,10 @@ class MeanShiftSegmentation {
   }
   std::shared_ptr<MeanShiftDeviceBackend> getDeviceBackend() const { return device_; }
   /** \brief Work of the caller's that the motion method runs on a thread of its own beside its
-   * clustering (MotionTrackingParams::beside_clustering; the pipeline: what the refinement needs
-   * of the frames). It must not throw; it may run more than once (a device failure reruns the
+   * chains of device calls, from the samples' poses on (MotionTrackingParams::beside_chains;
+   * the pipeline: what the refinement needs of the frames). It must not throw; it may run more than once (a device failure reruns the
    * method on the CPU) or not at all (the paper method). */
-  void setBesideClustering(std::function<void()> work) { beside_clustering_ = std::move(work); }
+  void setBesideChains(std::function<void()> work) { beside_chains_ = std::move(work); }
   /** \brief After segment(): "cpu", or the device backend's name when it did the work. */
   const std::string& deviceUsed() const { return device_used_; }
   /** \brief After segment(): why the device was left for the CPU (empty: it was not). */
@@ -304,7 +304,7 @@ class MeanShiftSegmentation {
   Progress* progress_ = nullptr;
   std::shared_ptr<MeanShiftDeviceBackend> device_;
   bool cpu_fallback_ = false;
-  std::function<void()> beside_clustering_;
+  std::function<void()> beside_chains_;
   std::string device_used_ = "cpu";
   std::string fallback_reason_;
 };

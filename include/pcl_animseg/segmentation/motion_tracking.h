@@ -134,10 +134,11 @@ struct MotionTrackingParams {
    * segmentByTracking hand it the frames). nullptr: the CPU. The results are the CPU's bit for
    * bit. */
   MotionDevice* device = nullptr;
-  /** The caller's own work, run on a thread of its own while the clustering's chains of device
-   * calls and host steps leave most cores idle: segmentByTracking starts it when the clustering
-   * starts and joins it before it returns. It must not throw. Empty (the default): none. */
-  std::function<void()> beside_clustering;
+  /** The caller's own work, run on a thread of its own while the method's chains of device
+   * calls and host steps leave most cores idle: segmentByTracking starts it when the samples'
+   * poses are all that is left of the tracking (the clustering and the part motions follow) and
+   * joins it before it returns. It must not throw. Empty (the default): none. */
+  std::function<void()> beside_chains;
 };
 
 /** \brief Trajectories of the tracked samples. */
