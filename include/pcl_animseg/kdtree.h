@@ -122,9 +122,9 @@ class KdTree {
     return row < 0 ? -1 : map_[row];
   }
 
-  /** \brief nearest(), the same point and distance, with a guess: `hint` (a cloud index of a
-   * finite point, or -1 for none), usually the query's nearest point a moment ago (an ICP's
-   * match of the iteration before). The search is bounded by the guess's distance as well: the
+  /** \brief nearest(), the same point and distance, with a guess: `hint` (a cloud index, or -1
+   * for none; a non-finite point is no guess), usually the query's nearest point a moment ago
+   * (an ICP's match of the iteration before). The search is bounded by the guess's distance as well: the
    * walk is the same but leaves out cells farther than the guess, which cannot hold the nearest
    * point nor a tie visited before it, so the result is nearest()'s bit for bit. */
   int nearest(float x, float y, float z, float max_sqr_distance, int hint,

@@ -33,6 +33,27 @@ Cloud::Ptr randomCloud(std::size_t n, unsigned seed, bool with_nan) {
   return c;
 }
 
+// An integer grid of 12 x 12 x 4 points with duplicates (at later indices) and NaN points: queries
+// at its points, cell centres and edge midpoints have 2, 4 or 8 nearest points at one distance.
+Cloud::Ptr gridWithDuplicates() {
+  Cloud::Ptr cloud(new Cloud);
+  for (int x = 0; x < 12; ++x)
+    for (int y = 0; y < 12; ++y)
+      for (int z = 0; z < 4; ++z) {
+        pcl::PointNormal p;
+        p.x = static_cast<float>(x);
+        p.y = static_cast<float>(y);
+        p.z = static_cast<float>(z);
+        cloud->push_back(p);
+        if ((x * 7 + y * 3 + z) % 11 == 0) cloud->push_back(p);  // a duplicate, a later index
+        if ((x + y + z) % 29 == 3) {
+          p.y = std::numeric_limits<float>::quiet_NaN();
+          cloud->push_back(p);
+        }
+      }
+  return cloud;
+}
+
 }  // namespace
 
 TEST(KdTree, SameAnswersAsPclKdTreeFlann) {
@@ -109,18 +130,10 @@ TEST(KdTree, BoundedNearestAgreesWithBruteForce) {
 
 // nearest() with a guess (an ICP's match of the iteration before): the point and distance of
 // nearest() without one, whatever the guess (the true nearest point, a near one, a far one,
-// beyond the bound), also among ties: an integer grid with duplicates, queried at grid points,
-// cell centres and edge midpoints (2 to 8 equidistant points) and at random places.
+// beyond the bound, a NaN point), also among ties: the grid with duplicates, queried at its
+// points, cell centres and edge midpoints and at random places.
 TEST(KdTree, NearestWithAGuessIsNearest) {
-  Cloud::Ptr cloud(new Cloud);
-  for (int x = 0; x < 12; ++x)
-    for (int y = 0; y < 12; ++y)
-      for (int z = 0; z < 3; ++z) {
-        pcl::PointNormal p;
-        p.x = static_cast<float>(x), p.y = static_cast<float>(y), p.z = static_cast<float>(z);
-        cloud->push_back(p);
-        if ((x + y + z) % 7 == 0) cloud->push_back(p);  // a duplicate
-      }
+  const Cloud::Ptr cloud = gridWithDuplicates();
   pcl_animseg::KdTree<pcl::PointNormal> tree;
   tree.setInputCloud(cloud);
   std::mt19937 rng(11);
@@ -130,7 +143,8 @@ TEST(KdTree, NearestWithAGuessIsNearest) {
   for (int n = 0; n < 3000; ++n) {
     float q[3];
     if (n % 3 == 0) {  // on the grid's half steps: ties
-      for (float& c : q) c = 0.5f * static_cast<float>(std::uniform_int_distribution<int>(0, 22)(rng));
+      for (float& c : q)
+        c = 0.5f * static_cast<float>(std::uniform_int_distribution<int>(0, 22)(rng));
     } else {
       for (float& c : q) c = u(rng);
     }
@@ -179,21 +193,7 @@ TEST(KdTree, DuplicatePoints) {
 // points, queried at grid points, cell centres and edge midpoints (2, 4 and 8 equidistant
 // points) and at random places.
 TEST(KdTree, NearestFirstIsTheFirstOfTheKnn) {
-  Cloud::Ptr cloud(new Cloud);
-  for (int x = 0; x < 12; ++x)
-    for (int y = 0; y < 12; ++y)
-      for (int z = 0; z < 4; ++z) {
-        pcl::PointNormal p;
-        p.x = static_cast<float>(x);
-        p.y = static_cast<float>(y);
-        p.z = static_cast<float>(z);
-        cloud->push_back(p);
-        if ((x * 7 + y * 3 + z) % 11 == 0) cloud->push_back(p);  // a duplicate, a later index
-        if ((x + y + z) % 29 == 3) {
-          p.y = std::numeric_limits<float>::quiet_NaN();
-          cloud->push_back(p);
-        }
-      }
+  const Cloud::Ptr cloud = gridWithDuplicates();
   pcl_animseg::KdTree<pcl::PointNormal> tree;
   tree.setInputCloud(cloud);
   std::mt19937 rng(5);
