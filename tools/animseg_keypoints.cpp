@@ -18,11 +18,7 @@ using namespace pcl_animseg;
 
 int main(int argc, char** argv) {
   const MultiscaleParams d;
-  po::options_description od("Options");
-  od.add_options()
-    ("input,i", po::value<std::string>()->required(), "sequence (directory or list file)")
-    ("output,o", po::value<std::string>()->required(), "output directory");
-  tools::addScaleSpaceOptions(od, d);
+  po::options_description od = tools::featureToolOptions(d);
   od.add_options()
     ("min-response", po::value<double>()->default_value(d.min_response),
      "minimum |D| of a keypoint (contrast threshold)")
@@ -34,10 +30,7 @@ int main(int argc, char** argv) {
       "  writes DIR/NAME_keypoints.pcd (x y z scale response index level)",
       od, [&](const tools::ToolContext& ctx) {
         Progress progress(ctx.quiet, ctx.verbose);
-        const std::string out = ctx.vm["output"].as<std::string>();
-        const PointCloudSequence seq =
-            io::loadSequence(ctx.vm["input"].as<std::string>(), io::LoadOptions(), &progress);
-        io::ensureDirectory(out);
+        const auto [seq, out] = tools::loadFeatureToolInput(ctx.vm, progress);
         const double unit = sequenceSpacing(seq);
         std::size_t total = 0;
         progress.begin("keypoints", seq.size());

@@ -16,21 +16,14 @@ using namespace pcl_animseg;
 
 int main(int argc, char** argv) {
   const MultiscaleParams d;
-  po::options_description od("Options");
-  od.add_options()
-    ("input,i", po::value<std::string>()->required(), "sequence (directory or list file)")
-    ("output,o", po::value<std::string>()->required(), "output directory");
-  tools::addScaleSpaceOptions(od, d);
+  po::options_description od = tools::featureToolOptions(d);
   return tools::runTool(
       argc, argv, "animseg_scale_space",
       "animseg_scale_space --input SEQ --output DIR [--scale-h H] [--scale-k K] [--scale-levels L]\n"
       "  writes DIR/NAME_L0.pcd .. NAME_L<L-1>.pcd (x y z normal_x normal_y normal_z curvature)",
       od, [&](const tools::ToolContext& ctx) {
         Progress progress(ctx.quiet, ctx.verbose);
-        const std::string out = ctx.vm["output"].as<std::string>();
-        const PointCloudSequence seq =
-            io::loadSequence(ctx.vm["input"].as<std::string>(), io::LoadOptions(), &progress);
-        io::ensureDirectory(out);
+        const auto [seq, out] = tools::loadFeatureToolInput(ctx.vm, progress);
         const double unit = sequenceSpacing(seq);
         progress.begin("scale_space", seq.size());
         for (std::size_t t = 0; t < seq.size(); ++t) {

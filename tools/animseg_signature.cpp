@@ -16,11 +16,7 @@ using namespace pcl_animseg;
 
 int main(int argc, char** argv) {
   const MultiscaleParams d;
-  po::options_description od("Options");
-  od.add_options()
-    ("input,i", po::value<std::string>()->required(), "sequence (directory or list file)")
-    ("output,o", po::value<std::string>()->required(), "output directory");
-  tools::addScaleSpaceOptions(od, d);
+  po::options_description od = tools::featureToolOptions(d);
   od.add_options()
     ("signature-h", po::value<double>()->default_value(d.signature_h),
      "scale h of the signature (disc radius 2h, Eq. 2), spacings")
@@ -31,7 +27,6 @@ int main(int argc, char** argv) {
       "  writes DIR/NAME_signature.pcd (x y z signature[R'*S'] keypoint)",
       od, [&](const tools::ToolContext& ctx) {
         Progress progress(ctx.quiet, ctx.verbose);
-        const std::string out = ctx.vm["output"].as<std::string>();
         MultiscaleParams p;
         tools::readScaleSpaceOptions(ctx.vm, p);
         p.signature_h = ctx.vm["signature-h"].as<double>();
@@ -43,9 +38,7 @@ int main(int argc, char** argv) {
         p.layout.radial_freqs = static_cast<int>(l[2]);
         p.layout.angular_freqs = static_cast<int>(l[3]);
         p.layout.validate();
-        const PointCloudSequence seq =
-            io::loadSequence(ctx.vm["input"].as<std::string>(), io::LoadOptions(), &progress);
-        io::ensureDirectory(out);
+        const auto [seq, out] = tools::loadFeatureToolInput(ctx.vm, progress);
         const SequenceFeatures f = computeSequenceFeatures(seq, p, &progress);
         progress.begin("write", seq.size());
         for (std::size_t t = 0; t < seq.size(); ++t) {
