@@ -7,7 +7,6 @@
 #include <pcl_animseg/progress.h>
 
 #include <boost/program_options.hpp>
-
 #include <string>
 
 namespace pcl_animseg {
@@ -27,9 +26,11 @@ inline void addScaleSpaceOptions(boost::program_options::options_description& od
 inline boost::program_options::options_description featureToolOptions(const MultiscaleParams& d) {
   namespace po = boost::program_options;
   po::options_description od("Options");
+  // clang-format off
   od.add_options()
     ("input,i", po::value<std::string>()->required(), "sequence (directory or list file)")
     ("output,o", po::value<std::string>()->required(), "output directory");
+  // clang-format on
   addScaleSpaceOptions(od, d);
   return od;
 }

@@ -124,9 +124,9 @@ class KdTree {
 
   /** \brief nearest(), the same point and distance, with a guess: `hint` (a cloud index, or -1
    * for none; a non-finite point is no guess), usually the query's nearest point a moment ago
-   * (an ICP's match of the iteration before). The search is bounded by the guess's distance as well: the
-   * walk is the same but leaves out cells farther than the guess, which cannot hold the nearest
-   * point nor a tie visited before it, so the result is nearest()'s bit for bit. */
+   * (an ICP's match of the iteration before). The search is bounded by the guess's distance as
+   * well: the walk is the same but leaves out cells farther than the guess, which cannot hold the
+   * nearest point nor a tie visited before it, so the result is nearest()'s bit for bit. */
   int nearest(float x, float y, float z, float max_sqr_distance, int hint,
               float& sqr_distance) const {
     if (hint >= 0 && std::isfinite(x) && std::isfinite(y) && std::isfinite(z)) {

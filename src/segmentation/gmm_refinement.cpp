@@ -407,10 +407,8 @@ void GMMBoundaryRefinement::prepareFrames() {
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < static_cast<int>(frames); ++t)
     prep->trees[t].setInputCloud(sequence_->frame(t));
-  prep->spacings =
-      meanSpacings(*sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
-        return prep->trees[t];
-      });
+  prep->spacings = meanSpacings(
+      *sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& { return prep->trees[t]; });
   if (device_ && params_.max_iterations > 0 && params_.boundary_k >= 2) {
     // refine()'s lists are those of its labelled points; these are every point's, of which it
     // views the labelled ones (a point's nearest points do not depend on the other queries).
@@ -495,10 +493,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   const std::vector<double> spacing =
       !spacings_.empty() ? spacings_
       : prep             ? prep->spacings
-                         : meanSpacings(*sequence_,
-                                        [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
-                                          return trees[t];
-                                        });
+             : meanSpacings(*sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
+                 return trees[t];
+               });
   timer.lap(prep ? "trees (prepared)" : "trees");
   double mean_spacing = 0.0;
   for (double s : spacing) mean_spacing += s / static_cast<double>(frames);

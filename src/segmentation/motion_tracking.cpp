@@ -2737,8 +2737,8 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   // The caller's work starts with the samples' poses: from there on the steps are mostly chains
   // of device calls and host steps between them.
   BesideThread beside;
-  const SampleTracks tr = trackSamplesOn(seq, frames, params, progress,
-                                         [&] { beside.start(params.beside_chains); });
+  const SampleTracks tr =
+      trackSamplesOn(seq, frames, params, progress, [&] { beside.start(params.beside_chains); });
   if (progress) progress->begin("clustering trajectories", 0);
   const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);
   if (progress) progress->end(std::to_string(tc.groups) + " parts");

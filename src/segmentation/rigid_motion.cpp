@@ -547,8 +547,8 @@ void fitChainedParts(std::vector<std::unique_ptr<ChainedPart>>& parts, std::size
         return act[c]->starts(t, step.before, fits);
       },
       [&](int c, int t, const Link& x) { return act[c]->score(t, x); },
-      [&](int c, int t, const Link& x, double) { return act[c]->fitFrom(t, x); },
-      ChainedPart::same, p.max_chain_steps);
+      [&](int c, int t, const Link& x, double) { return act[c]->fitFrom(t, x); }, ChainedPart::same,
+      p.max_chain_steps);
   for (std::size_t c = 0; c < act.size(); ++c) act[c]->finish(chains[c]);
 }
 

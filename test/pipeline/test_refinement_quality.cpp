@@ -253,8 +253,8 @@ TEST(RefinementQuality, BoundaryErrorDropsByAThirdOnEveryPlan) {
 
 // Measurement (docs/mean_shift_experiments.md): the boundary error (points within 3 spacings of a
 // true boundary with a wrong label) and the pooled ARI of the default motion segmentation at the
-// true part count, before and after the refinement. PLANS (comma-separated), POINTS, FRAMES, SEED; and
-// NARROW, OUTER, TOLERANCE, RATIO, SPATIAL, ITERATIONS, PATCH, PATCH_RADIUS, TRAINING_MIN and
+// true part count, before and after the refinement. PLANS (comma-separated), POINTS, FRAMES, SEED;
+// and NARROW, OUTER, TOLERANCE, RATIO, SPATIAL, ITERATIONS, PATCH, PATCH_RADIUS, TRAINING_MIN and
 // COMPONENTS, SNAP_*, INPUT_MOTIONS for the refinement's parameters; DIAG=1
 // adds where the wrong points lie.
 TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
@@ -286,8 +286,9 @@ TEST(RefinementQuality, DISABLED_ThroughThePipeline) {
   while (pos < list.size()) {
     const std::size_t comma = std::min(list.find(',', pos), list.size());
     const synth::SynthParams sp = animseg_test::sequenceParams(
-        synth::bodyPlanFromString(list.substr(pos, comma - pos)), static_cast<int>(env("FRAMES", 20)),
-        points ? std::atoi(points) : 2000, seed ? static_cast<unsigned>(std::atoi(seed)) : 3u);
+        synth::bodyPlanFromString(list.substr(pos, comma - pos)),
+        static_cast<int>(env("FRAMES", 20)), points ? std::atoi(points) : 2000,
+        seed ? static_cast<unsigned>(std::atoi(seed)) : 3u);
     pos = comma + 1;
     const Refined r = refineMotionLabels(sp, rp);
     std::printf("%-10s %d pts: boundary error %.3f -> %.3f (%.0f%% fewer), ARI %.3f -> %.3f\n",

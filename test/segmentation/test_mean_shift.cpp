@@ -5,8 +5,6 @@
 
 #include "synthetic_parts.h"
 // White-box: the kernel sums behind both backends (not installed).
-#include "../../src/segmentation/mean_shift_internal.h"
-
 #include <omp.h>
 
 #include <algorithm>
@@ -15,6 +13,8 @@
 #include <map>
 #include <random>
 #include <thread>
+
+#include "../../src/segmentation/mean_shift_internal.h"
 
 namespace seg = pcl_animseg::segmentation;
 using pcl_animseg::PointCloudSequence;

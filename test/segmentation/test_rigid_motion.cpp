@@ -401,7 +401,8 @@ TEST(RigidMotion, LongChainsGoThroughKeyFrames) {
   ASSERT_EQ(got.size(), expected.size());
   for (std::size_t p = 0; p < got.size(); ++p) {
     expectSameMotion(got[p], expected[p], "part " + std::to_string(p));
-    expectMatchesKabsch(chain, static_cast<int>(p), got[p], "key frames, part " + std::to_string(p));
+    expectMatchesKabsch(chain, static_cast<int>(p), got[p],
+                        "key frames, part " + std::to_string(p));
   }
   EXPECT_EQ(dev.batches, 14);
   // Single steps: 47 batches, and the same accuracy.

@@ -36,10 +36,11 @@ struct ChainStep {
  * asks for shorter chains) goes through key frames `stride` apart (each fitted after the key
  * frame before it), and each frame between after the frame before it, back to a key frame: no
  * frame is more than about max_steps + stride steps from the reference, and a chain's fits need
- * about as many rounds. A side of at most max_steps frames is one chain of single steps. The stride is at most kMaxStride: a key frame's step is
- * that many frames' motion, and the tracking holds steps of about 50 degrees at a joint
- * (generated gallops in 20 frames), while a capture at 30 frames a second moves a fast limb up to
- * about 10 degrees a frame; longer sides get longer chains of key frames instead. */
+ * about as many rounds. A side of at most max_steps frames is one chain of single steps. The stride
+ * is at most kMaxStride: a key frame's step is that many frames' motion, and the tracking holds
+ * steps of about 50 degrees at a joint (generated gallops in 20 frames), while a capture at 30
+ * frames a second moves a fast limb up to about 10 degrees a frame; longer sides get longer chains
+ * of key frames instead. */
 struct ChainFrames {
   std::vector<int> order;
   std::vector<ChainStep> step;  ///< per frame (the reference's: none)
@@ -116,8 +117,7 @@ template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
                                                 Starts starts, ScoreBatch scoreBatch,
                                                 FitBatch fitBatch, Same same, bool speculate,
-                                                int extra_rounds,
-                                                int max_steps = kMaxChainSteps);
+                                                int extra_rounds, int max_steps = kMaxChainSteps);
 
 // The parallel steps of fitAlongChain, for several chains at once (defined below).
 template <class Pose, class Starts, class Score, class FitFrom, class Same>

@@ -276,8 +276,8 @@ class MeanShiftSegmentation {
   std::shared_ptr<MeanShiftDeviceBackend> getDeviceBackend() const { return device_; }
   /** \brief Work of the caller's that the motion method runs on a thread of its own beside its
    * chains of device calls, from the samples' poses on (MotionTrackingParams::beside_chains;
-   * the pipeline: what the refinement needs of the frames). It must not throw; it may run more than once (a device failure reruns the
-   * method on the CPU) or not at all (the paper method). */
+   * the pipeline: what the refinement needs of the frames). It must not throw; it may run more than
+   * once (a device failure reruns the method on the CPU) or not at all (the paper method). */
   void setBesideChains(std::function<void()> work) { beside_chains_ = std::move(work); }
   /** \brief After segment(): "cpu", or the device backend's name when it did the work. */
   const std::string& deviceUsed() const { return device_used_; }
