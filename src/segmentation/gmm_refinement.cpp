@@ -112,37 +112,27 @@ class NeighbourLists {
       std::copy(d2.begin(), d2.end(), d2_.begin() + j * k);
     }
   }
-  /** The device's k-NN of every frame's labelled points (one call for all frames): rows of
-   * the frames' flat trees, k slots per query. */
+  /** The device's k-NN of every point of every frame (one call for all frames, the frames
+   * one after the other): rows of the frames' flat trees, k slots per query. */
   struct DeviceLists {
     int k = 0;
     std::vector<int> rows, count;
   };
   /** The same lists as a view into `lists`, whose queries `first`, `first` + 1, ... are this
-   * frame's labelled points in point order (`every_point`: all its points), rows of `tree`'s
-   * flat tree. */
+   * frame's points, rows of `tree`'s flat tree. */
   void view(std::shared_ptr<const DeviceLists> lists, std::size_t first, const Cloud& cloud,
-            const pcl_animseg::KdTree<pcl::PointNormal>& tree, const std::vector<int>& lab,
-            bool every_point = false) {
+            const pcl_animseg::KdTree<pcl::PointNormal>& tree) {
     lists_ = std::move(lists);
     cloud_ = &cloud;
     tree_ = &tree;
     k_ = lists_->k;
     first_ = first;
-    slot_.clear();
-    if (!every_point &&
-        std::find_if(lab.begin(), lab.end(), [](int l) { return l < 0; }) != lab.end()) {
-      slot_.assign(lab.size(), -1);
-      long q = static_cast<long>(first);
-      for (std::size_t j = 0; j < lab.size(); ++j)
-        if (lab[j] >= 0) slot_[j] = q++;
-    }
   }
   bool empty() const { return count_.empty() && !lists_; }
   /** The lists of point j (a labelled point) into idx and d2, as nearestKSearch gives them. */
   void get(std::size_t j, std::vector<int>& idx, std::vector<float>& d2) const {
     if (lists_) {
-      const std::size_t q = slot_.empty() ? first_ + j : static_cast<std::size_t>(slot_[j]);
+      const std::size_t q = first_ + j;
       const int c = lists_->count[q];
       const int* r = &lists_->rows[q * k_];
       idx.resize(c);
@@ -170,8 +160,52 @@ class NeighbourLists {
   const Cloud* cloud_ = nullptr;
   const pcl_animseg::KdTree<pcl::PointNormal>* tree_ = nullptr;
   std::size_t first_ = 0;
-  std::vector<long> slot_;  ///< per point its query, when some points are unlabelled
 };
+
+using Trees = std::vector<pcl_animseg::KdTree<pcl::PointNormal>>;
+
+// Each frame's kd-tree, the frames side by side.
+Trees frameTrees(const PointCloudSequence& seq) {
+  Trees trees(seq.size());
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < static_cast<int>(seq.size()); ++t) trees[t].setInputCloud(seq.frame(t));
+  return trees;
+}
+
+// The frames' mean spacings measured with their trees (meanSpacings' values).
+std::vector<double> treeSpacings(const PointCloudSequence& seq, const Trees& trees) {
+  return meanSpacings(seq,
+                      [&](std::size_t t) -> const KdTree<pcl::PointNormal>& { return trees[t]; });
+}
+
+// Every point's k nearest points of its frame in one device call (a point's nearest points do
+// not depend on the other queries; the refinement views those of its labelled points); null
+// where the device does not offer the k-NN. Throws Error where the device fails.
+std::shared_ptr<const NeighbourLists::DeviceLists> everyPointLists(RigidFitDevice& device,
+                                                                   const PointCloudSequence& seq,
+                                                                   const Trees& trees, int k) {
+  const std::size_t frames = seq.size();
+  std::vector<std::size_t> first(frames + 1, 0);  // each frame's first query
+  for (std::size_t t = 0; t < frames; ++t) first[t + 1] = first[t] + seq.frame(t)->size();
+  std::vector<float> queries(3 * first[frames]);
+  std::vector<int> tree_of(first[frames]);
+  std::vector<const FlatKdTree3*> flat(frames);
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < static_cast<int>(frames); ++t) {
+    flat[t] = &trees[t].flatTree();
+    const Cloud& cloud = *seq.frame(t);
+    for (std::size_t j = 0, q = first[t]; j < cloud.size(); ++j, ++q) {
+      queries[3 * q] = cloud[j].x, queries[3 * q + 1] = cloud[j].y, queries[3 * q + 2] = cloud[j].z;
+      tree_of[q] = t;
+    }
+  }
+  auto lists = std::make_shared<NeighbourLists::DeviceLists>();
+  lists->k = k;
+  if (!device.knn(flat, k, queries, tree_of, lists->rows, lists->count)) return nullptr;
+  if (lists->count.size() != tree_of.size() || lists->rows.size() != tree_of.size() * k)
+    throw Error("refinement: the device's k-NN lists do not match their queries");
+  return lists;
+}
 
 // The fold snap of one frame (RefinementParams::fold_snap_*); returns the points it moved.
 // Written by us: a Dijkstra that keeps each point's three nearest parts over the frame's k-NN
@@ -403,36 +437,11 @@ void GMMBoundaryRefinement::prepareFrames() {
   const std::size_t frames = sequence_->size();
   prep->sequence = sequence_;
   for (std::size_t t = 0; t < frames; ++t) prep->sizes.push_back(sequence_->frame(t)->size());
-  prep->trees.resize(frames);
-#pragma omp parallel for schedule(dynamic)
-  for (int t = 0; t < static_cast<int>(frames); ++t)
-    prep->trees[t].setInputCloud(sequence_->frame(t));
-  prep->spacings = meanSpacings(
-      *sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& { return prep->trees[t]; });
+  prep->trees = frameTrees(*sequence_);
+  prep->spacings = treeSpacings(*sequence_, prep->trees);
   if (device_ && params_.max_iterations > 0 && params_.boundary_k >= 2) {
-    // refine()'s lists are those of its labelled points; these are every point's, of which it
-    // views the labelled ones (a point's nearest points do not depend on the other queries).
-    std::vector<std::size_t> first(frames + 1, 0);
-    for (std::size_t t = 0; t < frames; ++t) first[t + 1] = first[t] + prep->sizes[t];
-    std::vector<float> queries(3 * first[frames]);
-    std::vector<int> tree_of(first[frames]);
-    std::vector<const FlatKdTree3*> flat(frames);
-#pragma omp parallel for schedule(dynamic)
-    for (int t = 0; t < static_cast<int>(frames); ++t) {
-      flat[t] = &prep->trees[t].flatTree();
-      const Cloud& cloud = *sequence_->frame(t);
-      for (std::size_t j = 0, q = first[t]; j < cloud.size(); ++j, ++q) {
-        queries[3 * q] = cloud[j].x, queries[3 * q + 1] = cloud[j].y,
-                    queries[3 * q + 2] = cloud[j].z;
-        tree_of[q] = static_cast<int>(t);
-      }
-    }
-    auto lists = std::make_shared<NeighbourLists::DeviceLists>();
-    lists->k = params_.boundary_k + 1;
     try {
-      if (device_->knn(flat, lists->k, queries, tree_of, lists->rows, lists->count) &&
-          lists->count.size() == tree_of.size() && lists->rows.size() == tree_of.size() * lists->k)
-        prep->lists = std::move(lists);
+      prep->lists = everyPointLists(*device_, *sequence_, prep->trees, params_.boundary_k + 1);
     } catch (const Error&) {
       // refine() searches again, and a device that fails there is reported there.
     }
@@ -481,21 +490,11 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   };
   if (prep && !sameFrames(*prep)) prep.reset();
   const bool prepared_lists = prep && prep->lists && prep->lists->k == p.boundary_k + 1;
-  std::vector<pcl_animseg::KdTree<pcl::PointNormal>> trees;
-  if (prep) {
-    trees = std::move(prep->trees);
-  } else {
-    trees.resize(frames);
-#pragma omp parallel for schedule(dynamic)
-    for (int t = 0; t < static_cast<int>(frames); ++t) trees[t].setInputCloud(sequence_->frame(t));
-  }
+  const Trees trees = prep ? std::move(prep->trees) : frameTrees(*sequence_);
   // The spacings given, or measured from the trees (meanSpacings' values).
-  const std::vector<double> spacing =
-      !spacings_.empty() ? spacings_
-      : prep             ? prep->spacings
-             : meanSpacings(*sequence_, [&](std::size_t t) -> const KdTree<pcl::PointNormal>& {
-                 return trees[t];
-               });
+  const std::vector<double> spacing = !spacings_.empty() ? spacings_
+                                      : prep             ? prep->spacings
+                                                         : treeSpacings(*sequence_, trees);
   timer.lap(prep ? "trees (prepared)" : "trees");
   double mean_spacing = 0.0;
   for (double s : spacing) mean_spacing += s / static_cast<double>(frames);
@@ -560,49 +559,20 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   const double candidate_reach = p.narrow_band + p.boundary_max_distance + 1.0;
   const bool restrict_scan = p.outer_band >= candidate_reach;
 
-  // With a device that offers it, every frame's lists in one k-NN call (the same lists; on the
-  // cores they were a fifth of the refinement's CPU time at 800k), which the frames' lists view.
-  // The frames' flat trees, which a device searches (the lists here, the motion check's nearest
-  // points below).
+  // The frames' flat trees, which a device searches for the motion check's nearest points below.
   std::vector<const FlatKdTree3*> flat(frames);
   for (std::size_t t = 0; t < frames; ++t) flat[t] = &trees[t].flatTree();
+  // With a device that offers it, every frame's lists in one k-NN call (the same lists; on the
+  // cores they were a fifth of the refinement's CPU time at 800k), which the frames' lists view.
   auto deviceLists = [&]() {
-    const int k = p.boundary_k + 1;
-    if (prepared_lists) {  // every point's, searched ahead
-      for (std::size_t t = 0, first = 0; t < frames; first += prep->sizes[t++])
-        knn[t].view(prep->lists, first, *sequence_->frame(t), trees[t], labels[t], true);
-      prep.reset();
-      timer.lap("neighbour lists (prepared)");
-      return;
-    }
-    std::vector<std::size_t> first(frames + 1, 0);  // each frame's first query
-    for (std::size_t t = 0; t < frames; ++t) {
-      first[t + 1] =
-          first[t] + static_cast<std::size_t>(std::count_if(labels[t].begin(), labels[t].end(),
-                                                            [](int l) { return l >= 0; }));
-    }
-    std::vector<float> queries(3 * first[frames]);
-    std::vector<int> tree_of(first[frames]);
-#pragma omp parallel for schedule(dynamic)
-    for (int t = 0; t < static_cast<int>(frames); ++t) {
-      const Cloud& cloud = *sequence_->frame(t);
-      std::size_t q = first[t];
-      for (std::size_t j = 0; j < cloud.size(); ++j) {
-        if (labels[t][j] < 0) continue;
-        queries[3 * q] = cloud[j].x, queries[3 * q + 1] = cloud[j].y,
-                    queries[3 * q + 2] = cloud[j].z;
-        tree_of[q++] = t;
-      }
-    }
-    auto lists = std::make_shared<NeighbourLists::DeviceLists>();
-    lists->k = k;
-    if (device_->knn(flat, k, queries, tree_of, lists->rows, lists->count)) {
-      if (lists->count.size() != tree_of.size() || lists->rows.size() != tree_of.size() * k)
-        throw Error("refinement: the device's k-NN lists do not match their queries");
-      for (std::size_t t = 0; t < frames; ++t)
-        knn[t].view(lists, first[t], *sequence_->frame(t), trees[t], labels[t]);
-    }
-    timer.lap("neighbour lists (device)");
+    // Every point's lists, searched ahead (prepareFrames) or now; the frames' views.
+    const auto lists = prepared_lists
+                           ? prep->lists
+                           : everyPointLists(*device_, *sequence_, trees, p.boundary_k + 1);
+    prep.reset();
+    for (std::size_t t = 0, first = 0; lists && t < frames; first += sequence_->frame(t++)->size())
+      knn[t].view(lists, first, *sequence_->frame(t), trees[t]);
+    timer.lap(prepared_lists ? "neighbour lists (prepared)" : "neighbour lists (device)");
   };
 
   // 1. Boundary points and bands, frame by frame (labels are joint, so pair ids agree); false
