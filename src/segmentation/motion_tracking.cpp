@@ -17,8 +17,11 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <exception>
+#include <functional>
 #include <limits>
 #include <map>
+#include <mutex>
 #include <numeric>
 #include <queue>
 #include <set>
@@ -749,6 +752,69 @@ std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned se
 }
 
 namespace {
+
+// The caller's work beside the device's chains (MotionTrackingParams::beside_chains), or the
+// hierarchy's merges beside the part motions and labels, on a thread of its own from start() on,
+// joined by join() or when this goes out of scope (also where a step throws); run at once where
+// no thread can be started.
+class BesideThread {
+ public:
+  BesideThread() = default;
+  void start(const std::function<void()>& work) {
+    if (!work || thread_.joinable()) return;
+    try {
+      thread_ = std::thread(work);
+    } catch (const std::system_error&) {
+      work();
+    }
+  }
+  void join() {
+    if (thread_.joinable()) thread_.join();
+  }
+  ~BesideThread() { join(); }
+  BesideThread(const BesideThread&) = delete;
+  BesideThread& operator=(const BesideThread&) = delete;
+
+ private:
+  std::thread thread_;
+};
+
+// A device that two threads of the motion method share (the hierarchy's merges beside the part
+// motions and labels): their calls one at a time, as a device expects (MotionDevice serves one
+// caller at a time). Each thread's calls and results are its own, so the results are the same
+// as one after the other.
+class SharedDevice : public MotionDevice {
+ public:
+  explicit SharedDevice(MotionDevice& device) : device_(device) {}
+  std::string name() const override { return device_.name(); }
+  bool starting() const override { return device_.starting(); }
+  void setFrames(const DeviceFrames& frames) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.setFrames(frames);
+  }
+  void trackSamples(const SampleTrackingProblem& problem,
+                    std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                    std::vector<std::vector<double>>& residual) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.trackSamples(problem, poses, residual);
+  }
+  void residuals(const ResidualJobs& jobs, std::vector<double>& out) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.residuals(jobs, out);
+  }
+  void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.pointCosts(jobs, out);
+  }
+  void partFits(const PartFitJobs& jobs, std::vector<double>& poses) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.partFits(jobs, poses);
+  }
+
+ private:
+  MotionDevice& device_;
+  std::mutex mutex_;
+};
 
 // While a device starts on a thread of its own (MotionDevice::starting), the OpenMP loops leave
 // it a core. With every core in the team, the start displaced one of the team's threads, and
@@ -1727,8 +1793,12 @@ class ResidualBatch {
   std::vector<ResidualJobs::Job> jobs_;
 };
 
-TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const SampleTracks& tr,
-                                         const MotionTrackingParams& params) {
+// `with_parts`, where given, is called with the parts (everything but the merges above them)
+// before this returns; with a device, the merges above them are made meanwhile on a thread of
+// their own (the same merges: neither side changes what the other reads).
+TrajectoryClusters clusterTrajectoriesOn(
+    const std::vector<Frame>& frames, const SampleTracks& tr, const MotionTrackingParams& params,
+    const std::function<void(const TrajectoryClusters&)>& with_parts = {}) {
   const int S = static_cast<int>(tr.sample_points.size());
   const int T = static_cast<int>(tr.poses.size());
   const int ref = tr.reference_frame;
@@ -2662,17 +2732,49 @@ TrajectoryClusters clusterTrajectoriesOn(const std::vector<Frame>& frames, const
   for (int g = 0; g < G; ++g)
     if (galive[g]) out.poses.push_back(gpose[g]);
   // The coarser hierarchy, in final ids (a merged pair is named by its smaller id).
-  std::vector<int> name(final_id);
-  while (!pedges.empty()) {
-    const auto best = cheapestPart();
-    const auto [a, b] = best->first;
-    const double c = best->second.cost;
-    out.merges.push_back({std::min(name[a], name[b]), std::max(name[a], name[b]), c});
-    const int lo = std::min(name[a], name[b]);
-    const int survivor = mergeParts(a, b);
-    name[survivor] = lo;
+  auto hierarchyMerges = [&](std::vector<ClusterMerge>& merges) {
+    std::vector<int> name(final_id);
+    while (!pedges.empty()) {
+      const auto best = cheapestPart();
+      const auto [a, b] = best->first;
+      const double c = best->second.cost;
+      merges.push_back({std::min(name[a], name[b]), std::max(name[a], name[b]), c});
+      const int lo = std::min(name[a], name[b]);
+      const int survivor = mergeParts(a, b);
+      name[survivor] = lo;
+    }
+  };
+  if (!with_parts || !params.device) {
+    hierarchyMerges(out.merges);
+    timer.lap("clustering: hierarchy merges");
+    if (with_parts) with_parts(out);
+    return out;
   }
-  timer.lap("clustering: hierarchy merges");
+  // With a device both are mostly chains of device calls, each leaving the device idle between
+  // its calls: the merges run beside the caller's work with the parts (800k humanoid: 0.05 s of
+  // merges beside 0.14 s of part motions and labels). They read only the clustering's state, the
+  // caller only the parts copied out above; the calls take turns (SharedDevice).
+  std::vector<ClusterMerge> merges;
+  std::exception_ptr failed;
+  {
+    BesideThread beside;
+    beside.start([&] {
+      // Its host work is light: a few threads for the loops it has (the count does not change
+      // the results; restored where this runs on the caller's thread).
+      const int threads = omp_get_max_threads();
+      omp_set_num_threads(std::min(4, threads));
+      try {
+        hierarchyMerges(merges);
+      } catch (...) {
+        failed = std::current_exception();
+      }
+      omp_set_num_threads(threads);
+    });
+    with_parts(out);
+  }
+  if (failed) std::rethrow_exception(failed);
+  out.merges = std::move(merges);
+  timer.lap("clustering: hierarchy merges, beside the parts' motions and labels");
   return out;
 }
 
@@ -2695,56 +2797,15 @@ TrajectoryClusters clusterTrajectories(const PointCloudSequence& seq, const Samp
 
 namespace {
 
-// The caller's work beside the device's chains (MotionTrackingParams::beside_chains) on a
-// thread of its own from start() on, joined when this goes out of scope (also where a step
-// throws); run at once where no thread can be started.
-class BesideThread {
- public:
-  BesideThread() = default;
-  void start(const std::function<void()>& work) {
-    if (!work || thread_.joinable()) return;
-    try {
-      thread_ = std::thread(work);
-    } catch (const std::system_error&) {
-      work();
-    }
-  }
-  ~BesideThread() {
-    if (thread_.joinable()) thread_.join();
-  }
-  BesideThread(const BesideThread&) = delete;
-  BesideThread& operator=(const BesideThread&) = delete;
-
- private:
-  std::thread thread_;
-};
-
-}  // namespace
-
-void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams& params,
-                       std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
-                       Progress* progress,
-                       std::vector<std::vector<Eigen::Isometry3d>>* part_motions) {
-  // The frames (kd-tree and spacing of each) are built once for the three steps.
-  detail::StageTimer ftimer;
-  SpareCoreWhileStarting spare(params.device);
-  const std::vector<Frame> frames = makeFrames(seq);
-  ftimer.lap("frames: trees and spacings");
-  spare.recheck();
-  if (params.device) params.device->setFrames(deviceFrames(frames));
-  ftimer.lap("frames: device packing");
-  spare.release();
-  // The caller's work starts with the samples' poses: from there on the steps are mostly chains
-  // of device calls and host steps between them.
-  BesideThread beside;
-  const SampleTracks tr =
-      trackSamplesOn(seq, frames, params, progress, [&] { beside.start(params.beside_chains); });
-  if (progress) progress->begin("clustering trajectories", 0);
-  const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, params);
-  if (progress) progress->end(std::to_string(tc.groups) + " parts");
-  if (progress) progress->begin("part motions and labels", 0);
+// The parts' motions (motion[c][t], from the reference frame), the reference points' labels and
+// every point's label (flat, at the frames' offsets; before the parts that lost every point are
+// dropped) from the clustering's parts.
+void labelByParts(const std::vector<Frame>& frames, const SampleTracks& tr,
+                  const TrajectoryClusters& tc, const MotionTrackingParams& params,
+                  const std::vector<std::size_t>& offsets, std::vector<std::vector<Pose>>& motion,
+                  std::vector<int>& label, std::vector<int>& flat) {
   detail::StageTimer timer;
-  const int T = static_cast<int>(seq.size());
+  const int T = static_cast<int>(frames.size());
   const int ref = tr.reference_frame;
   const int nc = tc.groups;
   const Cloud& rc = *frames[ref].cloud;
@@ -2753,7 +2814,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
 
   // Reference labels: the group of the sample whose geodesic cell holds the point (the nearest
   // sample where the surface graph did not reach).
-  std::vector<int> label(n0, 0);
+  label.assign(n0, 0);
   {
     Cloud::Ptr sc(new Cloud);
     sc->resize(S);
@@ -2773,7 +2834,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   }
   // Part motions, tracked along the sequence as an articulated body, each refined by ICP of up
   // to 400 of its reference points.
-  const std::vector<std::vector<Pose>> motion =
+  motion =
       trackParts(frames, tr, label, nc, tc.poses, tc.group, 400, params.joint_weight,
                  params.device);
   timer.lap("labels: part motions");
@@ -2798,8 +2859,6 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
   // Labels of every frame: the nearest reference point moved by its part's motion, with a
   // compatible normal. The frames side by side (each built its tree of the moved reference
   // serially while 15 threads waited).
-  const auto offsets = seq.offsets();
-  flat.assign(seq.totalPoints(), -1);
   const int kq = std::min(8, n0);
 #pragma omp parallel
   {
@@ -2853,6 +2912,52 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     }
   }
   timer.lap("labels: every frame");
+}
+
+}  // namespace
+
+void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams& params,
+                       std::vector<int>& flat, int& num_clusters, std::vector<ClusterMerge>& merges,
+                       Progress* progress,
+                       std::vector<std::vector<Eigen::Isometry3d>>* part_motions) {
+  // The frames (kd-tree and spacing of each) are built once for the three steps.
+  detail::StageTimer ftimer;
+  SpareCoreWhileStarting spare(params.device);
+  const std::vector<Frame> frames = makeFrames(seq);
+  ftimer.lap("frames: trees and spacings");
+  spare.recheck();
+  if (params.device) params.device->setFrames(deviceFrames(frames));
+  ftimer.lap("frames: device packing");
+  spare.release();
+  // The caller's work starts with the samples' poses: from there on the steps are mostly chains
+  // of device calls and host steps between them.
+  BesideThread beside;
+  const SampleTracks tr =
+      trackSamplesOn(seq, frames, params, progress, [&] { beside.start(params.beside_chains); });
+  const int T = static_cast<int>(seq.size());
+  // The parts' motions and labels, made as soon as the parts are known: with a device, the
+  // hierarchy's merges above the parts run meanwhile (clusterTrajectoriesOn), the two taking
+  // turns on the device (SharedDevice).
+  std::vector<std::vector<Pose>> motion;
+  std::vector<int> label;
+  flat.assign(seq.totalPoints(), -1);
+  std::unique_ptr<SharedDevice> shared;
+  MotionTrackingParams cparams = params;
+  if (params.device) {
+    shared = std::make_unique<SharedDevice>(*params.device);
+    cparams.device = shared.get();
+  }
+  bool labelled = false;
+  auto labelParts = [&](const TrajectoryClusters& parts) {
+    if (progress) progress->end(std::to_string(parts.groups) + " parts");
+    if (progress) progress->begin("part motions and labels", 0);
+    labelByParts(frames, tr, parts, cparams, seq.offsets(), motion, label, flat);
+    labelled = true;
+  };
+  if (progress) progress->begin("clustering trajectories", 0);
+  const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, cparams, labelParts);
+  if (!labelled) labelParts(tc);
+  const int nc = tc.groups;
   // Compact labels (a part may have lost every point to its neighbours).
   std::vector<int> count(nc, 0), id(nc, -1);
   for (int l : flat)

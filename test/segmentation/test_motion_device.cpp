@@ -13,10 +13,14 @@
 #include <pcl_animseg/segmentation/task_graph.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 #include <memory>
+#include <mutex>
+#include <set>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "cpu_residuals.h"
@@ -108,11 +112,13 @@ class RecordingDevice : public seg::MotionDevice {
     return seg::icp_step::load(&motions[12 * k]);
   }
   void residuals(const seg::ResidualJobs& b, std::vector<double>& out) override {
+    const Call call(*this);
     ++batches;
     jobs += b.jobs.size();
     out = animseg_test::cpuResiduals(frames, b);
   }
   void pointCosts(const seg::PointCostJobs& b, std::vector<double>& out) override {
+    const Call call(*this);
     ++cost_batches;
     out.clear();
     const std::size_t T = frames.frames.size();
@@ -147,6 +153,7 @@ class RecordingDevice : public seg::MotionDevice {
   // The motion method's part fit from what it was given: damped ICP with icp_step (the point-to-
   // plane terms of the matches whose normals agree), kept when its residual is at most r0.
   void partFits(const seg::PartFitJobs& b, std::vector<double>& poses) override {
+    const Call call(*this);
     ++fit_batches;
     fits += b.jobs.size();
     poses.clear();
@@ -203,6 +210,20 @@ class RecordingDevice : public seg::MotionDevice {
       is::store(kept, &poses[poses.size() - 12]);
     }
   }
+  // Which threads made the batch calls, and whether two calls were ever in the device at once.
+  struct Call {
+    explicit Call(RecordingDevice& d) : device(d) {
+      if (device.inside.fetch_add(1) != 0) device.overlapped = true;
+      const std::lock_guard<std::mutex> lock(device.callers_mutex);
+      device.callers.insert(std::this_thread::get_id());
+    }
+    ~Call() { device.inside.fetch_sub(1); }
+    RecordingDevice& device;
+  };
+  std::atomic<int> inside{0};
+  std::atomic<bool> overlapped{false};
+  std::mutex callers_mutex;
+  std::set<std::thread::id> callers;
   int fit_batches = 0;
   std::size_t fits = 0;
   int calls = 0, frame_calls = 0, batches = 0, cost_batches = 0, error_batches = 0;
@@ -302,6 +323,10 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
   // The merges the device's run evaluated ahead, in batches, are the CPU's one at a time.
   EXPECT_EQ(got.merges, expected.merges);
+  // The hierarchy's merges above the parts ran beside the parts' motions and labels, on a thread
+  // of their own, and the two threads' calls took turns.
+  EXPECT_EQ(backend->device.callers.size(), 2u);
+  EXPECT_FALSE(backend->device.overlapped);
 }
 
 TEST(MotionDevice, ADeviceStillStartingIsLeftACoreUntilItsFirstCall) {
