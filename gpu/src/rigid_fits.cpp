@@ -5,7 +5,10 @@
 #include <pcl_animseg/segmentation/icp_step.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstdint>
+#include <cstdio>
+#include <cstdlib>
 #include <string>
 #include <vector>
 
@@ -151,6 +154,7 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
     if (t < 0 || t >= n_trees) throw DeviceError("GPU k-NN: a query's tree out of range");
   for (int t = 0; t < n_trees; ++t)
     if (!trees[t]) throw DeviceError("GPU k-NN: a tree is missing");
+  const auto t0 = std::chrono::steady_clock::now();
   detail::KnnTrees packed;
   const std::vector<int> point0 =
       detail::packTrees(trees, packed.nodes, packed.points, packed.root);
@@ -163,7 +167,14 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
               packed.rows.begin() + point0[t]);
   }
   requireGpu();
+  const auto t1 = std::chrono::steady_clock::now();
   detail::runKnn(packed, k, queries, tree_of, rows, count);
+  if (std::getenv("ANIMSEG_MS_TIMING")) {
+    const auto t2 = std::chrono::steady_clock::now();
+    std::fprintf(stderr, "[gpu k-NN] k %d, %zu queries in %d trees: packing %.3f s, device %.3f s\n",
+                 k, tree_of.size(), n_trees, std::chrono::duration<double>(t1 - t0).count(),
+                 std::chrono::duration<double>(t2 - t1).count());
+  }
   return true;
 }
 

@@ -306,12 +306,20 @@ class ChainedPart {
     bool from_init = false;
   };
 
-  // Sets `motion` up (startMotion) and, when the part has enough points, its frames' targets.
+  // Sets `motion` up (startMotion); the frames' targets are built by buildTarget (buildTargets:
+  // every part's frames in one parallel loop).
   ChainedPart(const PointCloudSequence& seq, const RigidMotionParams& p,
               const std::vector<std::vector<int>>& labels, int part,
               const std::vector<double>& spacing, std::size_t points_frame0, const PartMotion* init,
               PartMotion& motion)
-      : p_(p), spacing_(spacing), init_(init), motion_(motion), frames_(seq.size()) {
+      : p_(p),
+        spacing_(spacing),
+        init_(init),
+        motion_(motion),
+        frames_(seq.size()),
+        seq_(seq),
+        labels_(labels),
+        part_(part) {
     source_ = partCloud(*seq.frame(0), labels[0], part, p.max_points);
     active_ = startMotion(motion, frames_, points_frame0, *source_, p.min_points);
     if (!active_) return;
@@ -330,18 +338,20 @@ class ChainedPart {
       probe_.emplace_back(q.x, q.y, q.z);
     }
     targets_.resize(frames_);
-#pragma omp parallel for schedule(dynamic)
-    for (std::size_t t = 1; t < frames_; ++t) {
-      Target& g = targets_[t];
-      g.surface.build(partCloud(*seq.frame(t), labels[t], part, 0));
-      const Cloud& cloud = *g.surface.cloud;
-      g.usable = static_cast<int>(cloud.size()) >= p.min_points;
-      if (!g.usable) continue;
-      Eigen::Vector4f ct;
-      pcl::compute3DCentroid(cloud, ct);
-      g.centroid = ct.head<3>().cast<double>();
-      std::tie(g.axis, g.ratio) = principalAxis(cloud);
-    }
+  }
+
+  // Frame t's target (t >= 1, an active part): the part's points in frame t, their tree, centroid
+  // and principal axis.
+  void buildTarget(std::size_t t) {
+    Target& g = targets_[t];
+    g.surface.build(partCloud(*seq_.frame(t), labels_[t], part_, 0));
+    const Cloud& cloud = *g.surface.cloud;
+    g.usable = static_cast<int>(cloud.size()) >= p_.min_points;
+    if (!g.usable) return;
+    Eigen::Vector4f ct;
+    pcl::compute3DCentroid(cloud, ct);
+    g.centroid = ct.head<3>().cast<double>();
+    std::tie(g.axis, g.ratio) = principalAxis(cloud);
   }
 
   bool active() const { return active_; }
@@ -434,6 +444,9 @@ class ChainedPart {
   const PartMotion* init_;
   PartMotion& motion_;
   std::size_t frames_;
+  const PointCloudSequence& seq_;
+  const std::vector<std::vector<int>>& labels_;
+  int part_;
   Cloud::Ptr source_;
   std::vector<double> xyz0_;  // source_'s positions
   bool active_ = false, seeded_ = false;
@@ -442,6 +455,18 @@ class ChainedPart {
   std::vector<Eigen::Vector3d> probe_;
   std::vector<Target> targets_;
 };
+
+// The targets of every active part's frames (ChainedPart::buildTarget) in one parallel loop: a
+// loop per part left most threads waiting at each loop's end (20 parts of 47 frames at 800k).
+void buildTargets(const std::vector<std::unique_ptr<ChainedPart>>& parts, std::size_t frames) {
+  std::vector<std::pair<ChainedPart*, std::size_t>> items;
+  for (const auto& part : parts)
+    if (part->active())
+      for (std::size_t t = 1; t < frames; ++t) items.push_back({part.get(), t});
+  const long n = static_cast<long>(items.size());
+#pragma omp parallel for schedule(dynamic)
+  for (long i = 0; i < n; ++i) items[i].first->buildTarget(items[i].second);
+}
 
 // One computation's fits on a device: its sources and surfaces uploaded once (by id, in the
 // order added), then batches of jobs.
@@ -558,6 +583,8 @@ void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
                 const std::vector<double>& spacing, std::size_t points_frame0, PartMotion& motion) {
   ChainedPart c(seq, p, labels, part, spacing, points_frame0, nullptr, motion);
   if (!c.active()) return;
+#pragma omp parallel for schedule(dynamic)
+  for (std::size_t t = 1; t < seq.size(); ++t) c.buildTarget(t);
   using Link = ChainedPart::Link;
   c.finish(fitAlongChain(
       static_cast<int>(seq.size()), 0, c.first(),
@@ -888,6 +915,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
       chained.push_back(std::make_unique<ChainedPart>(*sequence_, p, *sets[s], part, spacing,
                                                       frame0_points[s][part], &init_[part],
                                                       out[s][part]));
+    buildTargets(chained, sequence_->size());
     timer.lap("seeded: targets");
     fitChainedParts(chained, sequence_->size(), device_, p, true);
     timer.lap("seeded: fits");
@@ -898,6 +926,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     for (const auto& [s, part] : jobs)
       chained.push_back(std::make_unique<ChainedPart>(
           *sequence_, p, *sets[s], part, spacing, frame0_points[s][part], nullptr, out[s][part]));
+    buildTargets(chained, sequence_->size());
     timer.lap("chains: targets");
     if (beside) {
       fitBeside(*beside, [&] { fitChainedParts(chained, sequence_->size(), device_, p, false); });
