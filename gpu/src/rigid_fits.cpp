@@ -147,14 +147,15 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     const std::vector<float>& queries, const std::vector<int>& tree_of,
                     std::vector<int>& rows, std::vector<int>& count) {
   if (k < 1 || k > detail::kMaxKnn) return false;
-  if (queries.size() != 3 * tree_of.size())
-    throw DeviceError("GPU k-NN: three coordinates per query expected");
+  return knnOn(keepKnnTrees(trees), k, queries, tree_of, rows, count);
+}
+
+long long RigidFits::keepKnnTrees(const std::vector<const FlatKdTree3*>& trees) {
+  const auto t0 = std::chrono::steady_clock::now();
   const int n_trees = static_cast<int>(trees.size());
-  for (int t : tree_of)
-    if (t < 0 || t >= n_trees) throw DeviceError("GPU k-NN: a query's tree out of range");
   for (int t = 0; t < n_trees; ++t)
     if (!trees[t]) throw DeviceError("GPU k-NN: a tree is missing");
-  const auto t0 = std::chrono::steady_clock::now();
+  knn_token_ = 0;  // none kept until the upload succeeds
   detail::KnnTrees packed;
   const std::vector<int> point0 =
       detail::packTrees(trees, packed.nodes, packed.points, packed.root);
@@ -167,14 +168,28 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
               packed.rows.begin() + point0[t]);
   }
   requireGpu();
-  const auto t1 = std::chrono::steady_clock::now();
-  detail::runKnn(packed, k, queries, tree_of, rows, count);
-  if (std::getenv("ANIMSEG_MS_TIMING")) {
-    const auto t2 = std::chrono::steady_clock::now();
-    std::fprintf(stderr, "[gpu k-NN] k %d, %zu queries in %d trees: packing %.3f s, device %.3f s\n",
-                 k, tree_of.size(), n_trees, std::chrono::duration<double>(t1 - t0).count(),
-                 std::chrono::duration<double>(t2 - t1).count());
-  }
+  if (!knn_) knn_ = std::make_unique<detail::KnnStore>();
+  detail::uploadKnnTrees(packed, *knn_);
+  knn_token_ = ++knn_keeps_;
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(stderr, "[gpu k-NN] %d trees packed and uploaded: %.3f s\n", n_trees,
+                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  return knn_token_;
+}
+
+bool RigidFits::knnOn(long long token, int k, const std::vector<float>& queries,
+                      const std::vector<int>& tree_of, std::vector<int>& rows,
+                      std::vector<int>& count) {
+  if (token <= 0 || token != knn_token_ || !knn_ || k < 1 || k > detail::kMaxKnn) return false;
+  if (queries.size() != 3 * tree_of.size())
+    throw DeviceError("GPU k-NN: three coordinates per query expected");
+  for (int t : tree_of)
+    if (t < 0 || t >= knn_->trees) throw DeviceError("GPU k-NN: a query's tree out of range");
+  const auto t0 = std::chrono::steady_clock::now();
+  detail::runKnn(*knn_, k, queries, tree_of, rows, count);
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(stderr, "[gpu k-NN] k %d, %zu queries: %.3f s\n", k, tree_of.size(),
+                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
   return true;
 }
 

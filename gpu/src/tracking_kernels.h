@@ -203,10 +203,23 @@ struct KnnTrees {
 /** The largest k that runKnn takes. */
 constexpr int kMaxKnn = 32;
 
+/** KnnTrees on the device, and the queries' and results' buffers (grown, kept between calls). */
+struct KnnStore {
+  int trees = 0;
+  DeviceArray<TrackNode> nodes;
+  DeviceArray<float> points;
+  DeviceArray<int> rows, root, size;
+  DeviceMemory queries, tree_of, out_rows, out_count;
+};
+
+/** Uploads `trees` into `store` (in place of the trees there). */
+void uploadKnnTrees(const KnnTrees& trees, KnnStore& store);
+
 /** FlatKdTree3::knn (flat_kdtree.h) of every query (x, y, z in `queries`) against tree
- * tree_of[q]: the same rows in the same order; k slots per query in `rows` (-1 past count[q]).
- * 1 <= k <= kMaxKnn (k = 1: nearest() without a bound, as FlatKdTree3::knn). */
-void runKnn(const KnnTrees& trees, int k, const std::vector<float>& queries,
+ * tree_of[q] (< store.trees) of `store`: the same rows in the same order; k slots per query in
+ * `rows` (-1 past count[q]). 1 <= k <= kMaxKnn (k = 1: nearest() without a bound, as
+ * FlatKdTree3::knn). */
+void runKnn(KnnStore& store, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
 
 /** The largest cluster of blocks that one rigid fit runs on (thread block clusters, sm_90). */

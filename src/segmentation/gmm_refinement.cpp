@@ -117,6 +117,10 @@ class NeighbourLists {
   struct DeviceLists {
     int k = 0;
     std::vector<int> rows, count;
+    // The device that searched them and its token for the frames' trees, kept there for later
+    // searches (RigidFitDevice::keepKnnTrees; 0: not kept).
+    RigidFitDevice* device = nullptr;
+    long long trees = 0;
   };
   /** The same lists as a view into `lists`, whose queries `first`, `first` + 1, ... are this
    * frame's points, rows of `tree`'s flat tree. */
@@ -201,7 +205,12 @@ std::shared_ptr<const NeighbourLists::DeviceLists> everyPointLists(RigidFitDevic
   }
   auto lists = std::make_shared<NeighbourLists::DeviceLists>();
   lists->k = k;
-  if (!device.knn(flat, k, queries, tree_of, lists->rows, lists->count)) return nullptr;
+  // The trees kept on the device where it offers that: the motion check searches them again.
+  const long long kept = device.keepKnnTrees(flat);
+  if (kept ? !device.knnOn(kept, k, queries, tree_of, lists->rows, lists->count)
+           : !device.knn(flat, k, queries, tree_of, lists->rows, lists->count))
+    return nullptr;
+  if (kept) lists->device = &device, lists->trees = kept;
   if (lists->count.size() != tree_of.size() || lists->rows.size() != tree_of.size() * k)
     throw Error("refinement: the device's k-NN lists do not match their queries");
   return lists;
@@ -564,10 +573,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   for (std::size_t t = 0; t < frames; ++t) flat[t] = &trees[t].flatTree();
   // With a device that offers it, every frame's lists in one k-NN call (the same lists; on the
   // cores they were a fifth of the refinement's CPU time at 800k), which the frames' lists view.
+  std::shared_ptr<const NeighbourLists::DeviceLists> lists;  // set by deviceLists()
   auto deviceLists = [&]() {
     // Every point's lists, searched ahead (prepareFrames) or now; the frames' views.
-    const auto lists = prepared_lists
-                           ? prep->lists
+    lists = prepared_lists ? prep->lists
                            : everyPointLists(*device_, *sequence_, trees, p.boundary_k + 1);
     prep.reset();
     for (std::size_t t = 0, first = 0; lists && t < frames; first += sequence_->frame(t++)->size())
@@ -973,7 +982,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
           queries[3 * q] = y.x(), queries[3 * q + 1] = y.y(), queries[3 * q + 2] = y.z();
         }
         std::vector<int> rows, count;
-        if (device_->knn(flat, 1, queries, copy_frame, rows, count)) {
+        // Against the trees the lists' search kept on this device, else uploaded again.
+        const bool kept = lists && lists->device == device_ && lists->trees > 0 &&
+                          device_->knnOn(lists->trees, 1, queries, copy_frame, rows, count);
+        if (kept || device_->knn(flat, 1, queries, copy_frame, rows, count)) {
           if (count.size() != copy_frame.size() || rows.size() != copy_frame.size())
             throw Error("refinement: the device's nearest points do not match their queries");
 #pragma omp parallel for schedule(static)

@@ -49,12 +49,34 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
            const std::vector<float>& queries, const std::vector<int>& tree_of,
            std::vector<int>& rows, std::vector<int>& count) override {
     if (!offer_knn) return false;
+    std::vector<pcl_animseg::FlatKdTree3> copies;
+    for (const auto* x : t) copies.push_back(*x);
+    search(copies, k, queries, tree_of, rows, count);
+    return true;
+  }
+  // Copies of the trees kept for knnOn() (offer_keep), under a new token each time.
+  long long keepKnnTrees(const std::vector<const pcl_animseg::FlatKdTree3*>& t) override {
+    if (!offer_knn || !offer_keep) return 0;
+    if (fail_knn) throw pcl_animseg::Error("test device: k-NN upload failed");
+    kept.clear();
+    for (const auto* x : t) kept.push_back(*x);
+    return token = ++keeps;
+  }
+  bool knnOn(long long tok, int k, const std::vector<float>& queries,
+             const std::vector<int>& tree_of, std::vector<int>& rows,
+             std::vector<int>& count) override {
+    if (!offer_knn || !offer_keep || tok <= 0 || tok != token) return false;
+    search(kept, k, queries, tree_of, rows, count);
+    ++knn_on_calls;
+    return true;
+  }
+  void search(const std::vector<pcl_animseg::FlatKdTree3>& copies, int k,
+              const std::vector<float>& queries, const std::vector<int>& tree_of,
+              std::vector<int>& rows, std::vector<int>& count) {
     if (fail_knn) throw pcl_animseg::Error("test device: k-NN kernel failed");
     ++knn_calls;
     knn_thread = std::this_thread::get_id();
     knn_k.push_back(k);
-    std::vector<pcl_animseg::FlatKdTree3> copies;
-    for (const auto* x : t) copies.push_back(*x);
     const std::size_t n = tree_of.size();
     rows.assign(n * k, -1);
     count.assign(n, 0);
@@ -64,8 +86,11 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
       count[q] = copies.at(tree_of[q]).knn(&queries[3 * q], k, r, d);
       std::copy(r.begin(), r.end(), rows.begin() + q * k);
     }
-    return true;
   }
+  bool offer_keep = true;  // keepKnnTrees / knnOn offered (with offer_knn)
+  int keeps = 0, knn_on_calls = 0;
+  long long token = 0;
+  std::vector<pcl_animseg::FlatKdTree3> kept;
   bool offer_knn = true, fail_knn = false;
   int knn_calls = 0;
   std::vector<int> knn_k;  // each call's k

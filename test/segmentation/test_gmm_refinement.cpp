@@ -280,6 +280,9 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   // Every frame's neighbour lists in one call, then the nearest points of the motion check's
   // moved copies in one.
   EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  // The trees were uploaded once, for both.
+  EXPECT_EQ(dev.keeps, 1);
+  EXPECT_EQ(dev.knn_on_calls, 2);
   // The motions' fits ran on a thread of their own (beside the first bands); the lists, on this
   // one.
   EXPECT_NE(dev.fit_thread, std::this_thread::get_id());
@@ -291,6 +294,14 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   got = c.refinedBy(on_device);
   EXPECT_EQ(got.labels, expected.labels);
   EXPECT_EQ(fits_only.knn_calls, 0);
+  // A device that searches but keeps no trees: each search uploads them; the same result.
+  animseg_test::CpuRigidDevice no_keep;
+  no_keep.offer_keep = false;
+  on_device.setRigidFitDevice(&no_keep);
+  got = c.refinedBy(on_device);
+  EXPECT_EQ(got.labels, expected.labels);
+  EXPECT_EQ(no_keep.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  EXPECT_EQ(no_keep.knn_on_calls, 0);
 }
 
 // The frames prepared ahead on another thread (prepareFrames, as the pipeline does beside the
@@ -317,9 +328,29 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   EXPECT_NE(dev.knn_thread, std::this_thread::get_id());
   EXPECT_EQ(prepared.preparedSpacings(), pcl_animseg::meanSpacings(c.chain.sequence));
   EXPECT_EQ(c.refinedBy(prepared).labels, expected.labels);
-  // refine() searched only the motion check's nearest points (k = 1), and released the rest.
+  // refine() searched only the motion check's nearest points (k = 1), in the trees the
+  // preparation kept on the device, and released the rest.
   EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  EXPECT_EQ(dev.keeps, 1);
+  EXPECT_EQ(dev.knn_on_calls, 2);
   EXPECT_TRUE(prepared.preparedSpacings().empty());
+
+  // Another sequence's trees kept on the same device since the preparation: refine() does not
+  // search those, it uploads its own again. The same labels.
+  const ShiftedChain second;
+  GMMBoundaryRefinement first_prepared, second_prepared;
+  animseg_test::CpuRigidDevice shared;
+  first_prepared.setInputSequence(&c.chain.sequence);
+  first_prepared.setRigidFitDevice(&shared);
+  first_prepared.prepareFrames();
+  second_prepared.setInputSequence(&second.chain.sequence);
+  second_prepared.setRigidFitDevice(&shared);
+  second_prepared.prepareFrames();
+  EXPECT_EQ(c.refinedBy(first_prepared).labels, expected.labels);
+  EXPECT_EQ(shared.keeps, 2);
+  EXPECT_EQ(shared.knn_on_calls, 2);  // the two preparations' lists
+  EXPECT_EQ(shared.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1,
+                                            RefinementParams().boundary_k + 1, 1}));
 
   // Prepared for another sequence: refine() searches its own lists.
   const ShiftedChain other;

@@ -117,6 +117,21 @@ class RigidFitDevice {
     (void)trees, (void)k, (void)queries, (void)tree_of, (void)rows, (void)count;
     return false;
   }
+  /** \brief Keeps copies of `trees` on the device for the knnOn() calls that follow, in place of
+   * any kept before; returns their token (> 0), or 0 where the device does not offer it (the
+   * default). A caller that searches the same trees again saves their packing and upload. */
+  virtual long long keepKnnTrees(const std::vector<const FlatKdTree3*>& trees) {
+    (void)trees;
+    return 0;
+  }
+  /** \brief knn() against the trees kept under `token` (keepKnnTrees); false where they are no
+   * longer kept, or the device does not offer it (the caller then calls knn()). */
+  virtual bool knnOn(long long token, int k, const std::vector<float>& queries,
+                     const std::vector<int>& tree_of, std::vector<int>& rows,
+                     std::vector<int>& count) {
+    (void)token, (void)k, (void)queries, (void)tree_of, (void)rows, (void)count;
+    return false;
+  }
 };
 
 /** \brief The CPU's fit of one job, which a RigidFitDevice reproduces: the source (x, y, z per

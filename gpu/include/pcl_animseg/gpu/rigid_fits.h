@@ -25,6 +25,7 @@ namespace gpu {
 
 namespace detail {
 struct FrameStore;
+struct KnnStore;
 struct RigidSources;
 }  // namespace detail
 
@@ -48,6 +49,15 @@ class RigidFits : public segmentation::RigidFitDevice {
   bool knn(const std::vector<const FlatKdTree3*>& trees, int k, const std::vector<float>& queries,
            const std::vector<int>& tree_of, std::vector<int>& rows,
            std::vector<int>& count) override;
+  /** \brief The trees packed and uploaded once for the knnOn() calls that follow (kept until the
+   * next keepKnnTrees() or knn() call, or this object's end); throws Error on a CUDA failure or a
+   * missing tree. */
+  long long keepKnnTrees(const std::vector<const FlatKdTree3*>& trees) override;
+  /** \brief knn() against the kept trees; false where `token` is not the last keepKnnTrees()'s
+   * or k is out of range. */
+  bool knnOn(long long token, int k, const std::vector<float>& queries,
+             const std::vector<int>& tree_of, std::vector<int>& rows,
+             std::vector<int>& count) override;
   /** \brief Fits and kernel launches since construction. */
   long long fits() const { return fits_; }
   long long batches() const { return batches_; }
@@ -63,6 +73,9 @@ class RigidFits : public segmentation::RigidFitDevice {
  private:
   std::unique_ptr<detail::FrameStore> surfaces_;
   std::unique_ptr<detail::RigidSources> sources_;
+  std::unique_ptr<detail::KnnStore> knn_;  // the kept trees and the k-NN's buffers
+  long long knn_token_ = 0;                // the kept trees' token (0: none kept)
+  long long knn_keeps_ = 0;                // keepKnnTrees() calls that uploaded trees
   long long fits_ = 0, batches_ = 0;
   int cluster_ = 0, last_cluster_ = 0;
 };
