@@ -147,7 +147,24 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     const std::vector<float>& queries, const std::vector<int>& tree_of,
                     std::vector<int>& rows, std::vector<int>& count) {
   if (k < 1 || k > detail::kMaxKnn) return false;
-  return knnOn(keepKnnTrees(trees), k, queries, tree_of, rows, count);
+  // Uploaded for this search alone.
+  const long long token = keepKnnTrees(trees);
+  keep_knn_trees_ = false;
+  try {
+    knnOn(token, k, queries, tree_of, rows, count);
+  } catch (...) {
+    keep_knn_trees_ = true;
+    dropKnnTrees(token);
+    throw;
+  }
+  keep_knn_trees_ = true;
+  return true;
+}
+
+void RigidFits::dropKnnTrees(long long token) {
+  if (token <= 0 || token != knn_token_) return;
+  knn_.reset();
+  knn_token_ = 0;
 }
 
 long long RigidFits::keepKnnTrees(const std::vector<const FlatKdTree3*>& trees) {
@@ -187,6 +204,7 @@ bool RigidFits::knnOn(long long token, int k, const std::vector<float>& queries,
     if (t < 0 || t >= knn_->trees) throw DeviceError("GPU k-NN: a query's tree out of range");
   const auto t0 = std::chrono::steady_clock::now();
   detail::runKnn(*knn_, k, queries, tree_of, rows, count);
+  if (!keep_knn_trees_) dropKnnTrees(token);
   if (std::getenv("ANIMSEG_MS_TIMING"))
     std::fprintf(stderr, "[gpu k-NN] k %d, %zu queries: %.3f s\n", k, tree_of.size(),
                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());

@@ -1106,20 +1106,17 @@ void runKnn(KnnStore& store, int k, const std::vector<float>& queries,
   rows.resize(static_cast<std::size_t>(n) * k);
   count.resize(static_cast<std::size_t>(n));
   if (n == 0) return;
-  // The buffers grow and stay: the refinement's second call (1.6 M queries at 800k) paid about
-  // a third of its device time allocating and freeing them.
-  grow(store.queries, queries.size() * sizeof(float));
-  grow(store.tree_of, tree_of.size() * sizeof(int));
-  grow(store.out_rows, rows.size() * sizeof(int));
-  grow(store.out_count, count.size() * sizeof(int));
-  store.queries.uploadBytes(queries.data(), queries.size() * sizeof(float));
-  store.tree_of.uploadBytes(tree_of.data(), tree_of.size() * sizeof(int));
+  // The queries' and results' buffers for this call alone: kept, they added their size to the
+  // run's peak device memory (beside the motion method's).
+  DeviceArray<float> d_queries(queries.data(), queries.size());
+  DeviceArray<int> d_tree_of(tree_of.data(), tree_of.size());
+  DeviceArray<int> d_rows(rows.size()), d_count(count.size());
   const auto* nodes = store.nodes.ptr();
   const auto* pts = reinterpret_cast<const float4*>(store.points.ptr());
-  const auto* q = static_cast<const float*>(store.queries.rawPtr());
-  const auto* of = static_cast<const int*>(store.tree_of.rawPtr());
-  auto* out_rows = static_cast<int*>(store.out_rows.rawPtr());
-  auto* out_count = static_cast<int*>(store.out_count.rawPtr());
+  const float* q = d_queries.ptr();
+  const int* of = d_tree_of.ptr();
+  int* out_rows = d_rows.ptr();
+  int* out_count = d_count.ptr();
   const int threads = 128;
   const long long blocks = (n + threads - 1) / threads;
   if (k == 1)
@@ -1130,8 +1127,8 @@ void runKnn(KnnStore& store, int k, const std::vector<float>& queries,
                                                           store.root.ptr(), store.size.ptr(), q,
                                                           of, n, k, out_rows, out_count);
   cudaCheckLaunch();
-  store.out_rows.downloadBytes(rows.data(), rows.size() * sizeof(int));
-  store.out_count.downloadBytes(count.data(), count.size() * sizeof(int));
+  d_rows.download(rows.data());
+  d_count.download(count.data());
 }
 
 PinnedHost::~PinnedHost() {

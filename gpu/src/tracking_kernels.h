@@ -203,13 +203,12 @@ struct KnnTrees {
 /** The largest k that runKnn takes. */
 constexpr int kMaxKnn = 32;
 
-/** KnnTrees on the device, and the queries' and results' buffers (grown, kept between calls). */
+/** KnnTrees on the device. */
 struct KnnStore {
   int trees = 0;
   DeviceArray<TrackNode> nodes;
   DeviceArray<float> points;
   DeviceArray<int> rows, root, size;
-  DeviceMemory queries, tree_of, out_rows, out_count;
 };
 
 /** Uploads `trees` into `store` (in place of the trees there). */

@@ -1045,6 +1045,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     if (static_cast<double>(changed) <= p.min_changed_fraction * static_cast<double>(total_points))
       break;
   }
+  // The trees the lists' search kept on the device are not searched again.
+  if (lists && lists->device == device_ && device_) device_->dropKnnTrees(lists->trees);
   if (p.fold_snap_band > 0.0) {
     std::size_t snapped = 0;
     timer.lap("reassignment");

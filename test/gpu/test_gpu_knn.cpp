@@ -96,6 +96,9 @@ TEST(GpuKnn, SameListsAsTheCpuTree) {
     EXPECT_EQ(again, rows);
   }
   EXPECT_FALSE(device.knnOn(token, 9, queries, tree_of, again, again_count));
+  const long long dropped = device.keepKnnTrees(ptrs);
+  device.dropKnnTrees(dropped);
+  EXPECT_FALSE(device.knnOn(dropped, 9, queries, tree_of, again, again_count));
   EXPECT_THROW(device.knnOn(device.keepKnnTrees(ptrs), 9, queries, bad, again, again_count),
                pcl_animseg::Error);
 }

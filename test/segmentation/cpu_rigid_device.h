@@ -70,6 +70,11 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
     ++knn_on_calls;
     return true;
   }
+  void dropKnnTrees(long long tok) override {
+    if (tok <= 0 || tok != token) return;
+    kept.clear();
+    token = 0;
+  }
   void search(const std::vector<pcl_animseg::FlatKdTree3>& copies, int k,
               const std::vector<float>& queries, const std::vector<int>& tree_of,
               std::vector<int>& rows, std::vector<int>& count) {

@@ -280,9 +280,10 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   // Every frame's neighbour lists in one call, then the nearest points of the motion check's
   // moved copies in one.
   EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
-  // The trees were uploaded once, for both.
+  // The trees were uploaded once, for both, and freed after the second.
   EXPECT_EQ(dev.keeps, 1);
   EXPECT_EQ(dev.knn_on_calls, 2);
+  EXPECT_TRUE(dev.kept.empty());
   // The motions' fits ran on a thread of their own (beside the first bands); the lists, on this
   // one.
   EXPECT_NE(dev.fit_thread, std::this_thread::get_id());

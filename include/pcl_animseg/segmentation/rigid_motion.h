@@ -132,6 +132,8 @@ class RigidFitDevice {
     (void)token, (void)k, (void)queries, (void)tree_of, (void)rows, (void)count;
     return false;
   }
+  /** \brief Frees the trees kept under `token`, if they still are (their device memory). */
+  virtual void dropKnnTrees(long long token) { (void)token; }
 };
 
 /** \brief The CPU's fit of one job, which a RigidFitDevice reproduces: the source (x, y, z per

@@ -43,8 +43,9 @@ class RigidFits : public segmentation::RigidFitDevice {
            const segmentation::RigidMotionParams& params, std::vector<double>& poses,
            std::vector<double>& rms) override;
   /** \brief FlatKdTree3::knn of every query on the device, a query per thread (the same rows
-   * in the same order; k = 1: FlatKdTree3::nearest without a bound). Returns false for k < 1 or
-   * k > 32 (the caller searches on the CPU);
+   * in the same order; k = 1: FlatKdTree3::nearest without a bound), the trees uploaded for this
+   * call alone (trees kept before are dropped). Returns false for k < 1 or k > 32 (the caller
+   * searches on the CPU);
    * throws Error on a CUDA failure or a query's tree out of range. */
   bool knn(const std::vector<const FlatKdTree3*>& trees, int k, const std::vector<float>& queries,
            const std::vector<int>& tree_of, std::vector<int>& rows,
@@ -58,6 +59,7 @@ class RigidFits : public segmentation::RigidFitDevice {
   bool knnOn(long long token, int k, const std::vector<float>& queries,
              const std::vector<int>& tree_of, std::vector<int>& rows,
              std::vector<int>& count) override;
+  void dropKnnTrees(long long token) override;
   /** \brief Fits and kernel launches since construction. */
   long long fits() const { return fits_; }
   long long batches() const { return batches_; }
@@ -76,6 +78,7 @@ class RigidFits : public segmentation::RigidFitDevice {
   std::unique_ptr<detail::KnnStore> knn_;  // the kept trees and the k-NN's buffers
   long long knn_token_ = 0;                // the kept trees' token (0: none kept)
   long long knn_keeps_ = 0;                // keepKnnTrees() calls that uploaded trees
+  bool keep_knn_trees_ = true;             // false inside knn(): dropped after the search
   long long fits_ = 0, batches_ = 0;
   int cluster_ = 0, last_cluster_ = 0;
 };
