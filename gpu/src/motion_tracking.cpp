@@ -168,6 +168,19 @@ detail::FrameStore* MotionTracking::store() {
   return frames_.get();
 }
 
+std::unique_ptr<segmentation::MotionDevice> MotionTracking::fork() {
+  const detail::FrameStore* own = store();
+  if (!own) throw DeviceError("GPU tracking: no frames were set");
+  auto f = std::make_unique<MotionTracking>();
+  f->frames_ = std::make_unique<detail::FrameStore>();
+  f->frames_->frames = own->frames;
+  f->frames_->normal_cos = own->normal_cos;
+  f->frames_->clip = own->clip;
+  f->frames_->shared = own->shared ? own->shared : own;
+  f->point_parallel_limit_ = point_parallel_limit_;
+  return f;
+}
+
 void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,
                                   std::vector<std::vector<Eigen::Isometry3d>>& poses,
                                   std::vector<std::vector<double>>& residual) {

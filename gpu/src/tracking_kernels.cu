@@ -815,7 +815,8 @@ __global__ void __launch_bounds__(kRigidBlockThreads)
   clusterSync(rb);
 }
 
-Dev frameView(const FrameStore& f) {
+Dev frameView(const FrameStore& store) {
+  const FrameStore& f = store.shared ? *store.shared : store;
   Dev d{};
   d.nodes = f.nodes.ptr();
   d.pts = reinterpret_cast<const float4*>(f.points.ptr());

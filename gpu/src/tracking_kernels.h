@@ -58,6 +58,9 @@ struct FrameStore {
   int frames = 0;
   double normal_cos = 0.3;
   double clip = 4.0;
+  /** Where set, the store whose frame arrays (nodes ... unoriented) these calls read: a fork
+   * (MotionTracking::fork) has only its own batch buffers. */
+  const FrameStore* shared = nullptr;
   DeviceArray<TrackNode> nodes;
   DeviceArray<int> root;
   DeviceArray<float> points, normals;

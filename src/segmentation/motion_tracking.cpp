@@ -780,9 +780,9 @@ class BesideThread {
 };
 
 // A device that two threads of the motion method share (the hierarchy's merges beside the part
-// motions and labels): their calls one at a time, as a device expects (MotionDevice serves one
-// caller at a time). Each thread's calls and results are its own, so the results are the same
-// as one after the other.
+// motions and labels, where the device offers no fork): their calls one at a time, as a device
+// expects (MotionDevice serves one caller at a time). Each thread's calls and results are its
+// own, so the results are the same as one after the other.
 class SharedDevice : public MotionDevice {
  public:
   explicit SharedDevice(MotionDevice& device) : device_(device) {}
@@ -1794,11 +1794,16 @@ class ResidualBatch {
 };
 
 // `with_parts`, where given, is called with the parts (everything but the merges above them)
-// before this returns; with a device, the merges above them are made meanwhile on a thread of
-// their own (the same merges: neither side changes what the other reads).
+// before this returns; with `merges_device` (a device that may be called beside the caller's:
+// MotionDevice::fork, or a SharedDevice), the merges above them are made meanwhile on a thread of
+// their own with it (the same merges: neither side changes what the other reads).
 TrajectoryClusters clusterTrajectoriesOn(
-    const std::vector<Frame>& frames, const SampleTracks& tr, const MotionTrackingParams& params,
-    const std::function<void(const TrajectoryClusters&)>& with_parts = {}) {
+    const std::vector<Frame>& frames, const SampleTracks& tr,
+    const MotionTrackingParams& params_in,
+    const std::function<void(const TrajectoryClusters&)>& with_parts = {},
+    MotionDevice* merges_device = nullptr) {
+  // A copy: the merges beside the caller's work switch to their own device.
+  MotionTrackingParams params = params_in;
   const int S = static_cast<int>(tr.sample_points.size());
   const int T = static_cast<int>(tr.poses.size());
   const int ref = tr.reference_frame;
@@ -2744,7 +2749,7 @@ TrajectoryClusters clusterTrajectoriesOn(
       name[survivor] = lo;
     }
   };
-  if (!with_parts || !params.device) {
+  if (!with_parts || !params.device || !merges_device) {
     hierarchyMerges(out.merges);
     timer.lap("clustering: hierarchy merges");
     if (with_parts) with_parts(out);
@@ -2753,9 +2758,10 @@ TrajectoryClusters clusterTrajectoriesOn(
   // With a device both are mostly chains of device calls, each leaving the device idle between
   // its calls: the merges run beside the caller's work with the parts (800k humanoid: 0.05 s of
   // merges beside 0.14 s of part motions and labels). They read only the clustering's state, the
-  // caller only the parts copied out above; the calls take turns (SharedDevice).
+  // caller only the parts copied out above.
   std::vector<ClusterMerge> merges;
   std::exception_ptr failed;
+  params.device = merges_device;
   {
     BesideThread beside;
     beside.start([&] {
@@ -2936,16 +2942,24 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
       trackSamplesOn(seq, frames, params, progress, [&] { beside.start(params.beside_chains); });
   const int T = static_cast<int>(seq.size());
   // The parts' motions and labels, made as soon as the parts are known: with a device, the
-  // hierarchy's merges above the parts run meanwhile (clusterTrajectoriesOn), the two taking
-  // turns on the device (SharedDevice).
+  // hierarchy's merges above the parts run meanwhile (clusterTrajectoriesOn).
   std::vector<std::vector<Pose>> motion;
   std::vector<int> label;
   flat.assign(seq.totalPoints(), -1);
+  // The merges' device: a fork of the device (its calls run beside the caller's on the device)
+  // or, where it offers none, the device shared by both, their calls taking turns.
+  std::unique_ptr<MotionDevice> forked;
   std::unique_ptr<SharedDevice> shared;
+  MotionDevice* merges_device = nullptr;
   MotionTrackingParams cparams = params;
   if (params.device) {
-    shared = std::make_unique<SharedDevice>(*params.device);
-    cparams.device = shared.get();
+    forked = params.device->fork();
+    if (forked) {
+      merges_device = forked.get();
+    } else {
+      shared = std::make_unique<SharedDevice>(*params.device);
+      cparams.device = merges_device = shared.get();
+    }
   }
   bool labelled = false;
   auto labelParts = [&](const TrajectoryClusters& parts) {
@@ -2955,7 +2969,8 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     labelled = true;
   };
   if (progress) progress->begin("clustering trajectories", 0);
-  const TrajectoryClusters tc = clusterTrajectoriesOn(frames, tr, cparams, labelParts);
+  const TrajectoryClusters tc =
+      clusterTrajectoriesOn(frames, tr, cparams, labelParts, merges_device);
   if (!labelled) labelParts(tc);
   const int nc = tc.groups;
   // Compact labels (a part may have lost every point to its neighbours).

@@ -22,6 +22,7 @@
 #include <cmath>
 #include <cstdio>
 #include <memory>
+#include <thread>
 #include <vector>
 
 #include "pipeline/sequence_params.h"
@@ -343,4 +344,25 @@ TEST(GpuTracking, ResidualBatchesAreTheCpusBothWays) {
   EXPECT_EQ(differ_warp, 0);
   // Not all zero: the turned sources lie off the surfaces.
   EXPECT_GT(*std::max_element(cpu.begin(), cpu.end()), 0.0);
+  // A fork of the device (the frames shared, its own buffers) called from another thread while
+  // the device is called from this one, batch after batch: every batch is still the CPU's.
+  device.setPointParallelLimit(1LL << 21);
+  const std::unique_ptr<seg::MotionDevice> fork = device.fork();
+  ASSERT_NE(fork, nullptr);
+  int differ_fork = 0, differ_here = 0;
+  std::thread beside([&] {
+    std::vector<double> out;
+    for (int round = 0; round < 50; ++round) {
+      fork->residuals(b, out);
+      differ_fork += out != cpu;
+    }
+  });
+  std::vector<double> out;
+  for (int round = 0; round < 50; ++round) {
+    device.residuals(b, out);
+    differ_here += out != cpu;
+  }
+  beside.join();
+  EXPECT_EQ(differ_fork, 0);
+  EXPECT_EQ(differ_here, 0);
 }

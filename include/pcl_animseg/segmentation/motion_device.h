@@ -18,6 +18,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -159,6 +160,11 @@ class MotionDevice {
   virtual void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) = 0;
   /** \brief One pose per job (12 doubles each, in job order). */
   virtual void partFits(const PartFitJobs& jobs, std::vector<double>& poses) = 0;
+  /** \brief A second device on the same frames that another thread may call while this one is
+   * called (its own buffers and queue; the same results), or null where the device offers none
+   * (the default: the callers then take turns). It uses this device's frames: it must not
+   * outlive this device, nor be called after setFrames() on this one. */
+  virtual std::unique_ptr<MotionDevice> fork() { return nullptr; }
 };
 
 }  // namespace segmentation

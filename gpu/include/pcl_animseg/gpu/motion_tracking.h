@@ -48,6 +48,10 @@ class MotionTracking : public segmentation::MotionDevice {
   void residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) override;
   void pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) override;
   void partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) override;
+  /** \brief A MotionTracking on this one's frames (uploaded now if pending) with its own batch
+   * buffers: its calls from another thread run beside this one's on the GPU (each host thread
+   * queues on a stream of its own). Throws Error where no frames were set or on a CUDA failure. */
+  std::unique_ptr<segmentation::MotionDevice> fork() override;
   /** \brief Seconds of the last trackSamples on the device (uploads, kernels, downloads). */
   double lastDeviceSeconds() const { return device_seconds_; }
   /** \brief Kernel launches (waves) of the last trackSamples. */
