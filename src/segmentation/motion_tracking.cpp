@@ -183,6 +183,13 @@ inline Pose toPose(const icp_step::Rigid& r) {
   return a;
 }
 
+/** The constant-velocity guess from the poses of the frames one and two before: the motion
+ * between them applied once more (Eigen's arithmetic; the samples' starts compose theirs in
+ * icp_step's, as their device does). */
+inline Pose constantVelocity(const Pose& before, const Pose& two_before) {
+  return before * two_before.inverse() * before;
+}
+
 /** a * b in icp_step's arithmetic (the tracking's starts; the same bits as its device). */
 inline Pose compose(const Pose& a, const Pose& b) {
   return toPose(icp_step::compose(toRigid(a), toRigid(b)));
@@ -940,7 +947,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   for (int t : frame_order) {
     const int tp = chain.step[t].before, tpp = chain.step[t].two_before;
     std::vector<Pose> inits{global[tp]};
-    if (tpp >= 0) inits.push_back(global[tp] * global[tpp].inverse() * global[tp]);
+    if (tpp >= 0) inits.push_back(constantVelocity(global[tp], global[tpp]));
     const std::vector<Pose> cands =
         icpFromStarts(whole, inits, frames[t], 30, 10.0 * frames[t].spacing);
     const std::vector<double> r = residualsOf(whole, cands, frames[t]);
@@ -1625,7 +1632,7 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     const int t = frame_order[task / nc], c = task % nc;
     const int tp = chain.step[t].before, tpp = chain.step[t].two_before;
     std::vector<Pose> st{init[c][t], motion[c][tp]};
-    if (tpp >= 0) st.push_back(motion[c][tp] * motion[c][tpp].inverse() * motion[c][tp]);
+    if (tpp >= 0) st.push_back(constantVelocity(motion[c][tp], motion[c][tpp]));
     const Eigen::Index m = static_cast<Eigen::Index>(smp[c].size());
     if (m >= 3) {
       Eigen::Matrix3Xd a(3, m), b(3, m);
@@ -2112,7 +2119,7 @@ TrajectoryClusters clusterTrajectoriesOn(
       const int tp = step.before, tpp = step.two_before;
       if (fit) s.push_back({(*fit)[tp], true});
       if (ib[c]) s.push_back({(*ib[c])[t], false});
-      if (fit && tpp >= 0) s.push_back({(*fit)[tp] * (*fit)[tpp].inverse() * (*fit)[tp], true});
+      if (fit && tpp >= 0) s.push_back({constantVelocity((*fit)[tp], (*fit)[tpp]), true});
       return s;
     };
     auto score = [&](int c, int t, const Pose& P) { return residual(src[c], P, frames[t]); };
