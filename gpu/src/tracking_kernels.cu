@@ -1125,8 +1125,8 @@ void runKnn(KnnStore& store, int k, const std::vector<float>& queries,
         nodes, pts, store.rows.ptr(), store.root.ptr(), q, of, n, out_rows, out_count);
   else
     knnKernel<<<static_cast<unsigned>(blocks), threads>>>(nodes, pts, store.rows.ptr(),
-                                                          store.root.ptr(), store.size.ptr(), q,
-                                                          of, n, k, out_rows, out_count);
+                                                          store.root.ptr(), store.size.ptr(), q, of,
+                                                          n, k, out_rows, out_count);
   cudaCheckLaunch();
   d_rows.download(rows.data());
   d_count.download(count.data());

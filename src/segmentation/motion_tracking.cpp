@@ -1805,8 +1805,7 @@ class ResidualBatch {
 // MotionDevice::fork, or a SharedDevice), the merges above them are made meanwhile on a thread of
 // their own with it (the same merges: neither side changes what the other reads).
 TrajectoryClusters clusterTrajectoriesOn(
-    const std::vector<Frame>& frames, const SampleTracks& tr,
-    const MotionTrackingParams& params_in,
+    const std::vector<Frame>& frames, const SampleTracks& tr, const MotionTrackingParams& params_in,
     const std::function<void(const TrajectoryClusters&)>& with_parts = {},
     MotionDevice* merges_device = nullptr) {
   // A copy: the merges beside the caller's work switch to their own device.
@@ -2847,9 +2846,8 @@ void labelByParts(const std::vector<Frame>& frames, const SampleTracks& tr,
   }
   // Part motions, tracked along the sequence as an articulated body, each refined by ICP of up
   // to 400 of its reference points.
-  motion =
-      trackParts(frames, tr, label, nc, tc.poses, tc.group, 400, params.joint_weight,
-                 params.device);
+  motion = trackParts(frames, tr, label, nc, tc.poses, tc.group, 400, params.joint_weight,
+                      params.device);
   timer.lap("labels: part motions");
   // The part motions are final now: the borders between parts are placed once more, by the
   // graph cut (motion fit plus a short border, cut where the surface folds inwards) or, with
