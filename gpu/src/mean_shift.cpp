@@ -101,7 +101,7 @@ void MeanShift::run(const Eigen::MatrixXf& z, const Eigen::RowVectorXf& metric_p
   // Active list: plain queries first, then keypoint queries (the groups slice sub-ranges).
   std::vector<int> plain, key;
   plain.reserve(n);
-  for (int i = 0; i < n; ++i) (!keypoint.empty() && keypoint[i] ? key : plain).push_back(i);
+  segmentation::splitByKeypoint(keypoint, n, plain, key);
   const bool has_key = !key.empty();
   std::vector<int> order(plain);
   order.insert(order.end(), key.begin(), key.end());

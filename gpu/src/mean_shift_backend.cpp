@@ -34,8 +34,7 @@ class ExactSums : public segmentation::DeviceExactSums {
     if (!keypoint.empty() && keypoint.size() != static_cast<std::size_t>(z.rows()))
       throw DeviceError("GPU exact sums: keypoint flags must have one entry per point");
     std::vector<Eigen::Index> plain, key;
-    for (Eigen::Index i = 0; i < z.rows(); ++i)
-      (!keypoint.empty() && keypoint[i] ? key : plain).push_back(i);
+    segmentation::splitByKeypoint(keypoint, z.rows(), plain, key);
     add(z, plain, metric_plain, 0);
     add(z, key, metric_plain, 1);
     add(z, key, metric_key, 2);
@@ -278,7 +277,7 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
   // Groups as on the CPU: non-keypoints for every query under the plain metric; keypoints under
   // the plain metric for plain queries and under the pair metric (Eq. 5) for keypoint queries.
   std::vector<Eigen::Index> plain, key;
-  for (Eigen::Index i = 0; i < n; ++i) (!keypoint.empty() && keypoint[i] ? key : plain).push_back(i);
+  segmentation::splitByKeypoint(keypoint, n, plain, key);
   std::vector<Eigen::Index> qplain, qkey;
   for (Eigen::Index r = 0; r < q; ++r)
     (!keypoint.empty() && !query_key.empty() && query_key[r] ? qkey : qplain).push_back(r);

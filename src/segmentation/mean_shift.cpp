@@ -671,8 +671,8 @@ JointKernelSum::JointKernelSum(const JointSpace& space, const Eigen::MatrixXf& v
     groups_.push_back(std::move(g));
   };
   std::vector<Eigen::Index> plain, key;
-  for (Eigen::Index i = 0; i < space.z.rows(); ++i)
-    (space.has_keypoints && space.keypoint[i] ? key : plain).push_back(i);
+  const std::vector<char> none;
+  splitByKeypoint(space.has_keypoints ? space.keypoint : none, space.z.rows(), plain, key);
   make(plain, false, 0);
   make(key, false, 1);  // Eq. 6 between a keypoint and a non-keypoint query
   make(key, true, 2);   // Eq. 5 between two keypoints

@@ -167,6 +167,19 @@ class DeviceExactSums {
                         const std::vector<char>& query_key, Eigen::MatrixXf& out) = 0;
 };
 
+/** \brief Splits the points 0 .. n-1 by their keypoint flag (`keypoint` empty: no point is a
+ * keypoint): the others into `plain`, the keypoints into `key`, each in index order. Every
+ * backend's groups (Eqs. 4-6: non-keypoints for every query, keypoints under the plain and the
+ * pair metric) start from this split. */
+template <class Index>
+void splitByKeypoint(const std::vector<char>& keypoint, Index n, std::vector<Index>& plain,
+                     std::vector<Index>& key) {
+  plain.clear();
+  key.clear();
+  for (Index i = 0; i < n; ++i)
+    (!keypoint.empty() && keypoint[static_cast<std::size_t>(i)] ? key : plain).push_back(i);
+}
+
 /** \brief Where the kernel sums of the stage run when not on the CPU: an engine object that a
  * device library implements (the CUDA module: gpu::makeMeanShiftBackend() in
  * <pcl_animseg/gpu/mean_shift_backend.h>) and the caller hands to
