@@ -7,7 +7,9 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cstdio>
+#include <cstdlib>
 #include <mutex>
 
 namespace pcl_animseg {
@@ -115,8 +117,19 @@ bool gpuAvailable(std::string* why) {
   static std::string reason;
   std::call_once(once, [] {
     probeStage().store(1);
+    // Under ANIMSEG_MS_TIMING: how long the start took, and when it ended on the steady clock
+    // (the first device call's line says when it came: whether it waited for the start).
     struct Done {
-      ~Done() { probeStage().store(2); }
+      std::chrono::steady_clock::time_point t0 = std::chrono::steady_clock::now();
+      ~Done() {
+        probeStage().store(2);
+        if (std::getenv("ANIMSEG_MS_TIMING")) {
+          const auto t1 = std::chrono::steady_clock::now();
+          std::fprintf(stderr, "[gpu] started in %.3f s (ended at %.3f s)\n",
+                       std::chrono::duration<double>(t1 - t0).count(),
+                       std::chrono::duration<double>(t1.time_since_epoch()).count());
+        }
+      }
     } done;
     int count = 0;
     cudaError_t err = cudaGetDeviceCount(&count);

@@ -5,6 +5,7 @@
 #include <pcl_animseg/gpu/motion_tracking.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <string>
@@ -161,7 +162,14 @@ void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
 
 detail::FrameStore* MotionTracking::store() {
   if (pending_) {
+    // Under ANIMSEG_MS_TIMING: when the first call came on the steady clock, and how long it
+    // waited for the GPU's start (its "[gpu] started" line says when that ended).
+    const auto t0 = std::chrono::steady_clock::now();
     requireGpu();
+    if (std::getenv("ANIMSEG_MS_TIMING"))
+      std::fprintf(stderr, "[gpu tracking] first call at %.3f s: waited %.3f s for the GPU\n",
+                   std::chrono::duration<double>(t0.time_since_epoch()).count(),
+                   std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
     frames_ = detail::uploadPackedFrames(*pending_, frames_.get());
     pending_.reset();
   }
