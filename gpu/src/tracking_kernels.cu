@@ -897,7 +897,7 @@ void getResults(FrameStore& frames, const void* device, void* host, std::size_t 
   if (!bytes) return;
   unsigned char* r = frames.results.reserve(bytes);
   cudaSafeCall(cudaMemcpyAsync(r, device, bytes, cudaMemcpyDeviceToHost, 0));
-  cudaSafeCall(cudaStreamSynchronize(0));
+  cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
   std::memcpy(host, r, bytes);
 }
 
@@ -1217,7 +1217,8 @@ double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vect
     trackTasks<<<blocks, kTrackThreads>>>(d, tasks.ptr(), n, next.ptr(), d_done.ptr());
     cudaCheckLaunch();
   }
-  cudaSafeCall(cudaDeviceSynchronize());
+  // This thread's stream only: the refinement's preparation queues its searches beside it.
+  cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
   d_poses.download(poses);
   residual.resize(static_cast<std::size_t>(TS));
   d_res.download(residual);
