@@ -214,12 +214,21 @@ class RecordingDevice : public seg::MotionDevice {
   struct Call {
     explicit Call(RecordingDevice& d) : device(d) {
       if (device.inside.fetch_add(1) != 0) device.overlapped = true;
-      const std::lock_guard<std::mutex> lock(device.callers_mutex);
-      device.callers.insert(std::this_thread::get_id());
+      {
+        const std::lock_guard<std::mutex> lock(device.callers_mutex);
+        device.callers.insert(std::this_thread::get_id());
+      }
+      if (device.fail_off_thread && std::this_thread::get_id() != device.home) {
+        device.inside.fetch_sub(1);
+        throw pcl_animseg::Error("recording device: kernel fault beside the part labels");
+      }
     }
     ~Call() { device.inside.fetch_sub(1); }
     RecordingDevice& device;
   };
+  // Calls from any thread but `home` fail (the hierarchy's merges run on a thread of their own).
+  bool fail_off_thread = false;
+  std::thread::id home = std::this_thread::get_id();
   std::atomic<int> inside{0};
   std::atomic<bool> overlapped{false};
   std::mutex callers_mutex;
@@ -327,6 +336,43 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   // of their own, and the two threads' calls took turns.
   EXPECT_EQ(backend->device.callers.size(), 2u);
   EXPECT_FALSE(backend->device.overlapped);
+}
+
+// A device that fails in the hierarchy's merges, which run on a thread of their own beside the
+// part motions and labels: the stage stops with the device's error (no crash, no wait), or
+// with the fall-back on gives the CPU's labels and merges.
+TEST(MotionDevice, AFailureBesideThePartLabelsStopsTheStageOrFallsBack) {
+  const auto seq = chain(6, 2500, 7);
+  const seg::SegmentationResult expected = segmentOnCpu(seq);
+  seg::MotionTrackingParams mp;
+  mp.point_neighbours = motionParams().neighbours;
+  const auto answer = seg::trackSamples(*seq, mp).poses;
+  for (const bool fallback : {false, true}) {
+    auto backend = std::make_shared<RecordingBackend>();
+    backend->device.answer = answer;
+    backend->device.fail_off_thread = true;
+    seg::MeanShiftSegmentation ms;
+    ms.setInputSequence(seq);
+    ms.setParams(motionParams());
+    ms.setDeviceBackend(backend, fallback);
+    seg::SegmentationResult got;
+    if (!fallback) {
+      try {
+        ms.segment(got);
+        ADD_FAILURE() << "a device failing beside the part labels must stop the stage";
+      } catch (const pcl_animseg::Error& e) {
+        EXPECT_NE(std::string(e.what()).find("beside the part labels"), std::string::npos)
+            << e.what();
+      }
+    } else {
+      ms.segment(got);
+      EXPECT_EQ(ms.deviceUsed(), "cpu");
+      EXPECT_NE(ms.fallbackReason().find("beside the part labels"), std::string::npos);
+      EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
+      EXPECT_EQ(got.merges, expected.merges);
+    }
+    EXPECT_EQ(backend->device.callers.size(), 2u);  // it did run on a thread of its own
+  }
 }
 
 TEST(MotionDevice, ADeviceStillStartingIsLeftACoreUntilItsFirstCall) {
