@@ -147,18 +147,13 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     const std::vector<float>& queries, const std::vector<int>& tree_of,
                     std::vector<int>& rows, std::vector<int>& count) {
   if (k < 1 || k > detail::kMaxKnn) return false;
-  // Uploaded for this search alone.
-  const long long token = keepKnnTrees(trees);
-  keep_knn_trees_ = false;
-  try {
-    knnOn(token, k, queries, tree_of, rows, count);
-  } catch (...) {
-    keep_knn_trees_ = true;
-    dropKnnTrees(token);
-    throw;
-  }
-  keep_knn_trees_ = true;
-  return true;
+  // Uploaded for this search alone: dropped after it, also where it throws.
+  struct Drop {
+    RigidFits& fits;
+    long long token;
+    ~Drop() { fits.dropKnnTrees(token); }
+  } drop{*this, keepKnnTrees(trees)};
+  return knnOn(drop.token, k, queries, tree_of, rows, count);
 }
 
 void RigidFits::dropKnnTrees(long long token) {
@@ -204,7 +199,6 @@ bool RigidFits::knnOn(long long token, int k, const std::vector<float>& queries,
     if (t < 0 || t >= knn_->trees) throw DeviceError("GPU k-NN: a query's tree out of range");
   const auto t0 = std::chrono::steady_clock::now();
   detail::runKnn(*knn_, k, queries, tree_of, rows, count);
-  if (!keep_knn_trees_) dropKnnTrees(token);
   if (std::getenv("ANIMSEG_MS_TIMING"))
     std::fprintf(stderr, "[gpu k-NN] k %d, %zu queries: %.3f s\n", k, tree_of.size(),
                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());

@@ -1101,7 +1101,7 @@ void uploadKnnTrees(const KnnTrees& trees, KnnStore& store) {
   store.trees = static_cast<int>(trees.root.size());
 }
 
-void runKnn(KnnStore& store, int k, const std::vector<float>& queries,
+void runKnn(const KnnStore& store, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count) {
   const long long n = static_cast<long long>(tree_of.size());
   rows.resize(static_cast<std::size_t>(n) * k);

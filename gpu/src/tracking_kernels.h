@@ -221,7 +221,7 @@ void uploadKnnTrees(const KnnTrees& trees, KnnStore& store);
  * tree_of[q] (< store.trees) of `store`: the same rows in the same order; k slots per query in
  * `rows` (-1 past count[q]). 1 <= k <= kMaxKnn (k = 1: nearest() without a bound, as
  * FlatKdTree3::knn). */
-void runKnn(KnnStore& store, int k, const std::vector<float>& queries,
+void runKnn(const KnnStore& store, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
 
 /** The largest cluster of blocks that one rigid fit runs on (thread block clusters, sm_90). */

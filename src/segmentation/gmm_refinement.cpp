@@ -118,7 +118,7 @@ class NeighbourLists {
     int k = 0;
     std::vector<int> rows, count;
     // The device that searched them and its token for the frames' trees, kept there for later
-    // searches (RigidFitDevice::keepKnnTrees; 0: not kept).
+    // searches (RigidFitDevice::keepKnnTrees; null and 0: not kept).
     RigidFitDevice* device = nullptr;
     long long trees = 0;
   };
@@ -983,7 +983,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         }
         std::vector<int> rows, count;
         // Against the trees the lists' search kept on this device, else uploaded again.
-        const bool kept = lists && lists->device == device_ && lists->trees > 0 &&
+        const bool kept = lists && lists->device == device_ &&
                           device_->knnOn(lists->trees, 1, queries, copy_frame, rows, count);
         if (kept || device_->knn(flat, 1, queries, copy_frame, rows, count)) {
           if (count.size() != copy_frame.size() || rows.size() != copy_frame.size())
@@ -1046,7 +1046,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       break;
   }
   // The trees the lists' search kept on the device are not searched again.
-  if (lists && lists->device == device_ && device_) device_->dropKnnTrees(lists->trees);
+  if (lists && lists->device) lists->device->dropKnnTrees(lists->trees);
   if (p.fold_snap_band > 0.0) {
     std::size_t snapped = 0;
     timer.lap("reassignment");

@@ -29,6 +29,7 @@
 #include <system_error>
 #include <thread>
 #include <tuple>
+#include <utility>
 
 #include "mean_shift_internal.h"
 #include "surface_fold.h"
@@ -761,29 +762,41 @@ std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned se
 namespace {
 
 // The caller's work beside the device's chains (MotionTrackingParams::beside_chains), or the
-// hierarchy's merges beside the part motions and labels, on a thread of its own from start() on,
-// joined by join() or when this goes out of scope (also where a step throws); run at once where
-// no thread can be started.
+// hierarchy's merges beside the part motions and labels, on a thread of its own from start() on;
+// run at once where no thread can be started. join() waits for it and throws what it threw;
+// going out of scope without join() (a step of the caller's threw) waits and drops that.
 class BesideThread {
  public:
   BesideThread() = default;
   void start(const std::function<void()>& work) {
     if (!work || thread_.joinable()) return;
+    auto guarded = [this, work] {
+      try {
+        work();
+      } catch (...) {
+        failed_ = std::current_exception();
+      }
+    };
     try {
-      thread_ = std::thread(work);
+      thread_ = std::thread(guarded);
     } catch (const std::system_error&) {
-      work();
+      guarded();
     }
   }
   void join() {
-    if (thread_.joinable()) thread_.join();
+    wait();
+    if (failed_) std::rethrow_exception(std::exchange(failed_, nullptr));
   }
-  ~BesideThread() { join(); }
+  ~BesideThread() { wait(); }
   BesideThread(const BesideThread&) = delete;
   BesideThread& operator=(const BesideThread&) = delete;
 
  private:
+  void wait() {
+    if (thread_.joinable()) thread_.join();
+  }
   std::thread thread_;
+  std::exception_ptr failed_;
 };
 
 // A device that two threads of the motion method share (the hierarchy's merges beside the part
@@ -2755,7 +2768,7 @@ TrajectoryClusters clusterTrajectoriesOn(
       name[survivor] = lo;
     }
   };
-  if (!with_parts || !params.device || !merges_device) {
+  if (!with_parts || !merges_device) {
     hierarchyMerges(out.merges);
     timer.lap("clustering: hierarchy merges");
     if (with_parts) with_parts(out);
@@ -2766,25 +2779,20 @@ TrajectoryClusters clusterTrajectoriesOn(
   // merges beside 0.14 s of part motions and labels). They read only the clustering's state, the
   // caller only the parts copied out above.
   std::vector<ClusterMerge> merges;
-  std::exception_ptr failed;
   params.device = merges_device;
-  {
-    BesideThread beside;
-    beside.start([&] {
-      // Its host work is light: a few threads for the loops it has (the count does not change
-      // the results; restored where this runs on the caller's thread).
-      const int threads = omp_get_max_threads();
-      omp_set_num_threads(std::min(4, threads));
-      try {
-        hierarchyMerges(merges);
-      } catch (...) {
-        failed = std::current_exception();
-      }
-      omp_set_num_threads(threads);
-    });
-    with_parts(out);
-  }
-  if (failed) std::rethrow_exception(failed);
+  BesideThread beside;
+  beside.start([&] {
+    // Its host work is light: a few threads for the loops it has (the count does not change the
+    // results; restored where this runs on the caller's thread, also where it throws).
+    struct Restore {
+      int threads;
+      ~Restore() { omp_set_num_threads(threads); }
+    } restore{omp_get_max_threads()};
+    omp_set_num_threads(std::min(4, restore.threads));
+    hierarchyMerges(merges);
+  });
+  with_parts(out);
+  beside.join();  // the merges' device error, if any, is the stage's
   out.merges = std::move(merges);
   timer.lap("clustering: hierarchy merges, beside the parts' motions and labels");
   return out;

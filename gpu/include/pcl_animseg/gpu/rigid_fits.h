@@ -75,10 +75,9 @@ class RigidFits : public segmentation::RigidFitDevice {
  private:
   std::unique_ptr<detail::FrameStore> surfaces_;
   std::unique_ptr<detail::RigidSources> sources_;
-  std::unique_ptr<detail::KnnStore> knn_;  // the kept trees and the k-NN's buffers
+  std::unique_ptr<detail::KnnStore> knn_;  // the kept trees
   long long knn_token_ = 0;                // the kept trees' token (0: none kept)
   long long knn_keeps_ = 0;                // keepKnnTrees() calls that uploaded trees
-  bool keep_knn_trees_ = true;             // false inside knn(): dropped after the search
   long long fits_ = 0, batches_ = 0;
   int cluster_ = 0, last_cluster_ = 0;
 };
