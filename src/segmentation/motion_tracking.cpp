@@ -3017,6 +3017,7 @@ void segmentByTracking(const PointCloudSequence& seq, const MotionTrackingParams
     }
   }
   if (progress) progress->end(std::to_string(num_clusters) + " parts");
+  beside.join();  // the caller's work, which must not throw: if it did, that is an error here
 }
 
 }  // namespace segmentation
