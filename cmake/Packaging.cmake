@@ -14,6 +14,9 @@ set(CPACK_DEBIAN_PACKAGE_SECTION science)
 # libpng); the libraries need OpenMP's runtime.
 set(CPACK_DEBIAN_PACKAGE_DEPENDS
     "libpcl-dev (>= 1.13), libeigen3-dev, libboost-program-options-dev, libgomp1")
+if(PCL_ANIMSEG_HAVE_JEMALLOC)
+  string(APPEND CPACK_DEBIAN_PACKAGE_DEPENDS ", libjemalloc2")  # the programs' allocator
+endif()
 if(PCL_ANIMSEG_HAVE_CUDA)
   set(CPACK_DEBIAN_PACKAGE_RECOMMENDS "nvidia-cuda-toolkit")
 endif()

@@ -2,7 +2,7 @@
 # Installs the Debian 12 packages pcl_animseg needs (skips apt when they are all present).
 set -euo pipefail
 PKGS=(build-essential cmake pkg-config libpcl-dev libopenmpi-dev libflann-dev libeigen3-dev
-      libboost-program-options-dev libgtest-dev libgmock-dev libbenchmark-dev ccache
+      libboost-program-options-dev libjemalloc-dev libgtest-dev libgmock-dev libbenchmark-dev ccache
       clang-14 libclang-rt-14-dev libomp-14-dev)
 missing=()
 for p in "${PKGS[@]}"; do
