@@ -21,7 +21,7 @@ void packTree(const FlatKdTree3& tree, int node0, int point0, TrackNode* nodes, 
  * `nodes`, its points into `points`, its root node (-1 when empty) into `root`. Returns each
  * tree's first point, with the total last (trees.size() + 1 entries). Every tree must be set. */
 std::vector<int> packTrees(const std::vector<const FlatKdTree3*>& trees,
-                           std::vector<TrackNode>& nodes, std::vector<float>& points,
+                           PackedVector<TrackNode>& nodes, PackedVector<float>& points,
                            std::vector<int>& root);
 
 /** Packs `frames` for upload (host work only, no CUDA call); throws Error (naming items as

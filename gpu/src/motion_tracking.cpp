@@ -85,7 +85,7 @@ void packTree(const FlatKdTree3& tree, int node0, int point0, TrackNode* nodes, 
 }
 
 std::vector<int> packTrees(const std::vector<const FlatKdTree3*>& trees,
-                           std::vector<TrackNode>& nodes, std::vector<float>& points,
+                           PackedVector<TrackNode>& nodes, PackedVector<float>& points,
                            std::vector<int>& root) {
   const int n = static_cast<int>(trees.size());
   std::vector<int> node0(n + 1, 0), point0(n + 1, 0);
@@ -116,7 +116,7 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
   for (std::size_t t = 0; t < in.frames.size(); ++t) {
     const segmentation::DeviceFrames::Frame& f = in.frames[t];
     if (!f.tree) throw DeviceError(what + " " + std::to_string(t) + " has no tree");
-    if (f.leaf_normals.size() != 3 * f.tree->size())
+    if (f.normals().size() != 3 * f.tree->size())
       throw DeviceError(what + " " + std::to_string(t) + " has one normal per point expected");
     trees[t] = f.tree;
     a.spacing.push_back(f.spacing);
@@ -126,7 +126,7 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
   a.normals.resize(4 * static_cast<std::size_t>(point0.back()));
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < a.frames; ++t) {
-    const std::vector<float>& nrm = in.frames[t].leaf_normals;
+    const std::vector<float>& nrm = in.frames[t].normals();
     float* out = &a.normals[4 * static_cast<std::size_t>(point0[t])];
     for (std::size_t i = 0; i < nrm.size() / 3; ++i) {
       for (int k = 0; k < 3; ++k) out[4 * i + k] = nrm[3 * i + k];

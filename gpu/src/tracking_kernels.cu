@@ -1093,8 +1093,8 @@ __global__ void nearestKernel(const TrackNode* nodes, const float4* pts, const i
 
 void uploadKnnTrees(const KnnTrees& trees, KnnStore& store) {
   store.trees = 0;
-  store.nodes.upload(trees.nodes);
-  store.points.upload(trees.points);
+  store.nodes.upload(trees.nodes.data(), trees.nodes.size());
+  store.points.upload(trees.points.data(), trees.points.size());
   store.rows.upload(trees.rows);
   store.root.upload(trees.root);
   store.size.upload(trees.size);
@@ -1148,16 +1148,28 @@ unsigned char* PinnedHost::reserve(std::size_t bytes) {
   return static_cast<unsigned char*>(ptr_);
 }
 
+namespace {
+// `n` elements from `host` into `a`, whose buffer is kept where it holds them (a store's frames
+// replaced by others of no more points: no cudaFree, which waits for the device, and no
+// cudaMalloc).
+template <class T>
+void uploadInto(DeviceArray<T>& a, const T* host, std::size_t n) {
+  if (a.sizeBytes() < n * sizeof(T)) a.create(n);
+  a.uploadBytes(host, n * sizeof(T));
+}
+}  // namespace
+
 void uploadFrames(const FrameArrays& in, FrameStore& store) {
-  store.frames = in.frames;
+  store.frames = 0;  // no frames while they are replaced: a failed upload leaves none
   store.normal_cos = in.normal_cos;
   store.clip = in.clip;
-  store.nodes.upload(in.nodes);
-  store.root.upload(in.root);
-  store.points.upload(in.points);
-  store.normals.upload(in.normals);
-  store.spacing.upload(in.spacing);
-  store.unoriented.upload(in.unoriented);
+  uploadInto(store.nodes, in.nodes.data(), in.nodes.size());
+  uploadInto(store.root, in.root.data(), in.root.size());
+  uploadInto(store.points, in.points.data(), in.points.size());
+  uploadInto(store.normals, in.normals.data(), in.normals.size());
+  uploadInto(store.spacing, in.spacing.data(), in.spacing.size());
+  uploadInto(store.unoriented, in.unoriented.data(), in.unoriented.size());
+  store.frames = in.frames;
 }
 
 double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vector<double>& poses,

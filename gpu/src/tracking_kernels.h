@@ -5,6 +5,8 @@
 #include <pcl_animseg/gpu/device_array.h>
 
 #include <chrono>
+#include <memory>
+#include <utility>
 #include <vector>
 
 namespace pcl_animseg {
@@ -20,6 +22,29 @@ struct TrackNode {
   int b;
 };
 
+/** An allocator whose resize leaves new elements of trivial types uninitialised: the packed
+ * frames are written whole right after (a zeroing pass, serial, was a third of their packing). */
+template <class T>
+struct NoInitAllocator : std::allocator<T> {
+  template <class U>
+  struct rebind {
+    using other = NoInitAllocator<U>;
+  };
+  NoInitAllocator() = default;
+  template <class U>
+  NoInitAllocator(const NoInitAllocator<U>&) noexcept {}
+  template <class U>
+  void construct(U* p) noexcept {
+    ::new (static_cast<void*>(p)) U;
+  }
+  template <class U, class... Args>
+  void construct(U* p, Args&&... args) {
+    ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+  }
+};
+template <class T>
+using PackedVector = std::vector<T, NoInitAllocator<T>>;
+
 /** A pose as 12 doubles: the rotation row by row, then the translation. */
 constexpr int kPoseDoubles = 12;
 
@@ -28,10 +53,10 @@ struct FrameArrays {
   int frames = 0;
   double normal_cos = 0.3;
   double clip = 4.0;
-  std::vector<TrackNode> nodes;
-  std::vector<int> root;        // per frame: root node, -1 when empty
-  std::vector<float> points;    // 4 per point (x, y, z, 0), leaf order
-  std::vector<float> normals;   // 4 per point
+  PackedVector<TrackNode> nodes;
+  std::vector<int> root;         // per frame: root node, -1 when empty
+  PackedVector<float> points;    // 4 per point (x, y, z, 0), leaf order
+  PackedVector<float> normals;   // 4 per point
   std::vector<double> spacing;  // per frame
   std::vector<int> unoriented;  // per frame
 };
@@ -107,6 +132,8 @@ class CallTimer {
 /** Prints a store's call statistics (see FrameStore::stats) under ANIMSEG_MS_TIMING. */
 void reportCalls(const FrameStore& store, const char* owner);
 
+/** Puts `in` on the device as `store`'s frames, in place of any there: a buffer that holds its
+ * array is kept, others are allocated again; the store's batch buffers are not touched. */
 void uploadFrames(const FrameArrays& in, FrameStore& store);
 
 /** The tracking's fits besides the frames. */
@@ -196,10 +223,10 @@ struct RigidParams {
 /** Trees for k-NN queries (FlatKdTree3's nodes, points and input rows, every tree after the
  * other, indices made global). */
 struct KnnTrees {
-  std::vector<TrackNode> nodes;
-  std::vector<int> root;      // per tree: root node, -1 when empty
-  std::vector<int> size;      // per tree: points
-  std::vector<float> points;  // 4 per point (x, y, z, 0), leaf order
+  PackedVector<TrackNode> nodes;
+  std::vector<int> root;       // per tree: root node, -1 when empty
+  std::vector<int> size;       // per tree: points
+  PackedVector<float> points;  // 4 per point (x, y, z, 0), leaf order
   std::vector<int> rows;      // per point: its row in its own tree
 };
 

@@ -478,7 +478,10 @@ class DeviceFits {
     return static_cast<int>(sources_.size()) - 1;
   }
   int addSurface(const Surface& s) {
-    surfaces_.frames.push_back({&s.tree, s.leaf_normals, 1.0, false});
+    DeviceFrames::Frame f;
+    f.tree = &s.tree;
+    f.leaf_normals_of = &s.leaf_normals;  // the surfaces outlive upload(): not copied
+    surfaces_.frames.push_back(f);
     return static_cast<int>(surfaces_.frames.size()) - 1;
   }
   void upload() {

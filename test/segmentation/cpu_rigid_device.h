@@ -20,7 +20,7 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
     normals.clear();
     for (const auto& f : s.frames) {
       trees.push_back(*f.tree);
-      normals.push_back(f.leaf_normals);
+      normals.push_back(f.normals());
     }
   }
   void setSources(const std::vector<const std::vector<double>*>& s) override {

@@ -34,6 +34,13 @@ struct DeviceFrames {
     std::vector<float> leaf_normals;
     double spacing = 1.0;     ///< mean point spacing
     bool unoriented = false;  ///< normals compared by |n . n'| (their sign is a guess)
+    /** Where set, the normals in place of leaf_normals, not copied (they must outlive the
+     * call that is given the frames): the rigid motions' 940 part surfaces at 800k. */
+    const std::vector<float>* leaf_normals_of = nullptr;
+    /** The normals: *leaf_normals_of where set, else leaf_normals. */
+    const std::vector<float>& normals() const {
+      return leaf_normals_of ? *leaf_normals_of : leaf_normals;
+    }
   };
   std::vector<Frame> frames;
   double normal_cos = 0.3;  ///< points whose normals' cosine is below this are not matched
