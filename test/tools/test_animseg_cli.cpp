@@ -112,6 +112,25 @@ TEST(AnimsegCli, SaysWhenItEstimatedTheNormals) {
   }
 }
 
+// Where the build links the programs with jemalloc (cmake/Allocator.cmake), they allocate
+// through it with transparent huge pages for the heap and its metadata (tools/jemalloc_conf.c):
+// jemalloc's statistics at exit, asked for in the environment, show the options in force.
+TEST(AnimsegCli, ProgramsAllocateThroughJemallocWithHugePages) {
+#ifndef PCL_ANIMSEG_PROGRAMS_USE_JEMALLOC
+  GTEST_SKIP() << "this build's programs use the C library's allocator";
+#else
+  TempDir tmp;
+  const RunResult r = run("MALLOC_CONF=stats_print:true " + tool("animseg") + " --help", tmp.dir());
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("jemalloc statistics"), std::string::npos) << r.err.substr(0, 400);
+  EXPECT_NE(r.err.find("opt.thp: \"always\""), std::string::npos) << r.err.substr(0, 2000);
+  EXPECT_NE(r.err.find("opt.metadata_thp: \"always\""), std::string::npos);
+  // Without the request nothing of it is printed.
+  const RunResult plain = run(tool("animseg") + " --help", tmp.dir());
+  EXPECT_EQ(plain.err.find("jemalloc"), std::string::npos) << plain.err;
+#endif
+}
+
 TEST(AnimsegCli, QuietPrintsNothing) {
   TempDir tmp;
   makeSequence(tmp.dir() / "in");
