@@ -1,10 +1,11 @@
 # The programs' allocator. PCL_ANIMSEG_WITH_JEMALLOC (AUTO|ON|OFF, default AUTO): the tools and
 # the benchmarks allocate through jemalloc with transparent huge pages (tools/jemalloc_conf.c),
 # where libjemalloc-dev is installed. Measured on the GPU machine (docs/gpu.md, stop 45): the
-# default pipeline at 800k points takes about 0.1 s less (130k -> 39k page faults; glibc's own
-# malloc with huge pages does as well only through GLIBC_TUNABLES, which a program cannot set for
-# itself). The libraries allocate through whatever allocator the program that loads them uses:
-# a PCL pipeline of its own keeps its allocator. Off under the sanitizers, which bring their own.
+# default pipeline at 800k points takes 0.08 s less (10 interleaved pairs; 130k -> 36k page
+# faults); jemalloc without huge pages gains nothing, and glibc's malloc with them only through
+# GLIBC_TUNABLES, which a program cannot set for itself. The libraries allocate through whatever
+# allocator the program that loads them uses: a PCL pipeline of its own keeps its allocator. Off
+# under the sanitizers, which bring their own.
 set(PCL_ANIMSEG_WITH_JEMALLOC AUTO CACHE STRING "Link the programs with jemalloc (AUTO|ON|OFF)")
 set_property(CACHE PCL_ANIMSEG_WITH_JEMALLOC PROPERTY STRINGS AUTO ON OFF)
 add_library(pcl_animseg_allocator INTERFACE)

@@ -81,8 +81,7 @@ void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
   // Into the store of the surfaces before: its device buffers where they hold the new surfaces,
   // its batch buffers and what it measured of the device are kept (a new store for each of the
   // rigid motions' computations cost 0.004-0.009 s of cudaFree and cudaMalloc at 800k).
-  const detail::FrameArrays packed =
-      detail::packDeviceFrames(surfaces, "GPU rigid fits: surface");
+  const detail::FrameArrays packed = detail::packDeviceFrames(surfaces, "GPU rigid fits: surface");
   if (!surfaces_) surfaces_ = std::make_unique<detail::FrameStore>();
   detail::uploadFrames(packed, *surfaces_);
 }

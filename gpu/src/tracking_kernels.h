@@ -54,9 +54,9 @@ struct FrameArrays {
   double normal_cos = 0.3;
   double clip = 4.0;
   PackedVector<TrackNode> nodes;
-  std::vector<int> root;         // per frame: root node, -1 when empty
-  PackedVector<float> points;    // 4 per point (x, y, z, 0), leaf order
-  PackedVector<float> normals;   // 4 per point
+  std::vector<int> root;        // per frame: root node, -1 when empty
+  PackedVector<float> points;   // 4 per point (x, y, z, 0), leaf order
+  PackedVector<float> normals;  // 4 per point
   std::vector<double> spacing;  // per frame
   std::vector<int> unoriented;  // per frame
 };
