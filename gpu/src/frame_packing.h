@@ -33,11 +33,6 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& frames, const std
 std::unique_ptr<FrameStore> uploadPackedFrames(const FrameArrays& packed,
                                                const FrameStore* previous);
 
-/** packDeviceFrames, then uploadPackedFrames. */
-std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& frames,
-                                               const std::string& what,
-                                               const FrameStore* previous);
-
 }  // namespace detail
 }  // namespace gpu
 }  // namespace pcl_animseg

@@ -219,7 +219,7 @@ void MeanShift::density(const Eigen::MatrixXf& queries, const std::vector<char>&
   // Plain queries first, then keypoint queries, as the iteration lists them.
   std::vector<int> rows, key_rows;
   rows.reserve(static_cast<std::size_t>(q));
-  for (int r = 0; r < q; ++r) (!query_key.empty() && query_key[r] ? key_rows : rows).push_back(r);
+  segmentation::splitByKeypoint(query_key, q, rows, key_rows);
   const int np = static_cast<int>(rows.size()), nk = static_cast<int>(key_rows.size());
   rows.insert(rows.end(), key_rows.begin(), key_rows.end());
   DeviceArray<int> d_rows(rows.data(), rows.size());

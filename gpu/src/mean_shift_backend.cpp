@@ -278,9 +278,9 @@ void MeanShiftBackend::density(const Eigen::MatrixXf& z, const Eigen::RowVectorX
   // the plain metric for plain queries and under the pair metric (Eq. 5) for keypoint queries.
   std::vector<Eigen::Index> plain, key;
   segmentation::splitByKeypoint(keypoint, n, plain, key);
-  std::vector<Eigen::Index> qplain, qkey;
-  for (Eigen::Index r = 0; r < q; ++r)
-    (!keypoint.empty() && !query_key.empty() && query_key[r] ? qkey : qplain).push_back(r);
+  std::vector<Eigen::Index> qplain, qkey;  // keypoint queries only where there are keypoints
+  const std::vector<char> none;
+  segmentation::splitByKeypoint(keypoint.empty() ? none : query_key, q, qplain, qkey);
   auto add = [&](int slot, const std::vector<Eigen::Index>& data,
                  const std::vector<Eigen::Index>& rows, const Eigen::RowVectorXf& metric,
                  bool all_queries) {

@@ -144,12 +144,6 @@ std::unique_ptr<FrameStore> uploadPackedFrames(const FrameArrays& packed,
   return store;
 }
 
-std::unique_ptr<FrameStore> uploadDeviceFrames(const segmentation::DeviceFrames& in,
-                                               const std::string& what,
-                                               const FrameStore* previous) {
-  return uploadPackedFrames(packDeviceFrames(in, what), previous);
-}
-
 }  // namespace detail
 
 void MotionTracking::setFrames(const segmentation::DeviceFrames& in) {
