@@ -11,6 +11,7 @@
 #include <limits>
 #include <map>
 #include <memory>
+#include <numeric>
 #include <queue>
 #include <tuple>
 
@@ -167,6 +168,17 @@ class NeighbourLists {
 };
 
 using Trees = std::vector<pcl_animseg::KdTree<pcl::PointNormal>>;
+
+// Frame indices, the most work first (ties in frame order). A loop over 48 frames on 16 cores
+// is three frames a core: taken in frame order, a large frame started last kept the other cores
+// waiting; largest first, a greedy schedule ends within 4/3 of the best one. Each frame writes
+// its own results, so the order changes no result.
+std::vector<int> mostWorkFirst(const std::vector<std::size_t>& work) {
+  std::vector<int> order(work.size());
+  std::iota(order.begin(), order.end(), 0);
+  std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return work[a] > work[b]; });
+  return order;
+}
 
 // Each frame's kd-tree, the frames side by side.
 Trees frameTrees(const PointCloudSequence& seq) {
@@ -472,13 +484,24 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     throw Error("GMM refinement: labels for " + std::to_string(input.labels.size()) +
                 " frames, sequence has " + std::to_string(frames));
   int num_labels = input.num_clusters;
+  std::vector<std::size_t> frame_size(frames);
   for (std::size_t t = 0; t < frames; ++t) {
     if (input.labels[t].size() != sequence_->frame(t)->size())
       throw Error("GMM refinement: frame " + std::to_string(t) + " has " +
                   std::to_string(input.labels[t].size()) + " labels for " +
                   std::to_string(sequence_->frame(t)->size()) + " points");
-    for (int l : input.labels[t]) num_labels = std::max(num_labels, l + 1);
+    frame_size[t] = input.labels[t].size();
   }
+#pragma omp parallel for schedule(static) reduction(max : num_labels)
+  for (int t = 0; t < static_cast<int>(frames); ++t)
+    for (int l : input.labels[t]) num_labels = std::max(num_labels, l + 1);
+  // The per-frame loops below take the frames largest first (mostWorkFirst).
+  const std::vector<int> by_size = mostWorkFirst(frame_size);
+  auto sizesOf = [&](const auto& per_frame) {
+    std::vector<std::size_t> n(frames);
+    for (std::size_t t = 0; t < frames; ++t) n[t] = per_frame[t].size();
+    return n;
+  };
   output = input;
   stats_ = RefinementStats();
   motions_.clear();
@@ -598,7 +621,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     band.assign(frames, {});
     boundary.assign(frames, {});
 #pragma omp parallel for schedule(dynamic)
-    for (int t = 0; t < static_cast<int>(frames); ++t) {
+    for (int i = 0; i < static_cast<int>(frames); ++i) {
+      const int t = by_size[i];
       const Cloud& cloud = *sequence_->frame(t);
       const std::vector<int>& lab = labels[t];
       const double s = spacing[t];
@@ -637,7 +661,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     }
 
 #pragma omp parallel for schedule(dynamic)
-    for (int t = 0; t < static_cast<int>(frames); ++t) {
+    for (int i = 0; i < static_cast<int>(frames); ++i) {
+      const int t = by_size[i];
       const Cloud& cloud = *sequence_->frame(t);
       const std::vector<int>& lab = labels[t];
       const double s = spacing[t];
@@ -749,8 +774,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       Eigen::Vector3d pos, nrm;
     };
     std::vector<std::vector<Placed>> placed(frames);
+    const std::vector<int> by_band = mostWorkFirst(sizesOf(band));
 #pragma omp parallel for schedule(dynamic)
-    for (int t = 0; t < static_cast<int>(frames); ++t) {
+    for (int i = 0; i < static_cast<int>(frames); ++i) {
+      const int t = by_band[i];
       const int g = pool ? 0 : t;
       const Cloud& cloud = *sequence_->frame(t);
       std::vector<Placed>& out = placed[t];
@@ -897,7 +924,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // min_log_ratio, in band order: (point, own label, other label).
     std::vector<std::vector<std::array<int, 3>>> verdict(frames);
 #pragma omp parallel for schedule(dynamic) reduction(+ : band_w)
-    for (int t = 0; t < static_cast<int>(frames); ++t) {
+    for (int i = 0; i < static_cast<int>(frames); ++i) {
+      const int t = by_band[i];
       const int g = pool ? 0 : t;
       const Cloud& cloud = *sequence_->frame(t);
       std::vector<int> idx(1);
@@ -948,6 +976,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // that offers them, all copies' nearest points in one call (FlatKdTree3::knn with k = 1,
     // the same points), the terms on the CPU either way.
     timer.lap("reassignment: verdicts");
+    const std::vector<int> by_verdicts = mostWorkFirst(sizesOf(verdict));
     std::vector<std::vector<std::array<float, 2>>> motion_res(frames);
     if (check_motion) {
       std::vector<std::size_t> first(frames + 1, 0);  // each frame's first residual (2 a verdict)
@@ -956,21 +985,25 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       // written: one allocation each instead of a vector per residual).
       std::vector<std::size_t> at(first[frames] + 1, 0);
 #pragma omp parallel for schedule(dynamic)
-      for (int t = 0; t < static_cast<int>(frames); ++t)
+      for (int i = 0; i < static_cast<int>(frames); ++i) {
+        const int t = by_verdicts[i];
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
           for (int k = 0; k < 2; ++k)
             at[first[t] + 2 * v + k + 1] =
                 movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], nullptr, nullptr);
+      }
       for (std::size_t r = 0; r + 1 < at.size(); ++r) at[r + 1] += at[r];
       std::vector<int> copy_frame(at.back());
       std::vector<Eigen::Vector3d> copy_pos(at.back());
 #pragma omp parallel for schedule(dynamic)
-      for (int t = 0; t < static_cast<int>(frames); ++t)
+      for (int i = 0; i < static_cast<int>(frames); ++i) {
+        const int t = by_verdicts[i];
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
           for (int k = 0; k < 2; ++k) {
             const std::size_t c = at[first[t] + 2 * v + k];
             movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], &copy_frame[c], &copy_pos[c]);
           }
+      }
       // Every copy's nearest point (a cloud index, -1: none).
       std::vector<int> nearest(at.back(), -1);
       bool searched = false;
@@ -1008,7 +1041,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         }
       }
 #pragma omp parallel for schedule(dynamic)
-      for (int t = 0; t < static_cast<int>(frames); ++t) {
+      for (int i = 0; i < static_cast<int>(frames); ++i) {
+        const int t = by_verdicts[i];
         motion_res[t].resize(verdict[t].size());
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
           for (int k = 0; k < 2; ++k) {
@@ -1025,7 +1059,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // 3c. The motion check (the other part's motion must explain the point about as well as its
     // own) and the fold check, in band order.
 #pragma omp parallel for schedule(dynamic)
-    for (int t = 0; t < static_cast<int>(frames); ++t)
+    for (int i = 0; i < static_cast<int>(frames); ++i) {
+      const int t = by_verdicts[i];
       for (std::size_t v = 0; v < verdict[t].size(); ++v) {
         const auto [j, own, other] = verdict[t][v];
         if (check_motion && motion_res[t][v][1] > (1.0 + p.motion_tolerance) * motion_res[t][v][0])
@@ -1033,6 +1068,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         if (fold_cos < 1.0 && acrossFold(t, j, other)) continue;
         changes[t].emplace_back(j, other);
       }
+    }
     if (iter == 0) stats_.band_points = band_w;
     std::size_t changed = 0;
     for (std::size_t t = 0; t < frames; ++t)
@@ -1051,8 +1087,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     std::size_t snapped = 0;
     timer.lap("reassignment");
 #pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
-    for (int t = 0; t < static_cast<int>(frames); ++t)
+    for (int i = 0; i < static_cast<int>(frames); ++i) {
+      const int t = by_size[i];
       snapped += foldSnap(*sequence_->frame(t), knn[t], spacing[t], p, labels[t]);
+    }
     stats_.snapped = snapped;
     timer.lap("fold snap");
   }

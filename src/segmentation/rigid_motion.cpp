@@ -727,15 +727,17 @@ int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>&
   if (labels.size() != frames)
     throw Error("rigid motion: " + std::to_string(labels.size()) +
                 " label frames for a sequence of " + std::to_string(frames) + " frames");
-  int max_label = -1;
-  for (std::size_t t = 0; t < frames; ++t) {
+  for (std::size_t t = 0; t < frames; ++t)
     if (labels[t].size() != sequence_->frame(t)->size())
       throw Error("rigid motion: frame " + std::to_string(t) + " has " +
                   std::to_string(labels[t].size()) + " labels for " +
                   std::to_string(sequence_->frame(t)->size()) + " points");
+  if (num_parts > 0) return num_parts;
+  int max_label = -1;
+#pragma omp parallel for schedule(static) reduction(max : max_label)
+  for (int t = 0; t < static_cast<int>(frames); ++t)
     for (int l : labels[t]) max_label = std::max(max_label, l);
-  }
-  return num_parts > 0 ? num_parts : max_label + 1;
+  return max_label + 1;
 }
 
 namespace {
@@ -822,21 +824,35 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
     // -3: several, or unlabelled points); to[a] likewise for a's points.
     std::vector<int> from(static_cast<std::size_t>(nb), -2), to(static_cast<std::size_t>(na), -2);
     bool same_shape = prev.size() == cur.size();
-    for (std::size_t t = 0; same_shape && t < cur.size(); ++t) {
-      if (prev[t].size() != cur[t].size()) {
-        same_shape = false;
-        break;
+    for (std::size_t t = 0; same_shape && t < cur.size(); ++t)
+      same_shape = prev[t].size() == cur[t].size();
+    if (same_shape) {
+      // Each frame's from / to, the frames side by side, then joined: a part's entry is its one
+      // source if every frame that has it agrees, else -3; the same as one pass over all points.
+      const int nf = static_cast<int>(cur.size());
+      std::vector<int> frame_from(static_cast<std::size_t>(nf) * nb, -2),
+          frame_to(static_cast<std::size_t>(nf) * na, -2);
+#pragma omp parallel for schedule(static)
+      for (int t = 0; t < nf; ++t) {
+        int* f = frame_from.data() + static_cast<std::size_t>(t) * nb;
+        int* g = frame_to.data() + static_cast<std::size_t>(t) * na;
+        for (std::size_t j = 0; j < cur[t].size(); ++j) {
+          const int a = prev[t][j], b = cur[t][j];
+          if (b >= 0 && b < nb) {
+            int& s = f[b];
+            s = (a < 0 || a >= na) ? -3 : (s == -2 || s == a) ? a : -3;
+          }
+          if (a >= 0 && a < na) {
+            int& m = g[a];
+            m = (b < 0 || b >= nb) ? -3 : (m == -2 || m == b) ? b : -3;
+          }
+        }
       }
-      for (std::size_t j = 0; j < cur[t].size(); ++j) {
-        const int a = prev[t][j], b = cur[t][j];
-        if (b >= 0 && b < nb) {
-          int& s = from[b];
-          s = (a < 0 || a >= na) ? -3 : (s == -2 || s == a) ? a : -3;
-        }
-        if (a >= 0 && a < na) {
-          int& m = to[a];
-          m = (b < 0 || b >= nb) ? -3 : (m == -2 || m == b) ? b : -3;
-        }
+      auto join = [](int& s, int v) { s = v == -2 ? s : (s == -2 || s == v) ? v : -3; };
+      for (int t = 0; t < nf; ++t) {
+        for (int b = 0; b < nb; ++b)
+          join(from[b], frame_from[static_cast<std::size_t>(t) * nb + b]);
+        for (int a = 0; a < na; ++a) join(to[a], frame_to[static_cast<std::size_t>(t) * na + a]);
       }
     }
     source[l].assign(static_cast<std::size_t>(nb), -1);
