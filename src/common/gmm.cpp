@@ -150,21 +150,49 @@ GaussianMixture fitGMM(const Eigen::MatrixX3d& x, const GMMOptions& options) {
   }
   updateGMMCache(gmm);
 
-  Eigen::MatrixXd resp(n, k);
+  // EM over the points in one row-major array, written out by hand: per point and iteration
+  // one exp per component (the responsibilities reuse the log-sum-exp's terms) and no
+  // temporaries (Eigen's column products allocated two N x 3 matrices per component and
+  // iteration). The refinement's 1300 fits at 800k spent 0.05 s of 16 cores here.
+  std::vector<double> px(static_cast<std::size_t>(n) * 3);
+  for (Eigen::Index i = 0; i < n; ++i)
+    for (int d = 0; d < 3; ++d) px[3 * i + d] = x(i, d);
+  std::vector<double> resp(static_cast<std::size_t>(n) * k);  // row-major: point i's k values
   double prev = -std::numeric_limits<double>::infinity();
   for (int it = 0; it < options.max_iterations; ++it) {
-    // E step (log domain, so far-away points do not underflow to 0/0).
+    // E step (log domain, so far-away points do not underflow to 0/0). The precisions are
+    // symmetric: the quadratic form from their upper triangle.
+    double lnorm[64], pr[64][6], mu[64][3];
+    for (int c = 0; c < k; ++c) {
+      const Eigen::Matrix3d& P = gmm.precisions[c];
+      lnorm[c] = gmm.log_norms[c];
+      pr[c][0] = P(0, 0), pr[c][1] = P(1, 1), pr[c][2] = P(2, 2);
+      pr[c][3] = 2.0 * P(0, 1), pr[c][4] = 2.0 * P(0, 2), pr[c][5] = 2.0 * P(1, 2);
+      for (int d = 0; d < 3; ++d) mu[c][d] = gmm.means[c][d];
+    }
     double ll = 0.0;
     for (Eigen::Index i = 0; i < n; ++i) {
+      const double* p = &px[3 * i];
       double v[64];
-      const Eigen::Vector3d p = x.row(i).transpose();
+      double m = -std::numeric_limits<double>::infinity();
       for (int c = 0; c < k; ++c) {
-        const Eigen::Vector3d d = p - gmm.means[c];
-        v[c] = gmm.log_norms[c] - 0.5 * d.dot(gmm.precisions[c] * d);
+        const double d0 = p[0] - mu[c][0], d1 = p[1] - mu[c][1], d2 = p[2] - mu[c][2];
+        const double q = pr[c][0] * d0 * d0 + pr[c][1] * d1 * d1 + pr[c][2] * d2 * d2 +
+                         pr[c][3] * d0 * d1 + pr[c][4] * d0 * d2 + pr[c][5] * d1 * d2;
+        v[c] = lnorm[c] - 0.5 * q;
+        m = std::max(m, v[c]);
       }
-      const double lse = logSumExp(v, k);
-      ll += lse;
-      for (int c = 0; c < k; ++c) resp(i, c) = std::exp(v[c] - lse);
+      double* r = &resp[static_cast<std::size_t>(i) * k];
+      if (!std::isfinite(m)) {  // no component explains the point: logSumExp's answer
+        ll += m;
+        for (int c = 0; c < k; ++c) r[c] = 0.0;
+        continue;
+      }
+      double sum = 0.0;
+      for (int c = 0; c < k; ++c) sum += (r[c] = std::exp(v[c] - m));
+      ll += m + std::log(sum);
+      const double inv = 1.0 / sum;
+      for (int c = 0; c < k; ++c) r[c] *= inv;
     }
     ll /= static_cast<double>(n);
     gmm.log_likelihood = ll;
@@ -174,17 +202,43 @@ GaussianMixture fitGMM(const Eigen::MatrixX3d& x, const GMMOptions& options) {
       break;
     }
     prev = ll;
-    // M step.
+    // M step: each component's weight and mean, then its covariance about that mean.
+    double nk[64], sx[64][3];
+    for (int c = 0; c < k; ++c) nk[c] = sx[c][0] = sx[c][1] = sx[c][2] = 0.0;
+    for (Eigen::Index i = 0; i < n; ++i) {
+      const double* p = &px[3 * i];
+      const double* r = &resp[static_cast<std::size_t>(i) * k];
+      for (int c = 0; c < k; ++c) {
+        nk[c] += r[c];
+        for (int d = 0; d < 3; ++d) sx[c][d] += r[c] * p[d];
+      }
+    }
+    double sc[64][6];
     for (int c = 0; c < k; ++c) {
-      const double nk = resp.col(c).sum();
-      if (nk < 1e-8) continue;  // an empty component keeps its last parameters (tiny weight)
-      Eigen::Vector3d mu = (x.transpose() * resp.col(c)) / nk;
-      const Eigen::MatrixX3d centred = x.rowwise() - mu.transpose();
-      Eigen::Matrix3d cov =
-          centred.transpose() * (centred.array().colwise() * resp.col(c).array()).matrix() / nk;
-      gmm.weights[c] = nk / static_cast<double>(n);
-      gmm.means[c] = mu;
-      gmm.covariances[c] = 0.5 * (cov + cov.transpose()) + reg;
+      for (int d = 0; d < 6; ++d) sc[c][d] = 0.0;
+      if (nk[c] < 1e-8) continue;
+      for (int d = 0; d < 3; ++d) mu[c][d] = sx[c][d] / nk[c];
+    }
+    for (Eigen::Index i = 0; i < n; ++i) {
+      const double* p = &px[3 * i];
+      const double* r = &resp[static_cast<std::size_t>(i) * k];
+      for (int c = 0; c < k; ++c) {
+        const double d0 = p[0] - mu[c][0], d1 = p[1] - mu[c][1], d2 = p[2] - mu[c][2];
+        const double w = r[c];
+        sc[c][0] += w * d0 * d0, sc[c][1] += w * d1 * d1, sc[c][2] += w * d2 * d2;
+        sc[c][3] += w * d0 * d1, sc[c][4] += w * d0 * d2, sc[c][5] += w * d1 * d2;
+      }
+    }
+    for (int c = 0; c < k; ++c) {
+      if (nk[c] < 1e-8) continue;  // an empty component keeps its last parameters (tiny weight)
+      Eigen::Matrix3d cov;
+      cov(0, 0) = sc[c][0], cov(1, 1) = sc[c][1], cov(2, 2) = sc[c][2];
+      cov(0, 1) = cov(1, 0) = sc[c][3];
+      cov(0, 2) = cov(2, 0) = sc[c][4];
+      cov(1, 2) = cov(2, 1) = sc[c][5];
+      gmm.weights[c] = nk[c] / static_cast<double>(n);
+      gmm.means[c] = Eigen::Vector3d(mu[c][0], mu[c][1], mu[c][2]);
+      gmm.covariances[c] = cov / nk[c] + reg;
     }
     double wsum = 0.0;
     for (double w : gmm.weights) wsum += w;

@@ -4,7 +4,8 @@
  * The boundary refinement (Sect. 4 of the paper) models the normals of a small band with a
  * 4-component GMM. None of our dependencies offers GMM/EM (PCL, Eigen, FLANN, Boost; OpenCV's
  * cv::ml::EM is not a dependency), and the models are tiny (3-D, K = 4, a few hundred points),
- * so a small fixed-size Eigen EM is both the simplest and the fastest option.
+ * so a small EM written out by hand (Eigen types in and out) is both the simplest and the
+ * fastest option.
  */
 #include <Eigen/Core>
 #include <vector>
