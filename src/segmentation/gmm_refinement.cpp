@@ -614,6 +614,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   std::vector<std::vector<BandPoint>> band(frames);
   std::vector<std::vector<std::tuple<int, int, int>>> boundary(frames);  // (index, a, b)
   std::vector<std::vector<int>> pairs_of;                                // the pairs of each label
+  std::vector<std::vector<std::pair<int, int>>> frame_pairs(frames);
   int num_pairs = 0;
   auto findBands = [&]() {
     pair_id.clear();
@@ -646,9 +647,17 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
           boundary[t].emplace_back(static_cast<int>(j), std::min(lab[j], other),
                                    std::max(lab[j], other));
       }
-    }
-    for (std::size_t t = 0; t < frames; ++t)
+      // The frame's pairs in the order they first appear (a few per frame).
+      std::vector<std::pair<int, int>>& seen = frame_pairs[t];
+      seen.clear();
       for (const auto& [j, a, b] : boundary[t])
+        if (std::find(seen.begin(), seen.end(), std::make_pair(a, b)) == seen.end())
+          seen.emplace_back(a, b);
+    }
+    // Pair ids in order of first appearance over the frames in order: the frames' own lists
+    // joined (one map insertion per boundary point was a serial pass over all of them).
+    for (std::size_t t = 0; t < frames; ++t)
+      for (const auto& [a, b] : frame_pairs[t])
         if (pair_id.emplace(std::make_pair(a, b), static_cast<int>(pairs.size())).second)
           pairs.push_back(Pair{a, b});
     if (pairs.empty()) return false;
@@ -802,16 +811,38 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
             Placed{static_cast<int>(modelIndex(g, bp.pair, bp.side)), true, cx, cn / len});
       }
     }
-    for (std::size_t t = 0; t < frames; ++t)
-      for (const Placed& e : placed[t]) {
-        SideModel& m = models[e.model];
-        if (e.train) {
-          m.train_pos.push_back(e.pos);
-          m.train_nrm.push_back(e.nrm);
-        } else {
-          m.boundary_pos.push_back(e.pos);
-        }
+    // Each model's points gathered from the frames in order, the models side by side: each
+    // frame's entries sorted by model first (stable: the frame's order kept within a model).
+    auto byModel = [](const Placed& x, const Placed& y) { return x.model < y.model; };
+#pragma omp parallel for schedule(dynamic)
+    for (int i = 0; i < static_cast<int>(frames); ++i)
+      std::stable_sort(placed[by_band[i]].begin(), placed[by_band[i]].end(), byModel);
+#pragma omp parallel for schedule(dynamic)
+    for (int mi = 0; mi < static_cast<int>(models.size()); ++mi) {
+      SideModel& m = models[mi];
+      const Placed key{mi, false, {}, {}};
+      std::vector<std::pair<std::size_t, std::size_t>> range(frames);
+      std::size_t train = 0, bound = 0;
+      for (std::size_t t = 0; t < frames; ++t) {
+        const auto [lo, hi] = std::equal_range(placed[t].begin(), placed[t].end(), key, byModel);
+        range[t] = {static_cast<std::size_t>(lo - placed[t].begin()),
+                    static_cast<std::size_t>(hi - placed[t].begin())};
+        for (auto e = lo; e != hi; ++e) (e->train ? train : bound) += 1;
       }
+      m.train_pos.reserve(train);
+      m.train_nrm.reserve(train);
+      m.boundary_pos.reserve(bound);
+      for (std::size_t t = 0; t < frames; ++t)
+        for (std::size_t e = range[t].first; e < range[t].second; ++e) {
+          const Placed& x = placed[t][e];
+          if (x.train) {
+            m.train_pos.push_back(x.pos);
+            m.train_nrm.push_back(x.nrm);
+          } else {
+            m.boundary_pos.push_back(x.pos);
+          }
+        }
+    }
     timer.lap("models: training points");
     const double patch = p.patch_size * mean_spacing;
     const float radius = static_cast<float>(p.patch_radius * mean_spacing);
