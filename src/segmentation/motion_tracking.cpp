@@ -989,8 +989,7 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   auto orderFrame = [&](int k) {
     const int t = frame_order[k];
     const std::vector<double>& groot = groots[k];
-    const int root =
-        static_cast<int>(std::min_element(groot.begin(), groot.end()) - groot.begin());
+    const int root = static_cast<int>(std::min_element(groot.begin(), groot.end()) - groot.begin());
     std::vector<int> order(S);
     std::iota(order.begin(), order.end(), 0);
     std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return groot[a] < groot[b]; });
