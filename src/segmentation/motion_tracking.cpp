@@ -16,7 +16,6 @@
 #include <array>
 #include <chrono>
 #include <cmath>
-#include <condition_variable>
 #include <cstdio>
 #include <exception>
 #include <functional>
@@ -933,38 +932,34 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     const auto& q = rc[tr.sample_points[s]];
     p0.col(s) = Eigen::Vector3d(q.x, q.y, q.z);
   }
-  // The whole frame's source for the global pose: the samples themselves (they cover it evenly).
-  std::vector<int> all(tr.sample_points);
-  std::sort(all.begin(), all.end());
-  const Source whole = sourceOf(rc, all, all.size());
-  // The samples' graphs and sources (below) and the global poses (1.) need only the samples:
-  // with enough threads the graphs and sources are made on a few threads of their own beside
-  // the poses' chain of whole-body ICPs, which waits at a barrier several times per iteration
-  // and gains little from its last threads (the same results: every step's output is the same
-  // on any number of threads).
-  std::vector<Source> src(S), probe(S);
-  auto graphsAndSources = [&] {
-    // Neighbourhoods, cells and adjacency grow over the surface graph, not through space: two
-    // limbs that nearly touch in the reference frame must not share a neighbourhood.
-    tr.surface = surfaceGraphOf(rc, frames[ref].tree, std::max(params.point_neighbours, 6),
-                                3.0 * frames[ref].spacing, frames[ref].unoriented, crease);
-    tr.owner = geodesicOwners(rc, tr.surface, tr.sample_points);
-    tr.graph = cellGraphOf(tr.surface, tr.owner, p0, 6.0 * frames[ref].spacing);
-    // Each sample's ICP source: its geodesically nearest reference points (reference geometry:
-    // no drift).
-    tr.neighbourhoods.resize(S);
+  // Neighbourhoods, cells and adjacency grow over the surface graph, not through space: two
+  // limbs that nearly touch in the reference frame must not share a neighbourhood.
+  tr.surface = surfaceGraphOf(rc, frames[ref].tree, std::max(params.point_neighbours, 6),
+                              3.0 * frames[ref].spacing, frames[ref].unoriented, crease);
+  tr.owner = geodesicOwners(rc, tr.surface, tr.sample_points);
+  tr.graph = cellGraphOf(tr.surface, tr.owner, p0, 6.0 * frames[ref].spacing);
+  // Each sample's ICP source: its geodesically nearest reference points (reference geometry: no
+  // drift).
+  std::vector<Source> src(S);
+  tr.neighbourhoods.resize(S);
+  {
     const int k = std::min(params.neighbourhood, n0);
 #pragma omp parallel for schedule(dynamic, 4)
     for (int s = 0; s < S; ++s) {
       tr.neighbourhoods[s] = geodesicNeighbourhood(rc, tr.surface, tr.sample_points[s], k);
       src[s] = sourceOf(rc, tr.neighbourhoods[s], static_cast<std::size_t>(k));
     }
-    // A fifth of each neighbourhood scores the candidate starts (a bad start is obvious on few
-    // points).
-    for (int s = 0; s < S; ++s)
-      probe[s] = sourceOf(rc, tr.neighbourhoods[s],
-                          std::max<std::size_t>(8, tr.neighbourhoods[s].size() / 5));
-  };
+  }
+  // A fifth of each neighbourhood scores the candidate starts (a bad start is obvious on few
+  // points).
+  std::vector<Source> probe(S);
+  for (int s = 0; s < S; ++s)
+    probe[s] = sourceOf(rc, tr.neighbourhoods[s],
+                        std::max<std::size_t>(8, tr.neighbourhoods[s].size() / 5));
+  // The whole frame's source for the global pose: the samples themselves (they cover it evenly).
+  std::vector<int> all(tr.sample_points);
+  std::sort(all.begin(), all.end());
+  const Source whole = sourceOf(rc, all, all.size());
 
   tr.poses.assign(T, std::vector<Pose>(S, Pose::Identity()));
   tr.residual.assign(T, 0.0);
@@ -974,102 +969,52 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   const std::vector<int>& frame_order = chain.order;
   const int F = static_cast<int>(frame_order.size());
   if (progress) progress->begin("tracking samples", static_cast<std::size_t>(T));
-  timer.lap("tracking: samples");
-  spare.recheck();  // the device may have started meanwhile
-  // Three of 16 threads for the graphs and sources (0.03 s on 15 threads at 800k on the H100
-  // machine, done well within the chain's 0.1 s on three).
-  const int team = omp_get_max_threads();
-  const int beside_threads = team >= 8 && !omp_in_parallel() ? std::max(2, team / 5) : 0;
-  // 2. (below) Each frame's order of the samples: BFS levels over the sample graph from the
-  //    sample best explained by the global pose (unreached components start from their own best
-  //    sample). Beside the chain, each frame's as soon as its global pose is known.
-  std::vector<std::vector<int>> level_of(T);
-  std::vector<std::vector<double>> groots(F, std::vector<double>(S));
-  std::vector<Pose> global(T, Pose::Identity());
-  auto orderFrame = [&](int k) {
-    const int t = frame_order[k];
-    const std::vector<double>& groot = groots[k];
-    const int root = static_cast<int>(std::min_element(groot.begin(), groot.end()) - groot.begin());
-    std::vector<int> order(S);
-    std::iota(order.begin(), order.end(), 0);
-    std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return groot[a] < groot[b]; });
-    order.insert(order.begin(), root);
-    level_of[t] = bfsLevels(tr.graph, order);
-  };
-  std::mutex posed_mutex;
-  std::condition_variable posed_cv;
-  int posed = 0;         // frame_order's first `posed` frames have their global pose
-  bool stopped = false;  // the chain threw: no more poses come
-  BesideThread graphs;
-  if (beside_threads > 0) {
-    graphs.start([&, beside_threads] {
-      omp_set_num_threads(beside_threads);
-      graphsAndSources();
-      for (int k = 0; k < F; ++k) {
-        {
-          std::unique_lock<std::mutex> lock(posed_mutex);
-          posed_cv.wait(lock, [&] { return posed > k || stopped; });
-          if (posed <= k) return;
-        }
-        const int t = frame_order[k];
-#pragma omp parallel for schedule(static)
-        for (int s = 0; s < S; ++s) groots[k][s] = residual(probe[s], global[t], frames[t]);
-        orderFrame(k);
-      }
-    });
-    omp_set_num_threads(team - beside_threads);
-  } else {
-    graphsAndSources();
-  }
   // 1. The whole body's pose in every frame, a chain along each direction: the previous one and
   //    a constant-velocity guess, the better kept (the body's source is large enough to search its
   //    nearest points in parallel: done serially these ICPs were a quarter of the tracking on 16
   //    cores). It depends on no sample's pose.
-  try {
+  timer.lap("tracking: samples, graphs, sources");
+  spare.recheck();  // the device may have started meanwhile
+  std::vector<Pose> global(T, Pose::Identity());
+  for (int t : frame_order) {
+    const int tp = chain.step[t].before, tpp = chain.step[t].two_before;
+    std::vector<Pose> inits{global[tp]};
+    if (tpp >= 0) inits.push_back(constantVelocity(global[tp], global[tpp]));
+    const std::vector<Pose> cands =
+        icpFromStarts(whole, inits, frames[t], 30, 10.0 * frames[t].spacing);
+    const std::vector<double> r = residualsOf(whole, cands, frames[t]);
+    double best = std::numeric_limits<double>::max();
+    for (std::size_t c = 0; c < cands.size(); ++c)
+      if (r[c] < best) best = r[c], global[t] = cands[c];
+  }
+  // 2. Each frame's order of the samples: BFS levels over the sample graph from the sample best
+  //    explained by the global pose (unreached components start from their own best sample).
+  timer.lap("tracking: global poses");
+  spare.recheck();
+  // The samples' residuals under the global poses over all (frame, sample) pairs, then each
+  // frame's order and levels: a loop over the 47 frames alone left 15 threads with 3 or 4 frames
+  // each.
+  std::vector<std::vector<int>> level_of(T);
+  std::vector<std::vector<double>> groots(F, std::vector<double>(S));
+#pragma omp parallel
+  {
+#pragma omp for schedule(dynamic, 64)
+    for (long x = 0; x < static_cast<long>(F) * S; ++x) {
+      const int k = static_cast<int>(x / S), s = static_cast<int>(x % S), t = frame_order[k];
+      groots[k][s] = residual(probe[s], global[t], frames[t]);
+    }
+#pragma omp for schedule(dynamic, 1)
     for (int k = 0; k < F; ++k) {
       const int t = frame_order[k];
-      const int tp = chain.step[t].before, tpp = chain.step[t].two_before;
-      std::vector<Pose> inits{global[tp]};
-      if (tpp >= 0) inits.push_back(constantVelocity(global[tp], global[tpp]));
-      const std::vector<Pose> cands =
-          icpFromStarts(whole, inits, frames[t], 30, 10.0 * frames[t].spacing);
-      const std::vector<double> r = residualsOf(whole, cands, frames[t]);
-      double best = std::numeric_limits<double>::max();
-      for (std::size_t c = 0; c < cands.size(); ++c)
-        if (r[c] < best) best = r[c], global[t] = cands[c];
-      {
-        std::lock_guard<std::mutex> lock(posed_mutex);
-        posed = k + 1;
-      }
-      posed_cv.notify_one();
-    }
-  } catch (...) {
-    {
-      std::lock_guard<std::mutex> lock(posed_mutex);
-      stopped = true;
-    }
-    posed_cv.notify_one();
-    omp_set_num_threads(team);
-    throw;  // the graphs' thread is waited for as it goes out of scope
-  }
-  omp_set_num_threads(team);
-  graphs.join();
-  timer.lap(beside_threads > 0 ? "tracking: global poses, beside the graphs, sources and levels"
-                               : "tracking: graphs, sources and global poses");
-  spare.recheck();
-  if (beside_threads == 0) {
-    // The samples' residuals under the global poses over all (frame, sample) pairs, then each
-    // frame's order and levels: a loop over the 47 frames alone left 15 threads with 3 or 4
-    // frames each.
-#pragma omp parallel
-    {
-#pragma omp for schedule(dynamic, 64)
-      for (long x = 0; x < static_cast<long>(F) * S; ++x) {
-        const int k = static_cast<int>(x / S), s = static_cast<int>(x % S), t = frame_order[k];
-        groots[k][s] = residual(probe[s], global[t], frames[t]);
-      }
-#pragma omp for schedule(dynamic, 1)
-      for (int k = 0; k < F; ++k) orderFrame(k);
+      const std::vector<double>& groot = groots[k];
+      const int root =
+          static_cast<int>(std::min_element(groot.begin(), groot.end()) - groot.begin());
+      std::vector<int> order(S);
+      std::iota(order.begin(), order.end(), 0);
+      std::stable_sort(order.begin(), order.end(),
+                       [&](int a, int b) { return groot[a] < groot[b]; });
+      order.insert(order.begin(), root);
+      level_of[t] = bfsLevels(tr.graph, order);
     }
   }
   // 3. Every (frame, sample) pose, each as soon as its own poses in the two frames before and its
