@@ -864,8 +864,13 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       return static_cast<int>(m.train_nrm.size()) >= p.min_training_points;
     };
     std::vector<std::vector<std::vector<int>>> patch_points(models.size());
+    // The models with the most training points first (mostWorkFirst; each writes its own).
+    std::vector<std::size_t> model_work(models.size());
+    for (std::size_t mi = 0; mi < models.size(); ++mi) model_work[mi] = models[mi].train_pos.size();
+    const std::vector<int> by_model = mostWorkFirst(model_work);
 #pragma omp parallel for schedule(dynamic)
-    for (int mi = 0; mi < static_cast<int>(models.size()); ++mi) {
+    for (int i = 0; i < static_cast<int>(models.size()); ++i) {
+      const int mi = by_model[i];
       SideModel& m = models[mi];
       if (!trained(m)) continue;
       for (const Eigen::Vector3d& x : m.train_pos) m.train_cloud->push_back(toXYZ(x));

@@ -388,7 +388,7 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
                            ? 1
                            : 0;
       }
-#pragma omp for schedule(static)
+#pragma omp for schedule(static) nowait  // the team's end waits for it
       for (int x = 0; x < na * kCols; ++x) {
         const int c = act[x / kCols], q = x % kCols;
         const std::size_t first = static_cast<std::size_t>(c) * m;
