@@ -13,6 +13,7 @@
 #include <memory>
 #include <numeric>
 #include <queue>
+#include <set>
 #include <tuple>
 
 #include "mean_shift_internal.h"
@@ -647,12 +648,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
           boundary[t].emplace_back(static_cast<int>(j), std::min(lab[j], other),
                                    std::max(lab[j], other));
       }
-      // The frame's pairs in the order they first appear (a few per frame).
+      // The frame's pairs in the order they first appear.
       std::vector<std::pair<int, int>>& seen = frame_pairs[t];
       seen.clear();
+      std::set<std::pair<int, int>> known;
       for (const auto& [j, a, b] : boundary[t])
-        if (std::find(seen.begin(), seen.end(), std::make_pair(a, b)) == seen.end())
-          seen.emplace_back(a, b);
+        if (known.emplace(a, b).second) seen.emplace_back(a, b);
     }
     // Pair ids in order of first appearance over the frames in order: the frames' own lists
     // joined (one map insertion per boundary point was a serial pass over all of them).

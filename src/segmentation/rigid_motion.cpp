@@ -826,28 +826,36 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
     bool same_shape = prev.size() == cur.size();
     for (std::size_t t = 0; same_shape && t < cur.size(); ++t)
       same_shape = prev[t].size() == cur[t].size();
-    if (same_shape) {
-      // Each frame's from / to, the frames side by side, then joined: a part's entry is its one
-      // source if every frame that has it agrees, else -3; the same as one pass over all points.
-      const int nf = static_cast<int>(cur.size());
+    // Each frame's from / to, the frames side by side, then joined: a part's entry is its one
+    // source if every frame that has it agrees, else -3; the same as one pass over all points.
+    // Labels with huge ids (a hand-written labelling) take that one pass instead of tables of
+    // frames x parts.
+    const int nf = static_cast<int>(cur.size());
+    const bool by_frame =
+        static_cast<long long>(nf) * (static_cast<long long>(na) + nb) <= (1LL << 22);
+    // One frame's points into from / to (f, g): a part's entry becomes its source, or -3.
+    auto scanFrame = [&](int t, int* f, int* g) {
+      for (std::size_t j = 0; j < cur[t].size(); ++j) {
+        const int a = prev[t][j], b = cur[t][j];
+        if (b >= 0 && b < nb) {
+          int& s = f[b];
+          s = (a < 0 || a >= na) ? -3 : (s == -2 || s == a) ? a : -3;
+        }
+        if (a >= 0 && a < na) {
+          int& m = g[a];
+          m = (b < 0 || b >= nb) ? -3 : (m == -2 || m == b) ? b : -3;
+        }
+      }
+    };
+    if (same_shape && !by_frame) {
+      for (int t = 0; t < nf; ++t) scanFrame(t, from.data(), to.data());
+    } else if (same_shape) {
       std::vector<int> frame_from(static_cast<std::size_t>(nf) * nb, -2),
           frame_to(static_cast<std::size_t>(nf) * na, -2);
 #pragma omp parallel for schedule(static)
-      for (int t = 0; t < nf; ++t) {
-        int* f = frame_from.data() + static_cast<std::size_t>(t) * nb;
-        int* g = frame_to.data() + static_cast<std::size_t>(t) * na;
-        for (std::size_t j = 0; j < cur[t].size(); ++j) {
-          const int a = prev[t][j], b = cur[t][j];
-          if (b >= 0 && b < nb) {
-            int& s = f[b];
-            s = (a < 0 || a >= na) ? -3 : (s == -2 || s == a) ? a : -3;
-          }
-          if (a >= 0 && a < na) {
-            int& m = g[a];
-            m = (b < 0 || b >= nb) ? -3 : (m == -2 || m == b) ? b : -3;
-          }
-        }
-      }
+      for (int t = 0; t < nf; ++t)
+        scanFrame(t, frame_from.data() + static_cast<std::size_t>(t) * nb,
+                  frame_to.data() + static_cast<std::size_t>(t) * na);
       auto join = [](int& s, int v) { s = v == -2 ? s : (s == -2 || s == v) ? v : -3; };
       for (int t = 0; t < nf; ++t) {
         for (int b = 0; b < nb; ++b)
