@@ -227,7 +227,7 @@ struct KnnTrees {
   std::vector<int> root;       // per tree: root node, -1 when empty
   std::vector<int> size;       // per tree: points
   PackedVector<float> points;  // 4 per point (x, y, z, 0), leaf order
-  std::vector<int> rows;      // per point: its row in its own tree
+  std::vector<int> rows;       // per point: its row in its own tree
 };
 
 /** The largest k that runKnn takes. */

@@ -15,12 +15,20 @@ namespace {
 
 constexpr double kLog2Pi = 1.8378770664093453;
 
-double logSumExp(const double* v, int n) {
+// log(sum_i exp(v[i])) as m + log(s), m the largest v[i] and s the sum of exp(v[i] - m); m
+// itself where it is not finite. Where `terms` is given, exp(v[i] - m) into it and s into *sum
+// (untouched where m is not finite): EM's responsibilities are those terms over s.
+double logSumExp(const double* v, int n, double* terms = nullptr, double* sum = nullptr) {
   double m = -std::numeric_limits<double>::infinity();
   for (int i = 0; i < n; ++i) m = std::max(m, v[i]);
   if (!std::isfinite(m)) return m;
   double s = 0.0;
-  for (int i = 0; i < n; ++i) s += std::exp(v[i] - m);
+  for (int i = 0; i < n; ++i) {
+    const double e = std::exp(v[i] - m);
+    s += e;
+    if (terms) terms[i] = e;
+  }
+  if (sum) *sum = s;
   return m + std::log(s);
 }
 
@@ -174,23 +182,20 @@ GaussianMixture fitGMM(const Eigen::MatrixX3d& x, const GMMOptions& options) {
     for (Eigen::Index i = 0; i < n; ++i) {
       const double* p = &px[3 * i];
       double v[64];
-      double m = -std::numeric_limits<double>::infinity();
       for (int c = 0; c < k; ++c) {
         const double d0 = p[0] - mu[c][0], d1 = p[1] - mu[c][1], d2 = p[2] - mu[c][2];
         const double q = pr[c][0] * d0 * d0 + pr[c][1] * d1 * d1 + pr[c][2] * d2 * d2 +
                          pr[c][3] * d0 * d1 + pr[c][4] * d0 * d2 + pr[c][5] * d1 * d2;
         v[c] = lnorm[c] - 0.5 * q;
-        m = std::max(m, v[c]);
       }
       double* r = &resp[static_cast<std::size_t>(i) * k];
-      if (!std::isfinite(m)) {  // no component explains the point: logSumExp's answer
-        ll += m;
+      double sum = 0.0;
+      const double lse = logSumExp(v, k, r, &sum);
+      ll += lse;
+      if (sum == 0.0) {  // the largest term is not finite (no component explains the point)
         for (int c = 0; c < k; ++c) r[c] = 0.0;
         continue;
       }
-      double sum = 0.0;
-      for (int c = 0; c < k; ++c) sum += (r[c] = std::exp(v[c] - m));
-      ll += m + std::log(sum);
       const double inv = 1.0 / sum;
       for (int c = 0; c < k; ++c) r[c] *= inv;
     }

@@ -484,25 +484,19 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   if (input.labels.size() != frames)
     throw Error("GMM refinement: labels for " + std::to_string(input.labels.size()) +
                 " frames, sequence has " + std::to_string(frames));
-  int num_labels = input.num_clusters;
-  std::vector<std::size_t> frame_size(frames);
-  for (std::size_t t = 0; t < frames; ++t) {
+  for (std::size_t t = 0; t < frames; ++t)
     if (input.labels[t].size() != sequence_->frame(t)->size())
       throw Error("GMM refinement: frame " + std::to_string(t) + " has " +
                   std::to_string(input.labels[t].size()) + " labels for " +
                   std::to_string(sequence_->frame(t)->size()) + " points");
-    frame_size[t] = input.labels[t].size();
-  }
-#pragma omp parallel for schedule(static) reduction(max : num_labels)
-  for (int t = 0; t < static_cast<int>(frames); ++t)
-    for (int l : input.labels[t]) num_labels = std::max(num_labels, l + 1);
-  // The per-frame loops below take the frames largest first (mostWorkFirst).
-  const std::vector<int> by_size = mostWorkFirst(frame_size);
+  const int num_labels = std::max(input.num_clusters, detail::largestLabel(input.labels) + 1);
+  // The per-frame loops below take the frames with the most work first (mostWorkFirst).
   auto sizesOf = [&](const auto& per_frame) {
     std::vector<std::size_t> n(frames);
     for (std::size_t t = 0; t < frames; ++t) n[t] = per_frame[t].size();
     return n;
   };
+  const std::vector<int> by_size = mostWorkFirst(sizesOf(input.labels));
   output = input;
   stats_ = RefinementStats();
   motions_.clear();

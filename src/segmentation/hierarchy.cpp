@@ -10,6 +10,8 @@
 #include <numeric>
 #include <utility>
 
+#include "mean_shift_internal.h"
+
 namespace pcl_animseg {
 namespace segmentation {
 
@@ -38,17 +40,11 @@ void PersistenceHierarchy::compute(const SegmentationResult& input, HierarchyRes
                 std::to_string(k) + " clusters");
   if (!(params_.step > 0.0)) throw Error("hierarchy: the threshold step must be positive");
   if (params_.initial_factor < 0.0) throw Error("hierarchy: the initial factor must be >= 0");
-  // The largest label of each frame, the frames side by side (a serial pass over every point
-  // was a third of this stage at 800k); the first frame in order with one too large is reported.
+  const int largest = detail::largestLabel(input.labels);
+  if (largest >= k)
+    throw Error("hierarchy: label " + std::to_string(largest) + " >= cluster count " +
+                std::to_string(k));
   const int num_frames = static_cast<int>(input.labels.size());
-  std::vector<int> frame_max(input.labels.size(), -1);
-#pragma omp parallel for schedule(static)
-  for (int t = 0; t < num_frames; ++t)
-    for (int l : input.labels[t]) frame_max[t] = std::max(frame_max[t], l);
-  for (int l : frame_max)
-    if (l >= k)
-      throw Error("hierarchy: label " + std::to_string(l) + " >= cluster count " +
-                  std::to_string(k));
   // A level's labels: `map` applied to every labelled point, the frames side by side.
   auto relabel = [&](const std::vector<int>* map) {
     std::vector<std::vector<int>> labels(input.labels.size());

@@ -141,6 +141,14 @@ void StageTimer::lap(const char* stage) {
   last_ = now;
 }
 
+int largestLabel(const std::vector<std::vector<int>>& labels) {
+  int largest = -1;
+#pragma omp parallel for schedule(static) reduction(max : largest)
+  for (int t = 0; t < static_cast<int>(labels.size()); ++t)
+    for (int l : labels[t]) largest = std::max(largest, l);
+  return largest;
+}
+
 JointSpace buildJointSpace(const PointCloudSequence& seq, const std::vector<Eigen::MatrixXf>& sig,
                            const std::vector<std::vector<int>>& keypoints,
                            const MeanShiftParams& params) {

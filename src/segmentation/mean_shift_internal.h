@@ -29,6 +29,11 @@ class StageTimer {
   std::chrono::steady_clock::time_point last_;
 };
 
+/** The largest label of a labelling (per frame, per point), -1 where there is none; the frames
+ * side by side (the refinement, the hierarchy and the rigid motions check their input with it:
+ * a serial pass over every point of every level was a third of the hierarchy's stage at 800k). */
+int largestLabel(const std::vector<std::vector<int>>& labels);
+
 /** The joint feature space of Eq. 5-6 (see mean_shift.h). */
 struct JointSpace {
   Eigen::MatrixXf z;                ///< N x D raw features (p / s, n, sigma)

@@ -763,14 +763,14 @@ std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned se
               hi = static_cast<int>(static_cast<long long>(n) * (tid + 1) / nt);
     int last = out.back();
     std::size_t taken = out.size();
-    for (int step = 0; taken < wanted; ++step) {
+    for (; taken < wanted; ++taken) {
       const Eigen::Vector3d s = p[last];
       int far = lo < hi ? lo : -1;
       for (int i = lo; i < hi; ++i) {
         dmin[i] = std::min(dmin[i], (p[i] - s).squaredNorm());
         if (dmin[i] > dmin[far]) far = i;
       }
-      const std::size_t buf = static_cast<std::size_t>(step & 1) * nt;
+      const std::size_t buf = (taken & 1) * static_cast<std::size_t>(nt);
       slice_best[buf + tid] = far;
       slice_d[buf + tid] = far >= 0 ? dmin[far] : 0.0;
 #pragma omp barrier
@@ -782,7 +782,6 @@ std::vector<int> farthestPointSamples(const Cloud& cloud, int count, unsigned se
       if (best < 0 || best_d <= 0.0) break;
       if (tid == 0) out.push_back(best);
       last = best;
-      ++taken;
     }
   }
   return out;

@@ -732,12 +732,7 @@ int RigidMotionEstimation::checkedPartCount(const std::vector<std::vector<int>>&
       throw Error("rigid motion: frame " + std::to_string(t) + " has " +
                   std::to_string(labels[t].size()) + " labels for " +
                   std::to_string(sequence_->frame(t)->size()) + " points");
-  if (num_parts > 0) return num_parts;
-  int max_label = -1;
-#pragma omp parallel for schedule(static) reduction(max : max_label)
-  for (int t = 0; t < static_cast<int>(frames); ++t)
-    for (int l : labels[t]) max_label = std::max(max_label, l);
-  return max_label + 1;
+  return num_parts > 0 ? num_parts : detail::largestLabel(labels) + 1;
 }
 
 namespace {
