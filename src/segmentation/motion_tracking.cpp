@@ -1809,38 +1809,58 @@ class ResidualBatch {
  public:
   ResidualBatch(const std::vector<Frame>& frames, MotionDevice* device)
       : frames_(frames), device_(device) {}
+  /** With a device, sources and motions go into the device's batch as they come (appendPoints,
+   * appendMotion), and packed ones may be added as they are (addPackedSource, addPackedMotions). */
+  bool packed() const { return device_ != nullptr; }
   int addSource(Source s) {
+    if (device_) {
+      appendPoints(s.p, s.n, d_.points);
+      d_.source_begin.push_back(static_cast<int>(d_.points.size() / 6));
+      return static_cast<int>(d_.source_begin.size()) - 2;
+    }
     sources_.push_back(std::move(s));
     return static_cast<int>(sources_.size()) - 1;
   }
   int addMotion(const Pose& p) {
+    if (device_) {
+      appendMotion(p, d_.motions);
+      return motions() - 1;
+    }
     motions_.push_back(p);
     return static_cast<int>(motions_.size()) - 1;
   }
-  int motions() const { return static_cast<int>(motions_.size()); }
+  /** A source as appendPoints packs it (packed() batches only). */
+  int addPackedSource(const std::vector<double>& points) {
+    d_.points.insert(d_.points.end(), points.begin(), points.end());
+    d_.source_begin.push_back(static_cast<int>(d_.points.size() / 6));
+    return static_cast<int>(d_.source_begin.size()) - 2;
+  }
+  /** `count` motions as appendMotion packs them (packed() batches only); returns the first's
+   * index. */
+  int addPackedMotions(const double* m, int count) {
+    const int first = motions();
+    d_.motions.insert(d_.motions.end(), m, m + 12 * static_cast<std::size_t>(count));
+    return first;
+  }
+  int motions() const {
+    return device_ ? static_cast<int>(d_.motions.size() / 12) : static_cast<int>(motions_.size());
+  }
   /** Returns the job's index. */
   int add(int source, int motion, int frame) {
-    jobs_.push_back({source, motion, frame});
-    return static_cast<int>(jobs_.size()) - 1;
+    d_.jobs.push_back({source, motion, frame});
+    return static_cast<int>(d_.jobs.size()) - 1;
   }
 
   std::vector<double> run() const {
-    std::vector<double> out(jobs_.size(), 0.0);
+    std::vector<double> out(d_.jobs.size(), 0.0);
     if (device_) {
-      ResidualJobs d;
-      for (const Source& s : sources_) {
-        appendPoints(s.p, s.n, d.points);
-        d.source_begin.push_back(static_cast<int>(d.points.size() / 6));
-      }
-      for (const Pose& m : motions_) appendMotion(m, d.motions);
-      d.jobs = jobs_;
-      device_->residuals(d, out);
+      device_->residuals(d_, out);
       return out;
     }
-    const long n = static_cast<long>(jobs_.size());
+    const long n = static_cast<long>(d_.jobs.size());
 #pragma omp parallel for schedule(dynamic, 16) if (!omp_in_parallel() && n > 1)
     for (long j = 0; j < n; ++j) {
-      const ResidualJobs::Job& job = jobs_[j];
+      const ResidualJobs::Job& job = d_.jobs[j];
       out[j] = residual(sources_[job.source], motions_[job.motion], frames_[job.frame]);
     }
     return out;
@@ -1849,9 +1869,9 @@ class ResidualBatch {
  private:
   const std::vector<Frame>& frames_;
   MotionDevice* device_;
-  std::vector<Source> sources_;
+  ResidualJobs d_;               // the jobs; with a device also the packed sources and motions
+  std::vector<Source> sources_;  // without one
   std::vector<Pose> motions_;
-  std::vector<ResidualJobs::Job> jobs_;
 };
 
 // `with_parts`, where given, is called with the parts (everything but the merges above them)
@@ -1892,29 +1912,49 @@ TrajectoryClusters clusterTrajectoriesOn(
   // hide in a large torso's average); worst frame. Scoring poses by surface residuals, not by
   // sample positions, makes the cost blind to a sample sliding along a capsule, which a local
   // neighbourhood cannot see. Taking the better pose makes it robust to a sample lost in a frame.
+  // The edge's pose per frame is edgeOf's a's or b's (from_b[t]): both stay as they were while
+  // the edge does (a merge scores every edge of its groups again).
   struct Eval {
     double cost = 0.0;
-    std::vector<Pose> pose;
+    int a = -1, b = -1;
+    std::vector<char> from_b;
   };
   // The edge (a, b) from b's residuals under a's poses (b_in_a[t]) and a's under b's, given
   // both groups' own residuals (self); the reference frame's entries are not read.
   auto edgeOf = [&](int a, int b, const double* b_in_a, const double* a_in_b) {
     Eval e;
-    e.pose.resize(T);
+    e.a = a;
+    e.b = b;
+    e.from_b.assign(T, 0);
     for (int t = 0; t < T; ++t) {
-      if (t == ref) {
-        e.pose[t] = pose[a][t];
-        continue;
-      }
+      if (t == ref) continue;
       const double ca = std::max(self[a][t], b_in_a[t]);
       const double cb = std::max(a_in_b[t], self[b][t]);
-      e.pose[t] = ca <= cb ? pose[a][t] : pose[b][t];
+      e.from_b[t] = !(ca <= cb);
       e.cost = std::max(e.cost, std::min(ca, cb));
     }
     return e;
   };
   // Every residual of a batch at once (ResidualBatch: the device's when there is one).
+  // With a device, each group's source and poses as its batches pack them, kept while the
+  // group's points and poses stay (a merge's batch packed its neighbours' again: most of the
+  // host work between phase 1's device calls).
+  std::vector<std::vector<double>> packed_src(S), packed_pose(S);
+  auto pack = [&](int g) {
+    packed_src[g].clear();
+    const Source src = sourceOf(rc, points[g], kSourcePoints);
+    appendPoints(src.p, src.n, packed_src[g]);
+    packed_pose[g].clear();
+    for (int t = 0; t < T; ++t) appendMotion(pose[g][t], packed_pose[g]);
+  };
+  if (params.device) {
+#pragma omp parallel for schedule(dynamic, 16)
+    for (int g = 0; g < S; ++g) pack(g);
+  }
   auto addGroup = [&](ResidualBatch& batch, int g) {
+    if (batch.packed())
+      return std::make_pair(batch.addPackedSource(packed_src[g]),
+                            batch.addPackedMotions(packed_pose[g].data(), T));
     const int src = batch.addSource(sourceOf(rc, points[g], kSourcePoints));
     const int mot = batch.motions();
     for (int t = 0; t < T; ++t) batch.addMotion(pose[g][t]);
@@ -2019,7 +2059,8 @@ TrajectoryClusters clusterTrajectoriesOn(
   const int min_size = std::max(1, params.min_group_samples);
   auto merge = [&](int a, int b) {
     // b joins a.
-    pose[a] = edges[{std::min(a, b), std::max(a, b)}].pose;
+    const Eval& e = edges[{std::min(a, b), std::max(a, b)}];
+    for (int t = 0; t < T; ++t) pose[a][t] = pose[e.from_b[t] ? e.b : e.a][t];
     members[a].insert(members[a].end(), members[b].begin(), members[b].end());
     members[b].clear();
     std::vector<int> u;
@@ -2028,6 +2069,7 @@ TrajectoryClusters clusterTrajectoriesOn(
     points[a].swap(u);
     points[b].clear();
     alive[b] = 0;
+    if (params.device) pack(a);
     const std::set<int> nbrs = detach(a, b);
     const std::vector<int> others(nbrs.begin(), nbrs.end());
     std::vector<Eval> scored = evaluateFrom(a, others);  // also a's own residuals (self[a])
@@ -2107,14 +2149,16 @@ TrajectoryClusters clusterTrajectoriesOn(
     // against 1 905 edges and 6.7 ms at the start of phase 1).
     auto above = [&](bool) { return countAlive() > over; };
     mergeWhile([&](bool past) { return !past && countAlive() > over; }, false);
-    const auto saved = std::make_tuple(members, points, pose, alive, self, edges, queue, adjacent);
+    const auto saved = std::make_tuple(members, points, pose, alive, self, edges, queue, adjacent,
+                                       packed_src, packed_pose);
     mergeWhile(above, false);
     joinTiny();
     if (countAlive() < params.target_clusters) {
       if (timer.on())
         std::fprintf(stderr, "[mean shift] phase 1 again, tiny groups first (%d groups)\n",
                      countAlive());
-      std::tie(members, points, pose, alive, self, edges, queue, adjacent) = saved;
+      std::tie(members, points, pose, alive, self, edges, queue, adjacent, packed_src,
+               packed_pose) = saved;
       mergeWhile(above, true);
       joinTiny();
     }
