@@ -270,13 +270,29 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
   // Only distances up to two bands matter (below: a part's core starts at half its farthest
   // point's distance, capped at the band), so the searches are bounded a little beyond that;
   // `far` marks the parts with a point beyond it, whose cap is the band.
+  //
+  // Only a distance within the band decides whether a point is in it (reach_of is at most the
+  // band), so every point is searched within the band first (a search of a quarter of the area).
+  // The points beyond it matter only for their part's cap: they are searched within two bands,
+  // a part's only until one of them is farther (then its cap is the band whatever the others'
+  // distances). The same distances within the band, the same caps.
   int labels_here = 0;
   for (int j = 0; j < n; ++j) labels_here = std::max(labels_here, lab[j] + 1);
   std::vector<char> far(labels_here, 0);
-  const double bound = 2.0 * p.fold_snap_band * spacing;
+  const double near = p.fold_snap_band * spacing, bound = 2.0 * near;
+  const float near2 = static_cast<float>(1.0201 * near * near);
   const float bound2 = static_cast<float>(1.0201 * bound * bound);
+  std::vector<int> beyond;
   for (int j = 0; j < n; ++j) {
     if (lab[j] < 0) continue;
+    float nd2;
+    if (border_tree.nearest(cloud[j].x, cloud[j].y, cloud[j].z, near2, nd2) >= 0)
+      to_border[j] = static_cast<float>(std::sqrt(nd2) / spacing);
+    else
+      beyond.push_back(j);
+  }
+  for (int j : beyond) {
+    if (far[lab[j]]) continue;
     float nd2;
     if (border_tree.nearest(cloud[j].x, cloud[j].y, cloud[j].z, bound2, nd2) >= 0)
       to_border[j] = static_cast<float>(std::sqrt(nd2) / spacing);

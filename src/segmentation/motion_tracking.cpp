@@ -1205,13 +1205,17 @@ int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surfa
   const int n = static_cast<int>(rc.size());
   std::vector<std::vector<int>> cand(n);
   std::vector<std::vector<int>> need(n);
+  std::vector<int> c;  // the labels around i, ascending and once each (a set per point was
+                       // most of this pass's host time)
   for (int i = 0; i < n; ++i) {
     if (label[i] < 0) continue;
-    std::set<int> c{label[i]};
+    c.assign(1, label[i]);
     for (int j : surface[i])
-      if (label[j] >= 0 && !motion[label[j]].empty()) c.insert(label[j]);
+      if (label[j] >= 0 && !motion[label[j]].empty()) c.push_back(label[j]);
+    std::sort(c.begin(), c.end());
+    c.erase(std::unique(c.begin(), c.end()), c.end());
     if (c.size() < 2) continue;
-    cand[i].assign(c.begin(), c.end());
+    cand[i] = c;
     for (int g : cand[i]) {
       need[i].push_back(g);
       for (int j : surface[i]) need[j].push_back(g);
