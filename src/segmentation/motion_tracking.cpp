@@ -1205,8 +1205,8 @@ int reassignByMotion(const Cloud& rc, const std::vector<std::vector<int>>& surfa
   const int n = static_cast<int>(rc.size());
   std::vector<std::vector<int>> cand(n);
   std::vector<std::vector<int>> need(n);
-  std::vector<int> c;  // the labels around i, ascending and once each (a set per point was
-                       // most of this pass's host time)
+  std::vector<int> c;  // the labels around i, ascending and once each (one buffer for all
+                       // points instead of a std::set per point)
   for (int i = 0; i < n; ++i) {
     if (label[i] < 0) continue;
     c.assign(1, label[i]);
