@@ -161,6 +161,51 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
   return knnOn(drop.token, k, queries, tree_of, rows, count);
 }
 
+bool RigidFits::motionResiduals(long long token, const segmentation::MotionCheckJobs& jobs,
+                                std::vector<float>& out) {
+  if (token <= 0 || token != knn_token_ || !knn_) return false;
+  const std::string what = "GPU motion check: ";
+  const int frames = knn_->trees;
+  const std::size_t residuals = jobs.part.size();
+  if (frames <= 0 || jobs.spacing.size() != static_cast<std::size_t>(frames))
+    throw DeviceError(what + "one spacing per kept tree expected");
+  if (jobs.starts.size() != 3 * residuals || jobs.own.size() != residuals)
+    throw DeviceError(what + "three coordinates and a frame per residual expected");
+  if (jobs.valid.size() % static_cast<std::size_t>(frames) != 0 ||
+      jobs.motions.size() != 12 * jobs.valid.size())
+    throw DeviceError(what + "a motion and a flag per part and frame expected");
+  const int parts = static_cast<int>(jobs.valid.size() / static_cast<std::size_t>(frames));
+  if (jobs.normals.size() != 3 * static_cast<std::size_t>(knn_->first.back()))
+    throw DeviceError(what + "three normal coordinates per point of the kept trees expected");
+  for (int u : jobs.scored)
+    if (u < 0 || u >= frames) throw DeviceError(what + "a scored frame out of range");
+  for (std::size_t r = 0; r < residuals; ++r)
+    if (jobs.part[r] < 0 || jobs.part[r] >= parts || jobs.own[r] < 0 || jobs.own[r] >= frames)
+      throw DeviceError(what + "a residual's part or frame out of range");
+  out.assign(residuals, 0.0f);
+  const auto t0 = std::chrono::steady_clock::now();
+  detail::MotionCheckArrays in{};
+  in.starts = jobs.starts.data();
+  in.part = jobs.part.data();
+  in.own = jobs.own.data();
+  in.residuals = static_cast<int>(residuals);
+  in.motions = jobs.motions.data();
+  in.valid = jobs.valid.data();
+  in.parts = parts;
+  in.frames = frames;
+  in.scored = jobs.scored.data();
+  in.n_scored = static_cast<int>(jobs.scored.size());
+  in.spacing = jobs.spacing.data();
+  in.normals = jobs.normals.data();
+  in.normal_floats = jobs.normals.size();
+  in.cap = jobs.cap;
+  detail::runMotionCheck(*knn_, in, out.data());
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(stderr, "[gpu k-NN] motion check, %zu residuals: %.3f s\n", residuals,
+                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  return true;
+}
+
 void RigidFits::dropKnnTrees(long long token) {
   if (token <= 0 || token != knn_token_) return;
   knn_.reset();

@@ -17,6 +17,7 @@
 #include <math_constants.h>
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/segmentation/icp_step.h>
+#include <pcl_animseg/segmentation/motion_check.h>
 
 #include <algorithm>
 #include <cfloat>
@@ -1091,8 +1092,76 @@ __global__ void nearestKernel(const TrackNode* nodes, const float4* pts, const i
   out_count[q] = leaf >= 0 ? 1 : 0;
 }
 
+// The refinement's motion check, a thread per residual: its copies one after the other in the
+// order of `scored` (motion_check.h; the CPU's loop in GMMBoundaryRefinement), each copy's
+// nearest point as nearestKernel finds it.
+__global__ void motionCheckKernel(const TrackNode* nodes, const float4* pts, const int* rows,
+                                  const int* root, const int* first, MotionCheckArrays in,
+                                  float* out) {
+  const int r = blockIdx.x * blockDim.x + threadIdx.x;
+  if (r >= in.residuals) return;
+  const int l = in.part[r], t = in.own[r];
+  const double* x0 = in.starts + 3LL * r;
+  Dev d{};
+  d.nodes = nodes;
+  d.pts = pts;
+  double sum = 0.0;
+  int n = 0;
+  for (int k = 0; k < in.n_scored; ++k) {
+    const int u = in.scored[k];
+    const long long lu = static_cast<long long>(l) * in.frames + u;
+    if (u == t || !in.valid[lu]) continue;
+    double y[3];
+    icp_step::apply(icp_step::load(in.motions + 12 * lu), x0, y);
+    const float qx = static_cast<float>(y[0]), qy = static_cast<float>(y[1]),
+                qz = static_cast<float>(y[2]);
+    if (!(isfinite(qx) && isfinite(qy) && isfinite(qz))) continue;
+    float d2 = 0.0f;
+    const int leaf = nearest(d, root[u], qx, qy, qz, CUDART_INF_F, d2);
+    if (leaf < 0) continue;
+    const float4 p = pts[leaf];
+    const float* nf = in.normals + 3LL * (first[u] + rows[leaf]);
+    const double pd[3] = {p.x, p.y, p.z}, nd[3] = {nf[0], nf[1], nf[2]};
+    sum += segmentation::motion_check::term(y, pd, nd, in.spacing[u], in.cap);
+    ++n;
+  }
+  out[r] = segmentation::motion_check::residual(sum, n);
+}
+
+void runMotionCheck(const KnnStore& store, const MotionCheckArrays& in, float* out) {
+  if (in.residuals <= 0) return;
+  const std::size_t pf = static_cast<std::size_t>(in.parts) * in.frames;
+  DeviceArray<double> starts(in.starts, 3 * static_cast<std::size_t>(in.residuals));
+  DeviceArray<int> part(in.part, in.residuals), own(in.own, in.residuals);
+  DeviceArray<double> motions(in.motions, 12 * pf);
+  DeviceArray<char> valid(in.valid, pf);
+  DeviceArray<int> scored(in.scored, in.n_scored);
+  DeviceArray<double> spacing(in.spacing, in.frames);
+  DeviceArray<float> normals(in.normals, in.normal_floats);
+  DeviceArray<int> first(store.first.data(), store.first.size());
+  DeviceArray<float> d_out(in.residuals);
+  MotionCheckArrays dev = in;
+  dev.starts = starts.ptr();
+  dev.part = part.ptr();
+  dev.own = own.ptr();
+  dev.motions = motions.ptr();
+  dev.valid = valid.ptr();
+  dev.scored = scored.ptr();
+  dev.spacing = spacing.ptr();
+  dev.normals = normals.ptr();
+  const int threads = 128;
+  motionCheckKernel<<<(in.residuals + threads - 1) / threads, threads>>>(
+      store.nodes.ptr(), reinterpret_cast<const float4*>(store.points.ptr()), store.rows.ptr(),
+      store.root.ptr(), first.ptr(), dev, d_out.ptr());
+  cudaCheckLaunch();
+  d_out.download(out);
+}
+
 void uploadKnnTrees(const KnnTrees& trees, KnnStore& store) {
   store.trees = 0;
+  store.first.assign(trees.size.size() + 1, 0);
+  for (std::size_t t = 0; t < trees.size.size(); ++t)
+    store.first[t + 1] = store.first[t] + trees.size[t];
   store.nodes.upload(trees.nodes.data(), trees.nodes.size());
   store.points.upload(trees.points.data(), trees.points.size());
   store.rows.upload(trees.rows);

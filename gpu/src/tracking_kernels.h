@@ -239,6 +239,7 @@ struct KnnStore {
   DeviceArray<TrackNode> nodes;
   DeviceArray<float> points;
   DeviceArray<int> rows, root, size;
+  std::vector<int> first;  // per tree: its first point among all (host copy; trees + 1 entries)
 };
 
 /** Uploads `trees` into `store` (in place of the trees there). */
@@ -250,6 +251,26 @@ void uploadKnnTrees(const KnnTrees& trees, KnnStore& store);
  * FlatKdTree3::knn). */
 void runKnn(const KnnStore& store, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
+
+/** RigidFitDevice::motionResiduals (segmentation::MotionCheckJobs, in its arrays) on `store`'s
+ * trees, one per frame (`frames` of them; the caller has checked the sizes): out[r] for each of
+ * the `residuals`. */
+struct MotionCheckArrays {
+  const double* starts;
+  const int* part;
+  const int* own;
+  int residuals;
+  const double* motions;  // per part and frame: 12
+  const char* valid;      // per part and frame
+  int parts, frames;
+  const int* scored;
+  int n_scored;
+  const double* spacing;  // per frame
+  const float* normals;   // 3 per tree row, tree after tree
+  std::size_t normal_floats;
+  double cap;
+};
+void runMotionCheck(const KnnStore& store, const MotionCheckArrays& in, float* out);
 
 /** The largest cluster of blocks that one rigid fit runs on (thread block clusters, sm_90). */
 constexpr int kRigidMaxCluster = 8;

@@ -3,6 +3,8 @@
 #include <pcl_animseg/kdtree.h>
 #include <pcl_animseg/math/gmm.h>
 #include <pcl_animseg/segmentation/gmm_refinement.h>
+#include <pcl_animseg/segmentation/icp_step.h>
+#include <pcl_animseg/segmentation/motion_check.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
 #include <algorithm>
@@ -568,31 +570,6 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (std::size_t k = 0; k < cap; ++k) scored.push_back(k * (frames - 1) / (cap - 1));
     }
   }
-  // The moved copies of point j of frame t under part l's motion: (u, y) for every scored frame
-  // u but t where the motion is valid, written to frame[0 ..] and pos[0 ..] (both null: only
-  // counted); returns how many.
-  auto movedCopies = [&](int l, int t, int j, int* frame, Eigen::Vector3d* pos) {
-    const Eigen::Vector3d x0 = pos ? parts[l].frames[t].inverse().apply(
-                                         (*sequence_->frame(t))[j].getVector3fMap().cast<double>())
-                                   : Eigen::Vector3d::Zero();
-    std::size_t n = 0;
-    for (std::size_t u : scored) {
-      if (static_cast<int>(u) == t || !parts[l].frames[u].valid) continue;
-      if (pos) frame[n] = static_cast<int>(u), pos[n] = parts[l].frames[u].apply(x0);
-      ++n;
-    }
-    return n;
-  };
-  // A copy's term: y against its nearest point `k` of frame u (a cloud index, -1: none).
-  auto copyTerm = [&](int u, const Eigen::Vector3d& y, int k, double& sum, int& n) {
-    if (k < 0) return;
-    const pcl::PointNormal& nearest = (*sequence_->frame(u))[k];
-    const Eigen::Vector3d d = y - nearest.getVector3fMap().cast<double>();
-    const double plane = std::abs(d.dot(nearest.getNormalVector3fMap().cast<double>()));
-    sum += std::min(std::max(plane, d.norm() - spacing[u]) / spacing[u], p.motion_cap);
-    ++n;
-  };
-  auto residualOf = [](double sum, int n) { return n > 0 ? static_cast<float>(sum / n) : 0.0f; };
 
   // After the first pass, only points near the previous boundary can become boundary points: a
   // label changes only inside W, so a new boundary point is a changed point or a neighbour of one.
@@ -602,9 +579,6 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   const double candidate_reach = p.narrow_band + p.boundary_max_distance + 1.0;
   const bool restrict_scan = p.outer_band >= candidate_reach;
 
-  // The frames' flat trees, which a device searches for the motion check's nearest points below.
-  std::vector<const FlatKdTree3*> flat(frames);
-  for (std::size_t t = 0; t < frames; ++t) flat[t] = &trees[t].flatTree();
   // With a device that offers it, every frame's lists in one k-NN call (the same lists; on the
   // cores they were a fifth of the refinement's CPU time at 800k), which the frames' lists view.
   std::shared_ptr<const NeighbourLists::DeviceLists> lists;  // set by deviceLists()
@@ -1019,72 +993,106 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       }
     }
     // 3b. The motion residuals of those points under their own and the other part's motion.
-    // Each is the mean term of the point's copies carried to the scored frames (the nearest
-    // points of 1.6 M copies at 800k, three quarters of this step on the cores): with a device
-    // that offers them, all copies' nearest points in one call (FlatKdTree3::knn with k = 1,
-    // the same points), the terms on the CPU either way.
+    // Each is the mean term of the point's copies carried to the scored frames (1.6 M copies and
+    // their nearest points at 800k): with a device that offers it, the copies, their nearest
+    // points and the terms in one call against the trees the lists' search kept there
+    // (RigidFitDevice::motionResiduals; before, the copies' nearest points came back from the
+    // device and the terms were added here, 0.026 s in all); the same bits either way.
     timer.lap("reassignment: verdicts");
     const std::vector<int> by_verdicts = mostWorkFirst(sizesOf(verdict));
     std::vector<std::vector<std::array<float, 2>>> motion_res(frames);
     if (check_motion) {
-      std::vector<std::size_t> first(frames + 1, 0);  // each frame's first residual (2 a verdict)
+      // Residual r = first[t] + 2 v + k: verdict v of frame t under its own part's motion
+      // (k = 0) and the other's (k = 1), from the point carried into the reference frame by that
+      // part (motion_check.h; a device scores them all in one call, else the cores).
+      std::vector<std::size_t> first(frames + 1, 0);
       for (std::size_t t = 0; t < frames; ++t) first[t + 1] = first[t] + 2 * verdict[t].size();
-      // Residual r's copies are at[r] .. at[r + 1] - 1 of the flat arrays (counted first, then
-      // written: one allocation each instead of a vector per residual).
-      std::vector<std::size_t> at(first[frames] + 1, 0);
+      const std::size_t residuals = first[frames];
+      MotionCheckJobs jobs;
+      jobs.starts.resize(3 * residuals);
+      jobs.part.resize(residuals);
+      jobs.own.resize(residuals);
 #pragma omp parallel for schedule(dynamic)
       for (int i = 0; i < static_cast<int>(frames); ++i) {
         const int t = by_verdicts[i];
-        for (std::size_t v = 0; v < verdict[t].size(); ++v)
-          for (int k = 0; k < 2; ++k)
-            at[first[t] + 2 * v + k + 1] =
-                movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], nullptr, nullptr);
-      }
-      for (std::size_t r = 0; r + 1 < at.size(); ++r) at[r + 1] += at[r];
-      std::vector<int> copy_frame(at.back());
-      std::vector<Eigen::Vector3d> copy_pos(at.back());
-#pragma omp parallel for schedule(dynamic)
-      for (int i = 0; i < static_cast<int>(frames); ++i) {
-        const int t = by_verdicts[i];
+        const Cloud& cloud = *sequence_->frame(t);
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
           for (int k = 0; k < 2; ++k) {
-            const std::size_t c = at[first[t] + 2 * v + k];
-            movedCopies(verdict[t][v][1 + k], t, verdict[t][v][0], &copy_frame[c], &copy_pos[c]);
+            const std::size_t r = first[t] + 2 * v + k;
+            const int l = verdict[t][v][1 + k];
+            const Eigen::Vector3d x0 = parts[l].frames[t].inverse().apply(
+                cloud[verdict[t][v][0]].getVector3fMap().cast<double>());
+            for (int c = 0; c < 3; ++c) jobs.starts[3 * r + c] = x0[c];
+            jobs.part[r] = l;
+            jobs.own[r] = t;
           }
       }
-      // Every copy's nearest point (a cloud index, -1: none).
-      std::vector<int> nearest(at.back(), -1);
-      bool searched = false;
-      if (device_ && at.back() > 0) {
-        std::vector<float> queries(3 * at.back());
-#pragma omp parallel for schedule(static)
-        for (long q = 0; q < static_cast<long>(at.back()); ++q) {
-          const Eigen::Vector3f y = copy_pos[q].cast<float>();
-          queries[3 * q] = y.x(), queries[3 * q + 1] = y.y(), queries[3 * q + 2] = y.z();
+      const std::size_t pf = static_cast<std::size_t>(num_labels) * frames;
+      jobs.motions.assign(12 * pf, 0.0);
+      jobs.valid.assign(pf, 0);
+      for (int l = 0; l < num_labels && l < static_cast<int>(parts.size()); ++l)
+        for (std::size_t u = 0; u < frames && u < parts[l].frames.size(); ++u) {
+          const RigidTransform& m = parts[l].frames[u];
+          const std::size_t lu = static_cast<std::size_t>(l) * frames + u;
+          jobs.valid[lu] = m.valid;
+          for (int i = 0; i < 3; ++i) {
+            for (int j = 0; j < 3; ++j) jobs.motions[12 * lu + 3 * i + j] = m.rotation(i, j);
+            jobs.motions[12 * lu + 9 + i] = m.translation(i);
+          }
         }
-        std::vector<int> rows, count;
-        // Against the trees the lists' search kept on this device, else uploaded again.
-        const bool kept = lists && lists->device == device_ &&
-                          device_->knnOn(lists->trees, 1, queries, copy_frame, rows, count);
-        if (kept || device_->knn(flat, 1, queries, copy_frame, rows, count)) {
-          if (count.size() != copy_frame.size() || rows.size() != copy_frame.size())
-            throw Error("refinement: the device's nearest points do not match their queries");
-#pragma omp parallel for schedule(static)
-          for (long q = 0; q < static_cast<long>(copy_frame.size()); ++q)
-            if (count[q] > 0) nearest[q] = trees[copy_frame[q]].cloudIndex(rows[q]);
-          searched = true;
+      jobs.scored.assign(scored.begin(), scored.end());
+      jobs.spacing = spacing;
+      jobs.cap = p.motion_cap;
+      std::vector<float> res;
+      bool on_device = false;
+      if (device_ && residuals > 0 && lists && lists->device == device_) {
+        // Against the trees the lists' search kept on this device, with every row's normal
+        // (where another caller's trees have replaced them there, the device declines and the
+        // cores score them).
+        std::vector<std::size_t> row0(frames + 1, 0);
+        for (std::size_t t = 0; t < frames; ++t) row0[t + 1] = row0[t] + trees[t].size();
+        jobs.normals.resize(3 * row0[frames]);
+#pragma omp parallel for schedule(dynamic)
+        for (int t = 0; t < static_cast<int>(frames); ++t) {
+          const Cloud& cloud = *sequence_->frame(t);
+          for (std::size_t r = 0; r < trees[t].size(); ++r) {
+            const pcl::PointNormal& q = cloud[trees[t].cloudIndex(static_cast<int>(r))];
+            float* out = &jobs.normals[3 * (row0[t] + r)];
+            out[0] = q.normal_x, out[1] = q.normal_y, out[2] = q.normal_z;
+          }
         }
+        on_device = device_->motionResiduals(lists->trees, jobs, res);
+        if (on_device && res.size() != residuals)
+          throw Error("refinement: the device's motion residuals do not match their points");
       }
-      if (!searched) {
+      if (!on_device) {
+        res.assign(residuals, 0.0f);
 #pragma omp parallel
         {
           std::vector<int> idx(1);
           std::vector<float> d2(1);
-#pragma omp for schedule(dynamic, 4096)
-          for (long q = 0; q < static_cast<long>(at.back()); ++q) {
-            pcl::PointNormal y;
-            y.getVector3fMap() = copy_pos[q].cast<float>();
-            if (trees[copy_frame[q]].nearestKSearch(y, 1, idx, d2) > 0) nearest[q] = idx[0];
+#pragma omp for schedule(dynamic, 256)
+          for (long r = 0; r < static_cast<long>(residuals); ++r) {
+            const int l = jobs.part[r], t = jobs.own[r];
+            double sum = 0.0;
+            int n = 0;
+            for (std::size_t u : scored) {
+              const std::size_t lu = static_cast<std::size_t>(l) * frames + u;
+              if (static_cast<int>(u) == t || !jobs.valid[lu]) continue;
+              double y[3];
+              icp_step::apply(icp_step::load(&jobs.motions[12 * lu]), &jobs.starts[3 * r], y);
+              pcl::PointNormal q;
+              q.x = static_cast<float>(y[0]);
+              q.y = static_cast<float>(y[1]);
+              q.z = static_cast<float>(y[2]);
+              if (trees[u].nearestKSearch(q, 1, idx, d2) <= 0) continue;
+              const pcl::PointNormal& np = (*sequence_->frame(u))[idx[0]];
+              const double pd[3] = {np.x, np.y, np.z};
+              const double nd[3] = {np.normal_x, np.normal_y, np.normal_z};
+              sum += motion_check::term(y, pd, nd, spacing[u], p.motion_cap);
+              ++n;
+            }
+            res[r] = motion_check::residual(sum, n);
           }
         }
       }
@@ -1093,14 +1101,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         const int t = by_verdicts[i];
         motion_res[t].resize(verdict[t].size());
         for (std::size_t v = 0; v < verdict[t].size(); ++v)
-          for (int k = 0; k < 2; ++k) {
-            const std::size_t r = first[t] + 2 * v + k;
-            double sum = 0.0;
-            int n = 0;
-            for (std::size_t c = at[r]; c < at[r + 1]; ++c)
-              copyTerm(copy_frame[c], copy_pos[c], nearest[c], sum, n);
-            motion_res[t][v][k] = residualOf(sum, n);
-          }
+          for (int k = 0; k < 2; ++k) motion_res[t][v][k] = res[first[t] + 2 * v + k];
       }
     }
     timer.lap("reassignment: motion residuals");

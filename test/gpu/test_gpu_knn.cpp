@@ -1,16 +1,21 @@
 // gpu::RigidFits::knn against FlatKdTree3::knn: the same rows, squared distances and order for
 // every query (k = 1 too, FlatKdTree3's nearest point without a bound), on a grid (many points at
 // exactly equal distances: the ties decide the order and which points make the last slots) and on
-// scattered points, with trees smaller than k. Skips when no usable GPU is present.
+// scattered points, with trees smaller than k. And RigidFits::motionResiduals against the CPU's
+// motion check on the same kept trees. Skips when no usable GPU is present.
 #include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/flat_kdtree.h>
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
 
+#include <Eigen/Geometry>
+#include <cmath>
 #include <random>
 #include <string>
 #include <vector>
+
+#include "segmentation/cpu_rigid_device.h"
 
 namespace gpu = pcl_animseg::gpu;
 
@@ -101,4 +106,78 @@ TEST(GpuKnn, SameListsAsTheCpuTree) {
   EXPECT_FALSE(device.knnOn(dropped, 9, queries, tree_of, again, again_count));
   EXPECT_THROW(device.knnOn(device.keepKnnTrees(ptrs), 9, queries, bad, again, again_count),
                pcl_animseg::Error);
+}
+
+// The refinement's motion check on the GPU (a thread per residual, each copy's nearest point in
+// the kept trees) against the CPU's (CpuRigidDevice::cpuMotionResiduals, the refinement's loop on
+// the cores: GMMRefinement.MotionCheckOnTheDeviceIsTheCoresBitForBit): the same floats for every
+// residual, copies far from every point (capped) and motions marked invalid among them; a token
+// that is no longer kept is declined, jobs that do not match the trees are an error.
+TEST(GpuKnn, MotionCheckIsTheCpus) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  namespace seg = pcl_animseg::segmentation;
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  const int frames = 6, parts = 4;
+  std::vector<pcl_animseg::FlatKdTree3> trees(frames);
+  seg::MotionCheckJobs jobs;
+  for (int t = 0; t < frames; ++t) {
+    std::vector<float> xyz;
+    const int n = 3000 + 500 * t;
+    for (int i = 0; i < 3 * n; ++i) xyz.push_back(u(rng));
+    trees[t] = treeOf(xyz);
+    for (int i = 0; i < n; ++i) {
+      const float nx = u(rng), ny = u(rng), nz = u(rng);
+      const float len = std::sqrt(nx * nx + ny * ny + nz * nz);
+      jobs.normals.insert(jobs.normals.end(), {nx / len, ny / len, nz / len});
+    }
+    jobs.spacing.push_back(0.02 + 0.003 * t);
+    if (t != 3) jobs.scored.push_back(t);  // a frame left out of the scored ones
+  }
+  for (int l = 0; l < parts; ++l)
+    for (int t = 0; t < frames; ++t) {
+      const Eigen::Matrix3d r =
+          Eigen::AngleAxisd(0.2 * l - 0.15 * t, Eigen::Vector3d(3, -1, 2).normalized())
+              .toRotationMatrix();
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) jobs.motions.push_back(r(i, j));
+      for (int i = 0; i < 3; ++i) jobs.motions.push_back(0.05 * (t - l) - 0.02 * i);
+      jobs.valid.push_back(!(l == 2 && t % 2 == 1));
+    }
+  jobs.cap = 3.0;
+  for (int r = 0; r < 20000; ++r) {
+    const double scale = r % 7 == 0 ? 30.0 : 1.0;
+    jobs.starts.insert(jobs.starts.end(), {scale * u(rng), scale * u(rng), scale * u(rng)});
+    jobs.part.push_back(r % parts);
+    jobs.own.push_back((r / parts) % frames);
+  }
+  const std::vector<float> expected = animseg_test::CpuRigidDevice::cpuMotionResiduals(trees, jobs);
+  std::vector<const pcl_animseg::FlatKdTree3*> ptrs;
+  for (const auto& t : trees) ptrs.push_back(&t);
+  gpu::RigidFits device;
+  const long long token = device.keepKnnTrees(ptrs);
+  ASSERT_GT(token, 0);
+  std::vector<float> got;
+  ASSERT_TRUE(device.motionResiduals(token, jobs, got));
+  ASSERT_EQ(got.size(), expected.size());
+  int differ = 0, capped = 0, none = 0;
+  for (std::size_t r = 0; r < got.size(); ++r) {
+    differ += got[r] != expected[r];
+    capped += expected[r] == static_cast<float>(jobs.cap);
+    none += expected[r] == 0.0f;
+  }
+  EXPECT_EQ(differ, 0) << differ << " of " << got.size() << " residuals differ";
+  EXPECT_GT(capped, 0);  // far copies: every term capped
+  EXPECT_EQ(none, 0);
+  // Jobs that do not match the kept trees: an error, not a wrong answer.
+  seg::MotionCheckJobs short_normals = jobs;
+  short_normals.normals.pop_back();
+  EXPECT_THROW(device.motionResiduals(token, short_normals, got), pcl_animseg::Error);
+  seg::MotionCheckJobs bad_part = jobs;
+  bad_part.part[5] = parts;
+  EXPECT_THROW(device.motionResiduals(token, bad_part, got), pcl_animseg::Error);
+  // Trees no longer kept: declined (the caller scores on the CPU).
+  device.dropKnnTrees(token);
+  EXPECT_FALSE(device.motionResiduals(token, jobs, got));
 }

@@ -4,8 +4,11 @@
 // arithmetic (fitRigidJob). What it records shows that the fits came in batches.
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/flat_kdtree.h>
+#include <pcl_animseg/segmentation/icp_step.h>
+#include <pcl_animseg/segmentation/motion_check.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
+#include <limits>
 #include <string>
 #include <thread>
 #include <vector>
@@ -75,6 +78,48 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
     kept.clear();
     token = 0;
   }
+  // The motion check against the kept copies (offer_motion), as a GPU computes it: each copy's
+  // nearest point by the copies' walk, its normal by its row (motion_check.h).
+  bool motionResiduals(long long tok, const pcl_animseg::segmentation::MotionCheckJobs& jobs,
+                       std::vector<float>& out) override {
+    if (!offer_knn || !offer_keep || !offer_motion || tok <= 0 || tok != token) return false;
+    out = cpuMotionResiduals(kept, jobs);
+    ++motion_calls;
+    return true;
+  }
+  static std::vector<float> cpuMotionResiduals(
+      const std::vector<pcl_animseg::FlatKdTree3>& trees,
+      const pcl_animseg::segmentation::MotionCheckJobs& jobs) {
+    namespace seg = pcl_animseg::segmentation;
+    const std::size_t frames = trees.size(), n = jobs.part.size();
+    std::vector<std::size_t> first(frames + 1, 0);
+    for (std::size_t t = 0; t < frames; ++t) first[t + 1] = first[t] + trees[t].size();
+    if (jobs.normals.size() != 3 * first[frames])
+      throw pcl_animseg::Error("test device: a normal per tree row expected");
+    std::vector<float> out(n, 0.0f);
+    for (std::size_t r = 0; r < n; ++r) {
+      double sum = 0.0;
+      int count = 0;
+      for (int u : jobs.scored) {
+        const std::size_t lu = static_cast<std::size_t>(jobs.part[r]) * frames + u;
+        if (u == jobs.own[r] || !jobs.valid.at(lu)) continue;
+        double y[3];
+        seg::icp_step::apply(seg::icp_step::load(&jobs.motions[12 * lu]), &jobs.starts[3 * r], y);
+        const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                            static_cast<float>(y[2])};
+        float d2 = 0.0f;
+        const int leaf = trees[u].nearestLeaf(q, std::numeric_limits<float>::infinity(), d2);
+        if (leaf < 0) continue;
+        const float* pf = &trees[u].leafPoints()[3 * static_cast<std::size_t>(leaf)];
+        const float* nf = &jobs.normals[3 * (first[u] + trees[u].leafRows()[leaf])];
+        const double p[3] = {pf[0], pf[1], pf[2]}, nd[3] = {nf[0], nf[1], nf[2]};
+        sum += seg::motion_check::term(y, p, nd, jobs.spacing[u], jobs.cap);
+        ++count;
+      }
+      out[r] = seg::motion_check::residual(sum, count);
+    }
+    return out;
+  }
   void search(const std::vector<pcl_animseg::FlatKdTree3>& copies, int k,
               const std::vector<float>& queries, const std::vector<int>& tree_of,
               std::vector<int>& rows, std::vector<int>& count) {
@@ -92,8 +137,9 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
       std::copy(r.begin(), r.end(), rows.begin() + q * k);
     }
   }
-  bool offer_keep = true;  // keepKnnTrees / knnOn offered (with offer_knn)
-  int keeps = 0, knn_on_calls = 0;
+  bool offer_keep = true;    // keepKnnTrees / knnOn offered (with offer_knn)
+  bool offer_motion = true;  // motionResiduals offered (with offer_keep)
+  int keeps = 0, knn_on_calls = 0, motion_calls = 0;
   long long token = 0;
   std::vector<pcl_animseg::FlatKdTree3> kept;
   bool offer_knn = true, fail_knn = false;

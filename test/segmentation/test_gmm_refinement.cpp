@@ -1,10 +1,15 @@
 #include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/flat_kdtree.h>
 #include <pcl_animseg/io/normals.h>
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
 #include <iostream>
+#include <random>
 #include <thread>
 
 #include "cpu_rigid_device.h"
@@ -277,12 +282,13 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
     }
   EXPECT_GE(dev.fits, 3 * 4);  // every part in every frame but the first
   EXPECT_LE(dev.batches, 4);   // one batch per frame position
-  // Every frame's neighbour lists in one call, then the nearest points of the motion check's
-  // moved copies in one.
-  EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  // Every frame's neighbour lists in one call, then the motion check's residuals in one, against
+  // the same trees.
+  EXPECT_EQ(dev.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
   // The trees were uploaded once, for both, and freed after the second.
   EXPECT_EQ(dev.keeps, 1);
-  EXPECT_EQ(dev.knn_on_calls, 2);
+  EXPECT_EQ(dev.knn_on_calls, 1);
+  EXPECT_EQ(dev.motion_calls, 1);
   EXPECT_TRUE(dev.kept.empty());
   // The motions' fits ran on a thread of their own (beside the first bands); the lists, on this
   // one.
@@ -295,14 +301,104 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   got = c.refinedBy(on_device);
   EXPECT_EQ(got.labels, expected.labels);
   EXPECT_EQ(fits_only.knn_calls, 0);
-  // A device that searches but keeps no trees: each search uploads them; the same result.
+  // A device that searches but keeps no trees: the lists' search uploads them, the motion check
+  // runs on the cores; the same result.
   animseg_test::CpuRigidDevice no_keep;
   no_keep.offer_keep = false;
   on_device.setRigidFitDevice(&no_keep);
   got = c.refinedBy(on_device);
   EXPECT_EQ(got.labels, expected.labels);
-  EXPECT_EQ(no_keep.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  EXPECT_EQ(no_keep.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
   EXPECT_EQ(no_keep.knn_on_calls, 0);
+  EXPECT_EQ(no_keep.motion_calls, 0);
+  // A device that keeps trees but offers no motion check: the cores score it; the same result.
+  animseg_test::CpuRigidDevice no_check;
+  no_check.offer_motion = false;
+  on_device.setRigidFitDevice(&no_check);
+  got = c.refinedBy(on_device);
+  EXPECT_EQ(got.labels, expected.labels);
+  EXPECT_EQ(no_check.knn_on_calls, 1);
+  EXPECT_EQ(no_check.motion_calls, 0);
+}
+
+// The motion check as a device computes it (CpuRigidDevice::cpuMotionResiduals, the arithmetic
+// the GPU's kernel runs) against the refinement's own on the cores: on the refinement test's
+// chain the same labels (above); here the residuals themselves, term by term, for copies near
+// and far from any point and for motions marked invalid.
+TEST(GMMRefinement, MotionCheckOnTheDeviceIsTheCoresBitForBit) {
+  namespace seg = pcl_animseg::segmentation;
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  const int frames = 4, parts = 3;
+  std::vector<pcl_animseg::FlatKdTree3> trees(frames);
+  seg::MotionCheckJobs jobs;
+  for (int t = 0; t < frames; ++t) {
+    std::vector<float> xyz;
+    const int n = 200 + 50 * t;
+    for (int i = 0; i < 3 * n; ++i) xyz.push_back(u(rng));
+    trees[t].build(xyz.data(), n);
+    for (int i = 0; i < n; ++i) {
+      const float nx = u(rng), ny = u(rng), nz = u(rng);
+      const float len = std::sqrt(nx * nx + ny * ny + nz * nz);
+      jobs.normals.insert(jobs.normals.end(), {nx / len, ny / len, nz / len});
+    }
+    jobs.spacing.push_back(0.05 + 0.01 * t);
+    jobs.scored.push_back(t);
+  }
+  // Normals by row: the trees' rows are the order the points were given.
+  for (int l = 0; l < parts; ++l)
+    for (int t = 0; t < frames; ++t) {
+      const Eigen::Matrix3d r =
+          Eigen::AngleAxisd(0.3 * l + 0.1 * t, Eigen::Vector3d(1, 2, 3).normalized())
+              .toRotationMatrix();
+      for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) jobs.motions.push_back(r(i, j));
+      }
+      for (int i = 0; i < 3; ++i) jobs.motions.push_back(0.1 * (l - t) + 0.01 * i);
+      jobs.valid.push_back(!(l == 1 && t == 2));
+    }
+  jobs.cap = 3.0;
+  for (int r = 0; r < 300; ++r) {
+    const double scale = r % 10 == 0 ? 40.0 : 1.0;  // some copies far from every point (capped)
+    jobs.starts.insert(jobs.starts.end(), {scale * u(rng), scale * u(rng), scale * u(rng)});
+    jobs.part.push_back(r % parts);
+    jobs.own.push_back(r % frames);
+  }
+  const std::vector<float> got = animseg_test::CpuRigidDevice::cpuMotionResiduals(trees, jobs);
+  // The refinement's loop on the cores, written out as it runs there: the copies' nearest points
+  // by FlatKdTree3::knn (k = 1), point and normal by row.
+  std::vector<std::size_t> first(frames + 1, 0);
+  for (int t = 0; t < frames; ++t) first[t + 1] = first[t] + trees[t].size();
+  int capped = 0, differ = 0;
+  for (std::size_t r = 0; r < jobs.part.size(); ++r) {
+    double sum = 0.0;
+    int n = 0;
+    for (int t : jobs.scored) {
+      const std::size_t lt = static_cast<std::size_t>(jobs.part[r]) * frames + t;
+      if (t == jobs.own[r] || !jobs.valid[lt]) continue;
+      double y[3];
+      seg::icp_step::apply(seg::icp_step::load(&jobs.motions[12 * lt]), &jobs.starts[3 * r], y);
+      const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                          static_cast<float>(y[2])};
+      std::vector<int> rows;
+      std::vector<float> d2;
+      if (trees[t].knn(q, 1, rows, d2) != 1) continue;
+      const std::vector<float>& pts = trees[t].leafPoints();
+      const std::vector<int>& leaf_rows = trees[t].leafRows();
+      const std::size_t leaf = static_cast<std::size_t>(
+          std::find(leaf_rows.begin(), leaf_rows.end(), rows[0]) - leaf_rows.begin());
+      const double p[3] = {pts[3 * leaf], pts[3 * leaf + 1], pts[3 * leaf + 2]};
+      const float* nf = &jobs.normals[3 * (first[t] + rows[0])];
+      const double nd[3] = {nf[0], nf[1], nf[2]};
+      const double e = seg::motion_check::term(y, p, nd, jobs.spacing[t], jobs.cap);
+      capped += e == jobs.cap;
+      sum += e;
+      ++n;
+    }
+    differ += got[r] != seg::motion_check::residual(sum, n);
+  }
+  EXPECT_EQ(differ, 0);
+  EXPECT_GT(capped, 0);
 }
 
 // The frames prepared ahead on another thread (prepareFrames, as the pipeline does beside the
@@ -329,15 +425,16 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   EXPECT_NE(dev.knn_thread, std::this_thread::get_id());
   EXPECT_EQ(prepared.preparedSpacings(), pcl_animseg::meanSpacings(c.chain.sequence));
   EXPECT_EQ(c.refinedBy(prepared).labels, expected.labels);
-  // refine() searched only the motion check's nearest points (k = 1), in the trees the
-  // preparation kept on the device, and released the rest.
-  EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  // refine() only scored the motion check, in the trees the preparation kept on the device,
+  // and released the rest.
+  EXPECT_EQ(dev.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
   EXPECT_EQ(dev.keeps, 1);
-  EXPECT_EQ(dev.knn_on_calls, 2);
+  EXPECT_EQ(dev.knn_on_calls, 1);
+  EXPECT_EQ(dev.motion_calls, 1);
   EXPECT_TRUE(prepared.preparedSpacings().empty());
 
   // Another sequence's trees kept on the same device since the preparation: refine() does not
-  // search those, it uploads its own again. The same labels.
+  // search those; its motion check runs on the cores. The same labels.
   const ShiftedChain second;
   GMMBoundaryRefinement first_prepared, second_prepared;
   animseg_test::CpuRigidDevice shared;
@@ -351,7 +448,8 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   EXPECT_EQ(shared.keeps, 2);
   EXPECT_EQ(shared.knn_on_calls, 2);  // the two preparations' lists
   EXPECT_EQ(shared.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1,
-                                            RefinementParams().boundary_k + 1, 1}));
+                                            RefinementParams().boundary_k + 1}));
+  EXPECT_EQ(shared.motion_calls, 0);
 
   // Prepared for another sequence: refine() searches its own lists.
   const ShiftedChain other;
@@ -362,7 +460,8 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   moved_on.prepareFrames();
   EXPECT_EQ(c.refinedBy(moved_on).labels, expected.labels);
   EXPECT_EQ(dev2.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1,
-                                          RefinementParams().boundary_k + 1, 1}));
+                                          RefinementParams().boundary_k + 1}));
+  EXPECT_EQ(dev2.motion_calls, 1);
 
   // A device whose k-NN fails while preparing: no error there; refine() searches on its own.
   animseg_test::CpuRigidDevice failing;
@@ -374,7 +473,8 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   EXPECT_FALSE(after_failure.preparedSpacings().empty());
   failing.fail_knn = false;
   EXPECT_EQ(c.refinedBy(after_failure).labels, expected.labels);
-  EXPECT_EQ(failing.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
+  EXPECT_EQ(failing.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
+  EXPECT_EQ(failing.motion_calls, 1);
 }
 
 // Spacings given by the caller (the pipeline measures them once) are the ones measured: the

@@ -88,6 +88,24 @@ struct RigidFitJob {
   bool wide = true;
 };
 
+/** \brief The refinement's motion check for a device (RigidFitDevice::motionResiduals):
+ * residual r's point x0 (starts[3r..]) carried by part part[r]'s motion into every frame u of
+ * `scored` but own[r] where that motion is valid, each copy y (icp_step::apply, in double) scored
+ * against the nearest point of frame u to y as floats (FlatKdTree3::nearest without a bound;
+ * none for a non-finite y) by motion_check::term, with that point's normal (`normals`: 3 per row
+ * of each frame's tree, the frames one after the other) and spacing[u], capped at `cap`; the
+ * terms added in the order of `scored`; the residual motion_check::residual of their sum. */
+struct MotionCheckJobs {
+  std::vector<double> starts;   ///< 3 per residual
+  std::vector<int> part, own;   ///< per residual
+  std::vector<double> motions;  ///< per part and frame (part-major): 12 each, icp_step::store's
+  std::vector<char> valid;      ///< per part and frame
+  std::vector<int> scored;      ///< frames, ascending
+  std::vector<double> spacing;  ///< per frame
+  std::vector<float> normals;   ///< 3 per tree row, frame after frame
+  double cap = 0.0;
+};
+
 /** \brief Where RigidMotionEstimation's ICP fits run when not on the CPU (the CUDA module's
  * gpu::RigidFits). A device must give the CPU's results bit for bit: the same passes in the same
  * arithmetic (segmentation/icp_step.h) and order, and the same nearest points (a copy of each
@@ -134,6 +152,15 @@ class RigidFitDevice {
   }
   /** \brief Frees the trees kept under `token`, if they still are (their device memory). */
   virtual void dropKnnTrees(long long token) { (void)token; }
+  /** \brief The refinement's motion check (MotionCheckJobs) against the trees kept under
+   * `token`, one per frame: each residual into out[r]. Returns false where the trees are no
+   * longer kept or the device does not offer it (the default): the caller scores on the CPU,
+   * with the same bits. */
+  virtual bool motionResiduals(long long token, const MotionCheckJobs& jobs,
+                               std::vector<float>& out) {
+    (void)token, (void)jobs, (void)out;
+    return false;
+  }
 };
 
 /** \brief The CPU's fit of one job, which a RigidFitDevice reproduces: the source (x, y, z per

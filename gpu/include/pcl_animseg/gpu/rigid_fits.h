@@ -60,6 +60,11 @@ class RigidFits : public segmentation::RigidFitDevice {
              const std::vector<int>& tree_of, std::vector<int>& rows,
              std::vector<int>& count) override;
   void dropKnnTrees(long long token) override;
+  /** \brief The refinement's motion check against the kept trees (a thread per residual, each
+   * copy's nearest point found there); false where `token` is not the last keepKnnTrees()'s;
+   * throws Error on a CUDA failure or jobs that do not match the trees. */
+  bool motionResiduals(long long token, const segmentation::MotionCheckJobs& jobs,
+                       std::vector<float>& out) override;
   /** \brief Fits and kernel launches since construction. */
   long long fits() const { return fits_; }
   long long batches() const { return batches_; }
