@@ -9,7 +9,6 @@
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/rigid_fits.h>
 
-#include <Eigen/Geometry>
 #include <cmath>
 #include <random>
 #include <string>
@@ -117,41 +116,11 @@ TEST(GpuKnn, MotionCheckIsTheCpus) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
   namespace seg = pcl_animseg::segmentation;
-  std::mt19937 rng(11);
-  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
-  const int frames = 6, parts = 4;
-  std::vector<pcl_animseg::FlatKdTree3> trees(frames);
-  seg::MotionCheckJobs jobs;
-  for (int t = 0; t < frames; ++t) {
-    std::vector<float> xyz;
-    const int n = 3000 + 500 * t;
-    for (int i = 0; i < 3 * n; ++i) xyz.push_back(u(rng));
-    trees[t] = treeOf(xyz);
-    for (int i = 0; i < n; ++i) {
-      const float nx = u(rng), ny = u(rng), nz = u(rng);
-      const float len = std::sqrt(nx * nx + ny * ny + nz * nz);
-      jobs.normals.insert(jobs.normals.end(), {nx / len, ny / len, nz / len});
-    }
-    jobs.spacing.push_back(0.02 + 0.003 * t);
-    if (t != 3) jobs.scored.push_back(t);  // a frame left out of the scored ones
-  }
-  for (int l = 0; l < parts; ++l)
-    for (int t = 0; t < frames; ++t) {
-      const Eigen::Matrix3d r =
-          Eigen::AngleAxisd(0.2 * l - 0.15 * t, Eigen::Vector3d(3, -1, 2).normalized())
-              .toRotationMatrix();
-      for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) jobs.motions.push_back(r(i, j));
-      for (int i = 0; i < 3; ++i) jobs.motions.push_back(0.05 * (t - l) - 0.02 * i);
-      jobs.valid.push_back(!(l == 2 && t % 2 == 1));
-    }
-  jobs.cap = 3.0;
-  for (int r = 0; r < 20000; ++r) {
-    const double scale = r % 7 == 0 ? 30.0 : 1.0;
-    jobs.starts.insert(jobs.starts.end(), {scale * u(rng), scale * u(rng), scale * u(rng)});
-    jobs.part.push_back(r % parts);
-    jobs.own.push_back((r / parts) % frames);
-  }
+  const int parts = 4;
+  const animseg_test::MotionCheckCase mc =
+      animseg_test::randomMotionCheck(11, 6, parts, 3000, 500, 20000);
+  const auto& trees = mc.trees;
+  const seg::MotionCheckJobs& jobs = mc.jobs;
   const std::vector<float> expected = animseg_test::CpuRigidDevice::cpuMotionResiduals(trees, jobs);
   std::vector<const pcl_animseg::FlatKdTree3*> ptrs;
   for (const auto& t : trees) ptrs.push_back(&t);

@@ -8,7 +8,10 @@
 #include <pcl_animseg/segmentation/motion_check.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
+#include <Eigen/Geometry>
+#include <cmath>
 #include <limits>
+#include <random>
 #include <string>
 #include <thread>
 #include <vector>
@@ -152,5 +155,55 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
   bool fail = false;
   std::thread::id fit_thread, knn_thread;  // of the last fit and k-NN calls
 };
+
+// Kept trees and a motion check over them for tests (RigidFitDevice::motionResiduals): `frames`
+// trees of base + step t random points in [-1, 1]^3, each row with a random unit normal; every
+// frame scored but frame frames / 2; per part and frame a rotation about a fixed axis and a
+// shift, part 1's motion invalid in odd frames; `residuals` starts, every 7th far (30 times) from
+// every point, so that all its terms are capped.
+struct MotionCheckCase {
+  std::vector<pcl_animseg::FlatKdTree3> trees;
+  pcl_animseg::segmentation::MotionCheckJobs jobs;
+};
+
+inline MotionCheckCase randomMotionCheck(unsigned seed, int frames, int parts, int base, int step,
+                                         int residuals) {
+  std::mt19937 rng(seed);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  MotionCheckCase c;
+  c.trees.resize(frames);
+  auto& jobs = c.jobs;
+  for (int t = 0; t < frames; ++t) {
+    std::vector<float> xyz;
+    const int n = base + step * t;
+    for (int i = 0; i < 3 * n; ++i) xyz.push_back(u(rng));
+    c.trees[t].build(xyz.data(), n);
+    for (int i = 0; i < n; ++i) {  // by row: the order the points were given
+      const float nx = u(rng), ny = u(rng), nz = u(rng);
+      const float len = std::sqrt(nx * nx + ny * ny + nz * nz);
+      jobs.normals.insert(jobs.normals.end(), {nx / len, ny / len, nz / len});
+    }
+    jobs.spacing.push_back(0.02 + 0.003 * t);
+    if (t != frames / 2) jobs.scored.push_back(t);
+  }
+  for (int l = 0; l < parts; ++l)
+    for (int t = 0; t < frames; ++t) {
+      const Eigen::Matrix3d r =
+          Eigen::AngleAxisd(0.2 * l - 0.15 * t, Eigen::Vector3d(3, -1, 2).normalized())
+              .toRotationMatrix();
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) jobs.motions.push_back(r(i, j));
+      for (int i = 0; i < 3; ++i) jobs.motions.push_back(0.05 * (t - l) - 0.02 * i);
+      jobs.valid.push_back(!(l == 1 && t % 2 == 1));
+    }
+  jobs.cap = 3.0;
+  for (int r = 0; r < residuals; ++r) {
+    const double scale = r % 7 == 0 ? 30.0 : 1.0;
+    jobs.starts.insert(jobs.starts.end(), {scale * u(rng), scale * u(rng), scale * u(rng)});
+    jobs.part.push_back(r % parts);
+    jobs.own.push_back((r / parts) % frames);
+  }
+  return c;
+}
 
 }  // namespace animseg_test

@@ -5,7 +5,6 @@
 #include <pcl_animseg/io/normals.h>
 #include <pcl_animseg/segmentation/gmm_refinement.h>
 
-#include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
 #include <iostream>
@@ -294,29 +293,28 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   // one.
   EXPECT_NE(dev.fit_thread, std::this_thread::get_id());
   EXPECT_EQ(dev.knn_thread, std::this_thread::get_id());
-  // A device without the k-NN: the lists on the CPU, the same result.
+  // Devices that offer less: the cores do the rest, the same result.
+  auto refinedOn = [&](animseg_test::CpuRigidDevice& device) {
+    on_device.setRigidFitDevice(&device);
+    EXPECT_EQ(c.refinedBy(on_device).labels, expected.labels);
+  };
+  // Without the k-NN: the lists on the CPU.
   animseg_test::CpuRigidDevice fits_only;
   fits_only.offer_knn = false;
-  on_device.setRigidFitDevice(&fits_only);
-  got = c.refinedBy(on_device);
-  EXPECT_EQ(got.labels, expected.labels);
+  refinedOn(fits_only);
   EXPECT_EQ(fits_only.knn_calls, 0);
-  // A device that searches but keeps no trees: the lists' search uploads them, the motion check
-  // runs on the cores; the same result.
+  // Searching but keeping no trees: the lists' search uploads them, the motion check runs on the
+  // cores.
   animseg_test::CpuRigidDevice no_keep;
   no_keep.offer_keep = false;
-  on_device.setRigidFitDevice(&no_keep);
-  got = c.refinedBy(on_device);
-  EXPECT_EQ(got.labels, expected.labels);
+  refinedOn(no_keep);
   EXPECT_EQ(no_keep.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
   EXPECT_EQ(no_keep.knn_on_calls, 0);
   EXPECT_EQ(no_keep.motion_calls, 0);
-  // A device that keeps trees but offers no motion check: the cores score it; the same result.
+  // Keeping trees but offering no motion check: the cores score it.
   animseg_test::CpuRigidDevice no_check;
   no_check.offer_motion = false;
-  on_device.setRigidFitDevice(&no_check);
-  got = c.refinedBy(on_device);
-  EXPECT_EQ(got.labels, expected.labels);
+  refinedOn(no_check);
   EXPECT_EQ(no_check.knn_on_calls, 1);
   EXPECT_EQ(no_check.motion_calls, 0);
 }
@@ -327,43 +325,10 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
 // and far from any point and for motions marked invalid.
 TEST(GMMRefinement, MotionCheckOnTheDeviceIsTheCoresBitForBit) {
   namespace seg = pcl_animseg::segmentation;
-  std::mt19937 rng(5);
-  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
-  const int frames = 4, parts = 3;
-  std::vector<pcl_animseg::FlatKdTree3> trees(frames);
-  seg::MotionCheckJobs jobs;
-  for (int t = 0; t < frames; ++t) {
-    std::vector<float> xyz;
-    const int n = 200 + 50 * t;
-    for (int i = 0; i < 3 * n; ++i) xyz.push_back(u(rng));
-    trees[t].build(xyz.data(), n);
-    for (int i = 0; i < n; ++i) {
-      const float nx = u(rng), ny = u(rng), nz = u(rng);
-      const float len = std::sqrt(nx * nx + ny * ny + nz * nz);
-      jobs.normals.insert(jobs.normals.end(), {nx / len, ny / len, nz / len});
-    }
-    jobs.spacing.push_back(0.05 + 0.01 * t);
-    jobs.scored.push_back(t);
-  }
-  // Normals by row: the trees' rows are the order the points were given.
-  for (int l = 0; l < parts; ++l)
-    for (int t = 0; t < frames; ++t) {
-      const Eigen::Matrix3d r =
-          Eigen::AngleAxisd(0.3 * l + 0.1 * t, Eigen::Vector3d(1, 2, 3).normalized())
-              .toRotationMatrix();
-      for (int i = 0; i < 3; ++i) {
-        for (int j = 0; j < 3; ++j) jobs.motions.push_back(r(i, j));
-      }
-      for (int i = 0; i < 3; ++i) jobs.motions.push_back(0.1 * (l - t) + 0.01 * i);
-      jobs.valid.push_back(!(l == 1 && t == 2));
-    }
-  jobs.cap = 3.0;
-  for (int r = 0; r < 300; ++r) {
-    const double scale = r % 10 == 0 ? 40.0 : 1.0;  // some copies far from every point (capped)
-    jobs.starts.insert(jobs.starts.end(), {scale * u(rng), scale * u(rng), scale * u(rng)});
-    jobs.part.push_back(r % parts);
-    jobs.own.push_back(r % frames);
-  }
+  const int frames = 4;
+  const animseg_test::MotionCheckCase mc = animseg_test::randomMotionCheck(5, frames, 3, 200, 50, 300);
+  const auto& trees = mc.trees;
+  const seg::MotionCheckJobs& jobs = mc.jobs;
   const std::vector<float> got = animseg_test::CpuRigidDevice::cpuMotionResiduals(trees, jobs);
   // The refinement's loop on the cores, written out as it runs there: the copies' nearest points
   // by FlatKdTree3::knn (k = 1), point and normal by row.
