@@ -1100,32 +1100,21 @@ __global__ void motionCheckKernel(const TrackNode* nodes, const float4* pts, con
                                   float* out) {
   const int r = blockIdx.x * blockDim.x + threadIdx.x;
   if (r >= in.residuals) return;
-  const int l = in.part[r], t = in.own[r];
-  const double* x0 = in.starts + 3LL * r;
   Dev d{};
   d.nodes = nodes;
   d.pts = pts;
-  double sum = 0.0;
-  int n = 0;
-  for (int k = 0; k < in.n_scored; ++k) {
-    const int u = in.scored[k];
-    const long long lu = static_cast<long long>(l) * in.frames + u;
-    if (u == t || !in.valid[lu]) continue;
-    double y[3];
-    icp_step::apply(icp_step::load(in.motions + 12 * lu), x0, y);
-    const float qx = static_cast<float>(y[0]), qy = static_cast<float>(y[1]),
-                qz = static_cast<float>(y[2]);
-    if (!(isfinite(qx) && isfinite(qy) && isfinite(qz))) continue;
-    float d2 = 0.0f;
-    const int leaf = nearest(d, root[u], qx, qy, qz, CUDART_INF_F, d2);
-    if (leaf < 0) continue;
-    const float4 p = pts[leaf];
-    const float* nf = in.normals + 3LL * (first[u] + rows[leaf]);
-    const double pd[3] = {p.x, p.y, p.z}, nd[3] = {nf[0], nf[1], nf[2]};
-    sum += segmentation::motion_check::term(y, pd, nd, in.spacing[u], in.cap);
-    ++n;
-  }
-  out[r] = segmentation::motion_check::residual(sum, n);
+  out[r] = segmentation::motion_check::residualOf(
+      in.starts + 3LL * r, in.part[r], in.own[r], in.scored, in.n_scored, in.frames, in.motions,
+      in.valid, in.spacing, in.cap, [&](int u, const float* q, double* p, double* n) {
+        float d2 = 0.0f;
+        const int leaf = nearest(d, root[u], q[0], q[1], q[2], CUDART_INF_F, d2);
+        if (leaf < 0) return false;
+        const float4 at = pts[leaf];
+        const float* nf = in.normals + 3LL * (first[u] + rows[leaf]);
+        p[0] = at.x, p[1] = at.y, p[2] = at.z;
+        for (int c = 0; c < 3; ++c) n[c] = nf[c];
+        return true;
+      });
 }
 
 void runMotionCheck(const KnnStore& store, const MotionCheckArrays& in, float* out) {

@@ -1032,13 +1032,9 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       jobs.valid.assign(pf, 0);
       for (int l = 0; l < num_labels && l < static_cast<int>(parts.size()); ++l)
         for (std::size_t u = 0; u < frames && u < parts[l].frames.size(); ++u) {
-          const RigidTransform& m = parts[l].frames[u];
           const std::size_t lu = static_cast<std::size_t>(l) * frames + u;
-          jobs.valid[lu] = m.valid;
-          for (int i = 0; i < 3; ++i) {
-            for (int j = 0; j < 3; ++j) jobs.motions[12 * lu + 3 * i + j] = m.rotation(i, j);
-            jobs.motions[12 * lu + 9 + i] = m.translation(i);
-          }
+          jobs.valid[lu] = parts[l].frames[u].valid;
+          icp_step::store(detail::toRigid(parts[l].frames[u]), &jobs.motions[12 * lu]);
         }
       jobs.scored.assign(scored.begin(), scored.end());
       jobs.spacing = spacing;
@@ -1071,29 +1067,22 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         {
           std::vector<int> idx(1);
           std::vector<float> d2(1);
+          // A copy's nearest point in its frame's tree, with that point's normal.
+          auto nearest = [&](int u, const float* q, double* at, double* nrm) {
+            pcl::PointNormal y;
+            y.x = q[0], y.y = q[1], y.z = q[2];
+            if (trees[u].nearestKSearch(y, 1, idx, d2) <= 0) return false;
+            const pcl::PointNormal& np = (*sequence_->frame(u))[idx[0]];
+            at[0] = np.x, at[1] = np.y, at[2] = np.z;
+            nrm[0] = np.normal_x, nrm[1] = np.normal_y, nrm[2] = np.normal_z;
+            return true;
+          };
 #pragma omp for schedule(dynamic, 256)
-          for (long r = 0; r < static_cast<long>(residuals); ++r) {
-            const int l = jobs.part[r], t = jobs.own[r];
-            double sum = 0.0;
-            int n = 0;
-            for (std::size_t u : scored) {
-              const std::size_t lu = static_cast<std::size_t>(l) * frames + u;
-              if (static_cast<int>(u) == t || !jobs.valid[lu]) continue;
-              double y[3];
-              icp_step::apply(icp_step::load(&jobs.motions[12 * lu]), &jobs.starts[3 * r], y);
-              pcl::PointNormal q;
-              q.x = static_cast<float>(y[0]);
-              q.y = static_cast<float>(y[1]);
-              q.z = static_cast<float>(y[2]);
-              if (trees[u].nearestKSearch(q, 1, idx, d2) <= 0) continue;
-              const pcl::PointNormal& np = (*sequence_->frame(u))[idx[0]];
-              const double pd[3] = {np.x, np.y, np.z};
-              const double nd[3] = {np.normal_x, np.normal_y, np.normal_z};
-              sum += motion_check::term(y, pd, nd, spacing[u], p.motion_cap);
-              ++n;
-            }
-            res[r] = motion_check::residual(sum, n);
-          }
+          for (long r = 0; r < static_cast<long>(residuals); ++r)
+            res[r] = motion_check::residualOf(
+                &jobs.starts[3 * r], jobs.part[r], jobs.own[r], jobs.scored.data(),
+                static_cast<int>(jobs.scored.size()), static_cast<int>(frames),
+                jobs.motions.data(), jobs.valid.data(), jobs.spacing.data(), jobs.cap, nearest);
         }
       }
 #pragma omp parallel for schedule(dynamic)

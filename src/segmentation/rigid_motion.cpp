@@ -36,9 +36,7 @@ RigidTransform RigidTransform::inverse() const {
   return r;
 }
 
-namespace {
-
-icp_step::Rigid toRigid(const RigidTransform& a) {
+icp_step::Rigid detail::toRigid(const RigidTransform& a) {
   icp_step::Rigid r;
   for (int i = 0; i < 3; ++i) {
     for (int j = 0; j < 3; ++j) r.r[3 * i + j] = a.rotation(i, j);
@@ -46,6 +44,10 @@ icp_step::Rigid toRigid(const RigidTransform& a) {
   }
   return r;
 }
+
+namespace {
+
+using detail::toRigid;
 
 RigidTransform fromRigid(const icp_step::Rigid& a) {
   RigidTransform r;

@@ -100,27 +100,20 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
     if (jobs.normals.size() != 3 * first[frames])
       throw pcl_animseg::Error("test device: a normal per tree row expected");
     std::vector<float> out(n, 0.0f);
-    for (std::size_t r = 0; r < n; ++r) {
-      double sum = 0.0;
-      int count = 0;
-      for (int u : jobs.scored) {
-        const std::size_t lu = static_cast<std::size_t>(jobs.part[r]) * frames + u;
-        if (u == jobs.own[r] || !jobs.valid.at(lu)) continue;
-        double y[3];
-        seg::icp_step::apply(seg::icp_step::load(&jobs.motions[12 * lu]), &jobs.starts[3 * r], y);
-        const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                            static_cast<float>(y[2])};
-        float d2 = 0.0f;
-        const int leaf = trees[u].nearestLeaf(q, std::numeric_limits<float>::infinity(), d2);
-        if (leaf < 0) continue;
-        const float* pf = &trees[u].leafPoints()[3 * static_cast<std::size_t>(leaf)];
-        const float* nf = &jobs.normals[3 * (first[u] + trees[u].leafRows()[leaf])];
-        const double p[3] = {pf[0], pf[1], pf[2]}, nd[3] = {nf[0], nf[1], nf[2]};
-        sum += seg::motion_check::term(y, p, nd, jobs.spacing[u], jobs.cap);
-        ++count;
-      }
-      out[r] = seg::motion_check::residual(sum, count);
-    }
+    auto nearest = [&](int u, const float* q, double* p, double* nrm) {
+      float d2 = 0.0f;
+      const int leaf = trees[u].nearestLeaf(q, std::numeric_limits<float>::infinity(), d2);
+      if (leaf < 0) return false;
+      const float* pf = &trees[u].leafPoints()[3 * static_cast<std::size_t>(leaf)];
+      const float* nf = &jobs.normals[3 * (first[u] + trees[u].leafRows()[leaf])];
+      for (int c = 0; c < 3; ++c) p[c] = pf[c], nrm[c] = nf[c];
+      return true;
+    };
+    for (std::size_t r = 0; r < n; ++r)
+      out[r] = seg::motion_check::residualOf(
+          &jobs.starts[3 * r], jobs.part[r], jobs.own[r], jobs.scored.data(),
+          static_cast<int>(jobs.scored.size()), static_cast<int>(frames), jobs.motions.data(),
+          jobs.valid.data(), jobs.spacing.data(), jobs.cap, nearest);
     return out;
   }
   void search(const std::vector<pcl_animseg::FlatKdTree3>& copies, int k,

@@ -29,6 +29,36 @@ PCL_ANIMSEG_HD inline float residual(double sum, int n) {
   return n > 0 ? static_cast<float>(sum / n) : 0.0f;
 }
 
+/** \brief One residual (MotionCheckJobs' meaning): `x0` carried by the motion of part `l` into
+ * every frame u of scored[0 .. n_scored) but `t` where valid[l frames + u] (motions: 12 per part
+ * and frame, icp_step::load's), each copy as floats looked up by `nearest(u, q, p, n)` (true with
+ * its nearest point p and that point's normal n, widened, where frame u has one; a non-finite
+ * copy is not looked up), the terms added in the order of `scored`. The GPU's kernel, the
+ * refinement's loop on the cores and the tests' CPU device each call it with their own search. */
+template <class Nearest>
+PCL_ANIMSEG_HD inline float residualOf(const double* x0, int l, int t, const int* scored,
+                                       int n_scored, int frames, const double* motions,
+                                       const char* valid, const double* spacing, double cap,
+                                       Nearest nearest) {
+  double sum = 0.0;
+  int n = 0;
+  for (int k = 0; k < n_scored; ++k) {
+    const int u = scored[k];
+    const long long lu = static_cast<long long>(l) * frames + u;
+    if (u == t || !valid[lu]) continue;
+    double y[3];
+    icp_step::apply(icp_step::load(motions + 12 * lu), x0, y);
+    const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
+                        static_cast<float>(y[2])};
+    if (!(std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]))) continue;
+    double p[3], nrm[3];
+    if (!nearest(u, q, p, nrm)) continue;
+    sum += term(y, p, nrm, spacing[u], cap);
+    ++n;
+  }
+  return residual(sum, n);
+}
+
 }  // namespace motion_check
 }  // namespace segmentation
 }  // namespace pcl_animseg

@@ -13,6 +13,7 @@
  * The RMS residual (nearest-neighbour distance after alignment) is a quality measure that needs no
  * ground truth: a part that is not rigid, or not one part, shows a large residual.
  */
+#include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/sequence.h>
 
@@ -40,6 +41,12 @@ struct RigidTransform {
   Eigen::Vector3d apply(const Eigen::Vector3d& p) const { return rotation * p + translation; }
   RigidTransform inverse() const;
 };
+
+namespace detail {
+/** \brief `a` in icp_step's layout (the rotation row by row, then the translation), as the
+ * shared arithmetic and the devices take it. */
+icp_step::Rigid toRigid(const RigidTransform& a);
+}  // namespace detail
 
 /** \brief Knobs of RigidMotionEstimation (one struct so tools and --config map onto it). */
 struct RigidMotionParams {
