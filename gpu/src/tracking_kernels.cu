@@ -26,6 +26,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <thread>
 
 #include "cuda_check.h"
 #include "tracking_kernels.h"
@@ -898,7 +899,10 @@ void getResults(FrameStore& frames, const void* device, void* host, std::size_t 
   if (!bytes) return;
   unsigned char* r = frames.results.reserve(bytes);
   cudaSafeCall(cudaMemcpyAsync(r, device, bytes, cudaMemcpyDeviceToHost, 0));
-  cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
+  if (frames.yield_while_waiting)
+    frames.yielding.wait();
+  else
+    cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
   std::memcpy(host, r, bytes);
 }
 
@@ -1188,6 +1192,23 @@ void runKnn(const KnnStore& store, int k, const std::vector<float>& queries,
   cudaCheckLaunch();
   d_rows.download(rows.data());
   d_count.download(count.data());
+}
+
+YieldingWait::~YieldingWait() {
+  if (event_) cudaEventDestroy(static_cast<cudaEvent_t>(event_));
+}
+
+void YieldingWait::wait() {
+  if (!event_) {
+    cudaEvent_t e = nullptr;
+    cudaSafeCall(cudaEventCreateWithFlags(&e, cudaEventDisableTiming));
+    event_ = e;
+  }
+  const auto e = static_cast<cudaEvent_t>(event_);
+  cudaSafeCall(cudaEventRecord(e, cudaStreamPerThread));
+  cudaError_t state;
+  while ((state = cudaEventQuery(e)) == cudaErrorNotReady) std::this_thread::yield();
+  cudaSafeCall(state);
 }
 
 PinnedHost::~PinnedHost() {

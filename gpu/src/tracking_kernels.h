@@ -78,6 +78,23 @@ class PinnedHost {
   std::size_t bytes_ = 0;
 };
 
+/** Waits for the work queued on the calling thread's stream by polling an event and yielding
+ * the core between polls, for a thread beside other work: a spinning wait (the default
+ * synchronisation) holds a core that the other work's threads need, and a sleeping one
+ * (blocking sync) adds its wake-up to every call. */
+class YieldingWait {
+ public:
+  YieldingWait() = default;
+  ~YieldingWait();
+  YieldingWait(const YieldingWait&) = delete;
+  YieldingWait& operator=(const YieldingWait&) = delete;
+  /** Throws Error on a CUDA failure (a kernel fault of the work waited for among them). */
+  void wait();
+
+ private:
+  void* event_ = nullptr;
+};
+
 /** The frames on the device (setFrames), kept for the calls that follow. */
 struct FrameStore {
   int frames = 0;
@@ -86,6 +103,10 @@ struct FrameStore {
   /** Where set, the store whose frame arrays (nodes ... unoriented) these calls read: a fork
    * (MotionTracking::fork) has only its own batch buffers. */
   const FrameStore* shared = nullptr;
+  /** Whether a batch's results are waited for yielding the core (YieldingWait) instead of
+   * spinning: a fork's calls come from a thread beside the caller's work (MotionTracking::fork). */
+  bool yield_while_waiting = false;
+  YieldingWait yielding;
   DeviceArray<TrackNode> nodes;
   DeviceArray<int> root;
   DeviceArray<float> points, normals;

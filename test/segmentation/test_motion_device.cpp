@@ -521,3 +521,103 @@ TEST(MotionTracking, FarthestPointSamplesAreTheSameOnAnyNumberOfThreads) {
       omp_set_num_threads(threads);
     }
 }
+
+// The final borders' alpha expansions with the expansions of far apart labels side by side give
+// the labels of the expansions one after the other, on any number of threads: a grid of 14
+// stripes whose points near a border may take the labels within 3 steps, with costs that move
+// some of them. Stripes 6 wide hold labels that no point may both take but that meet over an
+// edge: their expansions read each other's points too.
+TEST(MotionTracking, AlphaExpansionsSideBySideGiveTheSerialLabels) {
+  constexpr int W = 70, H = 24, kHops = 3;
+  const int n = W * H;
+  unsigned long long r = 2024;
+  auto uniform = [&r] {
+    r = r * 6364136223846793005ull + 1442695040888963407ull;
+    return static_cast<double>(r >> 11) / 9007199254740992.0;
+  };
+  const int widths[] = {3, 6, 2, 6, 4, 7, 6, 5, 2, 6, 3, 6, 8, 6};
+  constexpr int K = static_cast<int>(sizeof(widths) / sizeof(widths[0]));
+  // Labels in another order than the stripes, so that labels in a row lie apart.
+  const int label_of[K] = {0, 7, 1, 8, 2, 9, 3, 10, 4, 11, 5, 12, 6, 13};
+  std::vector<int> stripe_of(W);
+  for (int k = 0, x = 0; k < K; ++k)
+    for (int w = 0; w < widths[k] && x < W; ++w) stripe_of[x++] = label_of[k];
+  std::vector<int> start(n);
+  for (int y = 0; y < H; ++y)
+    for (int x = 0; x < W; ++x) start[y * W + x] = stripe_of[x];
+  std::vector<std::vector<int>> nbr(n);
+  std::vector<std::vector<std::pair<int, double>>> edges(n);
+  for (int y = 0; y < H; ++y)
+    for (int x = 0; x < W; ++x) {
+      const int i = y * W + x;
+      if (x + 1 < W) nbr[i].push_back(i + 1), nbr[i + 1].push_back(i);
+      if (y + 1 < H) nbr[i].push_back(i + W), nbr[i + W].push_back(i);
+      if (x + 1 < W) edges[i].push_back({i + 1, 0.2 + uniform()});
+      if (y + 1 < H) edges[i].push_back({i + W, 0.2 + uniform()});
+    }
+  std::vector<std::vector<int>> cand(n);
+  for (int i = 0; i < n; ++i) cand[i] = {start[i]};
+  for (int h = 0; h < kHops; ++h) {
+    std::vector<std::vector<int>> next(cand);
+    for (int i = 0; i < n; ++i) {
+      for (int j : nbr[i]) next[i].insert(next[i].end(), cand[j].begin(), cand[j].end());
+      std::sort(next[i].begin(), next[i].end());
+      next[i].erase(std::unique(next[i].begin(), next[i].end()), next[i].end());
+    }
+    cand.swap(next);
+  }
+  std::vector<std::vector<double>> unary(n);
+  for (int i = 0; i < n; ++i)
+    for (int l : cand[i]) unary[i].push_back(4.0 * uniform() + (l == start[i] ? 0.0 : 1.0));
+
+  // The longest chain of expansions that must wait for each other, from the sets each reads
+  // (the points that may take its label and their edges' other ends) and writes (the former).
+  std::vector<int> present;
+  for (int i = 0; i < n; ++i)
+    if (cand[i].size() >= 2) present.insert(present.end(), cand[i].begin(), cand[i].end());
+  std::sort(present.begin(), present.end());
+  present.erase(std::unique(present.begin(), present.end()), present.end());
+  const int nl = static_cast<int>(present.size());
+  std::vector<std::set<int>> writes(nl), reads(nl);
+  for (int a = 0; a < nl; ++a)
+    for (int i = 0; i < n; ++i)
+      if (cand[i].size() >= 2 && std::binary_search(cand[i].begin(), cand[i].end(), present[a])) {
+        writes[a].insert(i);
+        reads[a].insert(i);
+        for (int j : nbr[i]) reads[a].insert(j);
+      }
+  auto meets = [](const std::set<int>& x, const std::set<int>& y) {
+    for (int i : x)
+      if (y.count(i)) return true;
+    return false;
+  };
+  std::vector<int> depth(nl, 1);
+  int expected_chain = 0;
+  for (int a = 0; a < nl; ++a) {
+    for (int b = 0; b < a; ++b)
+      if (meets(writes[a], reads[b]) || meets(writes[b], reads[a]))
+        depth[a] = std::max(depth[a], depth[b] + 1);
+    expected_chain = std::max(expected_chain, depth[a]);
+  }
+
+  std::vector<int> serial = start;
+  const int serial_chain = seg::detail::alphaExpansions(cand, unary, edges, serial, false);
+  EXPECT_EQ(serial_chain, expected_chain);
+  int moved = 0;
+  for (int i = 0; i < n; ++i) moved += serial[i] != start[i];
+  EXPECT_GT(moved, 50);  // the expansions do move borders
+  EXPECT_LT(moved, n / 2);
+  EXPECT_GE(serial_chain, 2);
+  EXPECT_LT(serial_chain, K);  // some labels' expansions are independent
+  const int threads = omp_get_max_threads();
+  for (int t : {1, 2, 3, 5}) {
+    omp_set_num_threads(t);
+    std::vector<int> label = start;
+    EXPECT_EQ(seg::detail::alphaExpansions(cand, unary, edges, label, true), serial_chain);
+    EXPECT_EQ(label, serial) << t << " threads";
+  }
+  omp_set_num_threads(threads);
+  std::vector<int> bad = start;
+  bad.pop_back();
+  EXPECT_THROW(seg::detail::alphaExpansions(cand, unary, edges, bad, true), pcl_animseg::Error);
+}

@@ -55,6 +55,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <functional>
+#include <utility>
 #include <vector>
 
 namespace pcl_animseg {
@@ -156,6 +157,21 @@ struct SampleTracks {
   std::vector<int> owner;  ///< sample whose geodesic cell holds each reference point (-1: none)
   double spacing = 1.0;                               ///< reference-frame point spacing
 };
+
+namespace detail {
+/** \brief The motion method's final borders (MotionTrackingParams::border_smoothness): up to 3
+ * cycles of alpha expansions, each label in ascending order, until a cycle changes nothing.
+ * Point i may take the labels `cand[i]` (ascending; fixed where it has fewer than two) at the
+ * costs `unary[i]` (aligned with cand[i]); `edges[i]` holds the edges (j > i, weight) whose cut
+ * costs the weight. `label` is the start and the result. With `side_by_side`, expansions that
+ * neither read nor write each other's points run at once (the same labels as one after the
+ * other, which is the reference without it). Returns the longest chain of expansions that wait
+ * for each other in a cycle. */
+int alphaExpansions(const std::vector<std::vector<int>>& cand,
+                    const std::vector<std::vector<double>>& unary,
+                    const std::vector<std::vector<std::pair<int, double>>>& edges,
+                    std::vector<int>& label, bool side_by_side);
+}  // namespace detail
 
 /** \brief Farthest-point sampling of `count` points of a cloud, starting from a point chosen by
  * `seed`; returns indices (fewer when the cloud has fewer distinct points). Points with `skip[i]`
