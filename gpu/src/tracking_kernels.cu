@@ -881,7 +881,7 @@ BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
   copy(at_jobs, jobs.data(), jobs_bytes);
   grow(frames.job_in, used);
   // Asynchronous from pinned memory: the kernels that follow on the same stream wait for it, and
-  // the staging is not written again before the batch's results are back (getResults).
+  // the staging is not written again before the batch's results are back (takeResults).
   cudaSafeCall(cudaMemcpyAsync(frames.job_in.rawPtr(), st, used, cudaMemcpyHostToDevice, 0));
   grow(frames.job_out, out_bytes);
   const auto* base = static_cast<const unsigned char*>(frames.job_in.rawPtr());
@@ -893,12 +893,19 @@ BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
   return v;
 }
 
-// A batch's results: `bytes` from `device` into `host` through the pinned results buffer, after
+// Where a batch's last kernel writes its `bytes` of results: the store's pinned results buffer,
+// mapped, so that they need no copy back (takeResults reads them once the batch is done). A
+// copy back cost a call 8 us more of its 34 (a round trip of two small kernels on the H100).
+double* resultsOnHost(FrameStore& frames, std::size_t bytes) {
+  frames.results.reserve(bytes);
+  return static_cast<double*>(frames.results.devicePtr());
+}
+
+// A batch's results that its kernels wrote to resultsOnHost(): `bytes` into `host` after
 // everything queued (waits once; reports a kernel fault).
-void getResults(FrameStore& frames, const void* device, void* host, std::size_t bytes) {
+void takeResults(FrameStore& frames, void* host, std::size_t bytes) {
   if (!bytes) return;
   unsigned char* r = frames.results.reserve(bytes);
-  cudaSafeCall(cudaMemcpyAsync(r, device, bytes, cudaMemcpyDeviceToHost, 0));
   if (frames.yield_while_waiting)
     frames.yielding.wait();
   else
@@ -994,21 +1001,20 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
     total += std::max(0, j.source_count);
   }
   put(surfaces.job_in, list.data(), n * sizeof(RigidJob));
-  grow(surfaces.job_out, n * (kPoseDoubles + 1) * sizeof(double));
   const std::size_t points = static_cast<std::size_t>(std::max(1LL, total));
   grow(surfaces.rigid_scratch, points * (sizeof(int) + sizeof(float)));
   const Dev d = frameView(surfaces);
   const auto* job_list = static_cast<const RigidJob*>(surfaces.job_in.rawPtr());
   int* match = static_cast<int*>(surfaces.rigid_scratch.rawPtr());
   float* match_d2 = reinterpret_cast<float*>(match + points);
-  double* out = static_cast<double*>(surfaces.job_out.rawPtr());
+  std::vector<double> all(n * (kPoseDoubles + 1));
+  double* out = resultsOnHost(surfaces, all.size() * sizeof(double));
   double* rms_out = out + n * kPoseDoubles;
   const RigidLaunch launch(static_cast<unsigned>(n * cluster), cluster);
   cudaSafeCall(cudaLaunchKernelEx(&launch.cfg, rigidFitJobs, d, sources.ptr(), orders.ptr(),
                                   job_list, match, match_d2, cluster, params, out, rms_out));
   cudaCheckLaunch();
-  std::vector<double> all(n * (kPoseDoubles + 1));
-  surfaces.job_out.downloadBytes(all.data(), all.size() * sizeof(double));
+  takeResults(surfaces, all.data(), all.size() * sizeof(double));
   std::copy(all.begin(), all.begin() + poses.size(), poses.begin());
   std::copy(all.begin() + poses.size(), all.end(), rms.begin());
 }
@@ -1220,9 +1226,11 @@ unsigned char* PinnedHost::reserve(std::size_t bytes) {
     if (ptr_) cudaFreeHost(ptr_);
     ptr_ = nullptr;
     bytes_ = 0;
+    device_ = nullptr;
     const std::size_t want = std::max<std::size_t>(bytes + bytes / 2, 4096);
-    cudaSafeCall(cudaHostAlloc(&ptr_, want, cudaHostAllocDefault));
+    cudaSafeCall(cudaHostAlloc(&ptr_, want, cudaHostAllocMapped));
     bytes_ = want;
+    cudaSafeCall(cudaHostGetDevicePointer(&device_, ptr_, 0));
   }
   return static_cast<unsigned char*>(ptr_);
 }
@@ -1339,11 +1347,11 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
       list[k] = {j.source, j.motion, j.frame, first};
       first += source_begin[j.source + 1] - source_begin[j.source];
     }
-    // job_out: every point's error, then the results.
+    // job_out: every point's error; the results go to the host (resultsOnHost).
     const auto in = putBatch(frames, points, &source_begin, motions, list,
                              (static_cast<std::size_t>(total) + jobs.size()) * sizeof(double));
     auto* errors = static_cast<double*>(frames.job_out.rawPtr());
-    double* res = errors + total;
+    double* res = resultsOnHost(frames, out.size() * sizeof(double));
     constexpr int kThreads = 128;
     const int m = static_cast<int>(total), jn = static_cast<int>(n);
     if (m > 0) {
@@ -1353,16 +1361,15 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
     }
     residualSums<<<(jn + kThreads - 1) / kThreads, kThreads>>>(errors, in.list, jn, m, res);
     cudaCheckLaunch();
-    getResults(frames, res, out.data(), out.size() * sizeof(double));
+    takeResults(frames, out.data(), out.size() * sizeof(double));
     return;
   }
-  const auto in =
-      putBatch(frames, points, &source_begin, motions, jobs, jobs.size() * sizeof(double));
+  const auto in = putBatch(frames, points, &source_begin, motions, jobs, 0);
   residualJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
       d, in.points, in.begin, in.motions, in.list, static_cast<int>(n),
-      static_cast<double*>(frames.job_out.rawPtr()));
+      resultsOnHost(frames, out.size() * sizeof(double)));
   cudaCheckLaunch();
-  getResults(frames, frames.job_out.rawPtr(), out.data(), out.size() * sizeof(double));
+  takeResults(frames, out.data(), out.size() * sizeof(double));
 }
 
 void runPartFits(FrameStore& frames, const std::vector<double>& points,
@@ -1370,12 +1377,11 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses) {
   poses.assign(jobs.size() * kPoseDoubles, 0.0);
   if (jobs.empty()) return;
-  const auto in =
-      putBatch(frames, points, &source_begin, motions, jobs, poses.size() * sizeof(double));
+  const auto in = putBatch(frames, points, &source_begin, motions, jobs, 0);
   Dev d = frameView(frames);
   d.iterations = iterations;
   const long long n = static_cast<long long>(jobs.size());
-  auto* out = static_cast<double*>(frames.job_out.rawPtr());
+  double* out = resultsOnHost(frames, poses.size() * sizeof(double));
   // A small batch: a fit per block finishes sooner; a large one fills the GPU with a fit per
   // warp.
   if (n <= kWideFitBatch)
@@ -1385,7 +1391,7 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
     partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, in.points, in.begin, in.motions,
                                                            in.list, static_cast<int>(n), out);
   cudaCheckLaunch();
-  getResults(frames, frames.job_out.rawPtr(), poses.data(), poses.size() * sizeof(double));
+  takeResults(frames, poses.data(), poses.size() * sizeof(double));
 }
 
 void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vector<double>& points,
@@ -1394,14 +1400,13 @@ void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vecto
   const std::size_t T = static_cast<std::size_t>(frames.frames);
   out.assign(jobs.size() * (per_frame ? T : 1), 0.0);
   if (jobs.empty()) return;
-  // job_out: every (job, frame)'s error, then the results.
+  // job_out: every (job, frame)'s error; the results go to the host (resultsOnHost).
   const std::size_t errors = jobs.size() * T;
-  const auto in =
-      putBatch(frames, points, nullptr, motions, jobs, (errors + out.size()) * sizeof(double));
+  const auto in = putBatch(frames, points, nullptr, motions, jobs, errors * sizeof(double));
   const Dev d = frameView(frames);
   const int n = static_cast<int>(jobs.size());
   auto* err = static_cast<double*>(frames.job_out.rawPtr());
-  double* res = err + errors;
+  double* res = resultsOnHost(frames, out.size() * sizeof(double));
   constexpr int kThreads = 128;
   pointErrorJobs<<<static_cast<int>((errors + kThreads - 1) / kThreads), kThreads>>>(
       d, frames.frames, ref, in.points, in.motions, in.list, n, err);
@@ -1409,7 +1414,7 @@ void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vecto
   pointCostSums<<<(n + kThreads - 1) / kThreads, kThreads>>>(err, frames.frames, ref, per_frame, n,
                                                              res);
   cudaCheckLaunch();
-  getResults(frames, res, out.data(), out.size() * sizeof(double));
+  takeResults(frames, out.data(), out.size() * sizeof(double));
 }
 
 }  // namespace detail

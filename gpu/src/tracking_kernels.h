@@ -72,9 +72,13 @@ class PinnedHost {
   PinnedHost& operator=(const PinnedHost&) = delete;
   /** At least `bytes` (what it held is not kept when it grows); throws Error on a CUDA failure. */
   unsigned char* reserve(std::size_t bytes);
+  /** The buffer's address for kernels (pinned memory is mapped into the device's address
+   * space), after reserve(). */
+  void* devicePtr() const { return device_; }
 
  private:
   void* ptr_ = nullptr;
+  void* device_ = nullptr;
   std::size_t bytes_ = 0;
 };
 
