@@ -158,6 +158,27 @@ __device__ int nearestWithin(const Dev& d, int frame, const double* y, float max
   return nearest(d, d.root[frame], qx, qy, qz, nextafterf(max_d2, FLT_MAX), d2);
 }
 
+// nearestWithin() with a guess: `hint` (a leaf index, or -1), usually the point's match of the
+// ICP iteration before. The search is bounded by the guess's distance as well (inclusive): the
+// walk is the same but leaves out cells farther than the guess, which can hold neither the
+// nearest point nor a tie met before it, so the result is nearestWithin()'s (KdTree::nearest
+// with a hint does the same on the CPU). Fewer cells are pushed and visited: the ICP's searches
+// are its latency.
+__device__ int nearestWithinHint(const Dev& d, int frame, const double* y, float max_d2, int hint,
+                                 float& d2) {
+  const float qx = static_cast<float>(y[0]), qy = static_cast<float>(y[1]),
+              qz = static_cast<float>(y[2]);
+  if (!isfinite(qx) || !isfinite(qy) || !isfinite(qz)) return -1;
+  float bound = nextafterf(max_d2, FLT_MAX);
+  if (hint >= 0) {
+    const float4 p = d.pts[hint];
+    const float d0 = __fsub_rn(qx, p.x), d1 = __fsub_rn(qy, p.y), dz = __fsub_rn(qz, p.z);
+    const float dh = __fadd_rn(__fadd_rn(__fmul_rn(d0, d0), __fmul_rn(d1, d1)), __fmul_rn(dz, dz));
+    bound = fminf(bound, nextafterf(dh, FLT_MAX));
+  }
+  return nearest(d, d.root[frame], qx, qy, qz, bound, d2);
+}
+
 // motion_tracking.cpp's surfaceError: a moved point (y, n) against frame `frame`.
 __device__ double surfaceErrorAt(const Dev& d, int frame, const double* y, const double* n) {
   const double spacing = d.spacing[frame];
@@ -214,6 +235,11 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
   const double spacing = d.spacing[frame];
   const bool unoriented = d.unoriented[frame] != 0;
   const int me = g.rank;
+  // Each of this thread's points' match of the iteration before (leaf indices; -1: none), the
+  // first kIcpHints rounds of points.
+  constexpr int kIcpHints = 8;
+  int hint[kIcpHints];
+  for (int r = 0; r < kIcpHints; ++r) hint[r] = -1;
   for (int it = 0; it < d.iterations; ++it) {
     // The moved source's centroid, summed in point order by threads 0-2.
     double c[3] = {0.0, 0.0, 0.0};
@@ -235,14 +261,16 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
     // 27.
     double sum = 0.0;
     int used = 0;
-    for (int base = 0; base < m; base += Group::kSize) {
+    for (int base = 0, round = 0; base < m; base += Group::kSize, ++round) {
       const int i = base + me;
       if (i < m) {
         g.v[me][kCols - 1] = 0.0;
         double yw[3];
         icp_step::apply(T, src + 6 * i, yw);
         float d2;
-        const int k = nearestWithin(d, frame, yw, max_d2, d2);
+        const bool hinted = round < kIcpHints;
+        const int k = nearestWithinHint(d, frame, yw, max_d2, hinted ? hint[round] : -1, d2);
+        if (hinted) hint[round] = k;
         if (k >= 0) {
           const float4 p = d.pts[k], q = d.nrm[k];
           const double tp[3] = {p.x, p.y, p.z}, tn[3] = {q.x, q.y, q.z};
