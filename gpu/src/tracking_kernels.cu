@@ -1377,7 +1377,7 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
     }
     // job_out: every point's error; the results go to the host (resultsOnHost).
     const auto in = putBatch(frames, points, &source_begin, motions, list,
-                             (static_cast<std::size_t>(total) + jobs.size()) * sizeof(double));
+                             static_cast<std::size_t>(total) * sizeof(double));
     auto* errors = static_cast<double*>(frames.job_out.rawPtr());
     double* res = resultsOnHost(frames, out.size() * sizeof(double));
     constexpr int kThreads = 128;

@@ -1300,18 +1300,6 @@ bool absorbRemnants(const Frame& ref_frame, std::vector<int>& label) {
   return any;
 }
 
-/** Places the borders between parts by alpha-expansion (Boykov, Veksler, Zabih 2001) on the
- * reference frame's surface graph. Energy: per point, the mean over frames of its squared surface
- * error under its part's motion (pointCost / (T - 1), spacings^2); per surface-graph edge whose
- * ends take different parts, `smooth` times a weight that is 1 on flat or convex edges and
- * exp(-(angle / kConcaveAngle)^2) on concave ones (normals converging along the edge). Where the
- * motions tell the parts apart the data term decides; where they cannot (a joint's cap, a sphere
- * about the joint, fits both bones' motions; the pieces of a capsule fit any motion that slides
- * along it) the border takes the cheapest place, which is the concave fold where one part leaves
- * the other (the minima rule of part perception), not a seam across a smooth surface. Candidate
- * parts of a point: those within `hops` edges; a point with one candidate keeps its part. Each
- * expansion is one s-t minimum cut (PCL's Boykov-Kolmogorov max-flow); three sweeps over the
- * parts at most. Returns the points that changed part. */
 }  // namespace
 
 namespace detail {
@@ -1325,6 +1313,15 @@ int alphaExpansions(const std::vector<std::vector<int>>& cand,
     throw Error(
         "alpha expansions: one candidate list, unary list, edge list and label per point "
         "expected");
+  for (int i = 0; i < n; ++i) {
+    if (cand[i].size() >= 2 && unary[i].size() != cand[i].size())
+      throw Error("alpha expansions: one unary cost per candidate expected");
+    for (int l : cand[i])
+      if (l < 0) throw Error("alpha expansions: a negative candidate label");
+    for (const auto& e : edges[i])
+      if (e.first <= i || e.first >= n)
+        throw Error("alpha expansions: an edge must go to a later point of the set");
+  }
   auto unaryOf = [&](int i, int l) {
     const auto it = std::lower_bound(cand[i].begin(), cand[i].end(), l);
     return unary[i][it - cand[i].begin()];
@@ -1472,6 +1469,18 @@ int alphaExpansions(const std::vector<std::vector<int>>& cand,
 
 namespace {
 
+/** Places the borders between parts by alpha-expansion (Boykov, Veksler, Zabih 2001) on the
+ * reference frame's surface graph. Energy: per point, the mean over frames of its squared surface
+ * error under its part's motion (pointCost / (T - 1), spacings^2); per surface-graph edge whose
+ * ends take different parts, `smooth` times a weight that is 1 on flat or convex edges and
+ * exp(-(angle / kConcaveAngle)^2) on concave ones (normals converging along the edge). Where the
+ * motions tell the parts apart the data term decides; where they cannot (a joint's cap, a sphere
+ * about the joint, fits both bones' motions; the pieces of a capsule fit any motion that slides
+ * along it) the border takes the cheapest place, which is the concave fold where one part leaves
+ * the other (the minima rule of part perception), not a seam across a smooth surface. Candidate
+ * parts of a point: those within `hops` edges; a point with one candidate keeps its part. Each
+ * expansion is one s-t minimum cut (PCL's Boykov-Kolmogorov max-flow); three sweeps over the
+ * parts at most. Returns the points that changed part. */
 int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& surface,
                        const std::vector<Frame>& frames, int ref,
                        const std::vector<std::vector<Pose>>& motion, std::vector<int>& label,

@@ -620,4 +620,18 @@ TEST(MotionTracking, AlphaExpansionsSideBySideGiveTheSerialLabels) {
   std::vector<int> bad = start;
   bad.pop_back();
   EXPECT_THROW(seg::detail::alphaExpansions(cand, unary, edges, bad, true), pcl_animseg::Error);
+  std::vector<int> label = start;
+  auto backwards = edges;
+  backwards[5].push_back({4, 1.0});
+  EXPECT_THROW(seg::detail::alphaExpansions(cand, unary, backwards, label, true),
+               pcl_animseg::Error);
+  auto short_unary = unary;
+  for (auto& u : short_unary)
+    if (u.size() >= 2) {
+      u.pop_back();
+      break;
+    }
+  EXPECT_THROW(seg::detail::alphaExpansions(cand, short_unary, edges, label, true),
+               pcl_animseg::Error);
+  EXPECT_EQ(label, start);  // nothing moved by a call that threw
 }
