@@ -111,6 +111,13 @@ struct GroupOfBlock {
 constexpr int kWideThreads = 128;
 constexpr long long kWideFitBatch = 512;
 
+// FlatKdTree3::distance2 (flat_kdtree.h): the squared distance of (qx, qy, qz) and p in the CPU's
+// float order, without contraction.
+__device__ float distance2(float qx, float qy, float qz, const float4& p) {
+  const float d0 = __fsub_rn(qx, p.x), d1 = __fsub_rn(qy, p.y), dz = __fsub_rn(qz, p.z);
+  return __fadd_rn(__fadd_rn(__fmul_rn(d0, d0), __fmul_rn(d1, d1)), __fmul_rn(dz, dz));
+}
+
 // FlatKdTree3::nearest (flat_kdtree.h) on the frame's copy: the nearest point with squared
 // distance < bound2, or -1. Distances in the CPU's float order, without contraction.
 __device__ int nearest(const Dev& d, int root, float qx, float qy, float qz, float bound2,
@@ -139,10 +146,7 @@ __device__ int nearest(const Dev& d, int root, float qx, float qy, float qz, flo
       nd = d.nodes[n];
     }
     for (int i = nd.a; i < nd.b; ++i) {
-      const float4 p = d.pts[i];
-      const float d0 = __fsub_rn(qx, p.x), d1 = __fsub_rn(qy, p.y), dz = __fsub_rn(qz, p.z);
-      const float dist =
-          __fadd_rn(__fadd_rn(__fmul_rn(d0, d0), __fmul_rn(d1, d1)), __fmul_rn(dz, dz));
+      const float dist = distance2(qx, qy, qz, d.pts[i]);
       if (dist < best) best = dist, best_i = i;
     }
   }
@@ -150,32 +154,19 @@ __device__ int nearest(const Dev& d, int root, float qx, float qy, float qz, flo
   return best_i;
 }
 
-// KdTree::nearest (kdtree.h): within sqrt(max_d2) inclusive, -1 for a non-finite query.
-__device__ int nearestWithin(const Dev& d, int frame, const double* y, float max_d2, float& d2) {
-  const float qx = static_cast<float>(y[0]), qy = static_cast<float>(y[1]),
-              qz = static_cast<float>(y[2]);
-  if (!isfinite(qx) || !isfinite(qy) || !isfinite(qz)) return -1;
-  return nearest(d, d.root[frame], qx, qy, qz, nextafterf(max_d2, FLT_MAX), d2);
-}
-
-// nearestWithin() with a guess: `hint` (a leaf index, or -1), usually the point's match of the
-// ICP iteration before. The search is bounded by the guess's distance as well (inclusive): the
-// walk is the same but leaves out cells farther than the guess, which can hold neither the
-// nearest point nor a tie met before it, so the result is nearestWithin()'s (KdTree::nearest
-// with a hint does the same on the CPU). Fewer cells are pushed and visited: the ICP's searches
-// are its latency.
-__device__ int nearestWithinHint(const Dev& d, int frame, const double* y, float max_d2, int hint,
-                                 float& d2) {
+// KdTree::nearest (kdtree.h): within sqrt(max_d2) inclusive, -1 for a non-finite query. With a
+// guess (`hint`, a leaf index; -1: none), usually the point's match of the ICP iteration before,
+// the search is bounded by the guess's distance as well (inclusive): the walk is the same but
+// leaves out cells farther than the guess, which can hold neither the nearest point nor a tie
+// met before it, so the result is the same (KdTree::nearest with a hint does the same on the
+// CPU). Fewer cells are pushed and visited: the ICP's searches are its latency.
+__device__ int nearestWithin(const Dev& d, int frame, const double* y, float max_d2, float& d2,
+                             int hint = -1) {
   const float qx = static_cast<float>(y[0]), qy = static_cast<float>(y[1]),
               qz = static_cast<float>(y[2]);
   if (!isfinite(qx) || !isfinite(qy) || !isfinite(qz)) return -1;
   float bound = nextafterf(max_d2, FLT_MAX);
-  if (hint >= 0) {
-    const float4 p = d.pts[hint];
-    const float d0 = __fsub_rn(qx, p.x), d1 = __fsub_rn(qy, p.y), dz = __fsub_rn(qz, p.z);
-    const float dh = __fadd_rn(__fadd_rn(__fmul_rn(d0, d0), __fmul_rn(d1, d1)), __fmul_rn(dz, dz));
-    bound = fminf(bound, nextafterf(dh, FLT_MAX));
-  }
+  if (hint >= 0) bound = fminf(bound, nextafterf(distance2(qx, qy, qz, d.pts[hint]), FLT_MAX));
   return nearest(d, d.root[frame], qx, qy, qz, bound, d2);
 }
 
@@ -269,7 +260,7 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
         icp_step::apply(T, src + 6 * i, yw);
         float d2;
         const bool hinted = round < kIcpHints;
-        const int k = nearestWithinHint(d, frame, yw, max_d2, hinted ? hint[round] : -1, d2);
+        const int k = nearestWithin(d, frame, yw, max_d2, d2, hinted ? hint[round] : -1);
         if (hinted) hint[round] = k;
         if (k >= 0) {
           const float4 p = d.pts[k], q = d.nrm[k];
@@ -1083,10 +1074,7 @@ __global__ void knnKernel(const TrackNode* nodes, const float4* pts, const int* 
         nd = nodes[nidx];
       }
       for (int i = nd.a; i < nd.b; ++i) {
-        const float4 p = pts[i];
-        const float d0 = __fsub_rn(qx, p.x), d1 = __fsub_rn(qy, p.y), dz = __fsub_rn(qz, p.z);
-        const float d =
-            __fadd_rn(__fadd_rn(__fmul_rn(d0, d0), __fmul_rn(d1, d1)), __fmul_rn(dz, dz));
+        const float d = distance2(qx, qy, qz, pts[i]);
         if (!(d < worst())) continue;
         const int row = rows[i];
         // heap.insert(upper_bound(...)) after dropping the last when full, as on the CPU.

@@ -1386,64 +1386,62 @@ int alphaExpansions(const std::vector<std::vector<int>>& cand,
   // whether a label changed.
   auto expand = [&](int alpha, std::vector<int>& node, std::vector<int>& touched) {
     bool changed_any = false;
-    {
-      // Nodes: points that may take alpha and do not hold it.
-      std::vector<int> members;
-      for (int i : may_take[alpha]) {
-        if (label[i] != alpha) {
-          node[i] = static_cast<int>(members.size());
-          members.push_back(i);
-        }
+    // Nodes: points that may take alpha and do not hold it.
+    std::vector<int> members;
+    for (int i : may_take[alpha]) {
+      if (label[i] != alpha) {
+        node[i] = static_cast<int>(members.size());
+        members.push_back(i);
       }
-      if (members.empty()) return false;
-      // The points whose edges (stored at their lower end) touch a member, in point order: the
-      // edges visited in the same order as a scan over all points, which skips the others.
-      touched.clear();
-      for (int i : members) {
-        touched.push_back(i);
-        for (int lo : lower_ends[i]) touched.push_back(lo);
-      }
-      std::sort(touched.begin(), touched.end());
-      touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
-      const int m = static_cast<int>(members.size());
-      std::vector<double> e0(m), e1(m);
-      for (int k = 0; k < m; ++k) {
-        e0[k] = unaryOf(members[k], label[members[k]]);
-        e1[k] = unaryOf(members[k], alpha);
-      }
-      pcl::segmentation::grabcut::BoykovKolmogorov graph(m);
-      graph.addNodes(m);
-      for (int i : touched)
-        for (const auto& [j, w] : edges[i]) {
-          const int ni = node[i], nj = node[j];
-          if (ni < 0 && nj < 0) continue;
-          if (ni >= 0 && nj >= 0) {
-            // E(xi, xj), x = 1: take alpha. A = E00, B = E01, C = E10, D = E11 = 0.
-            const double A = label[i] != label[j] ? w : 0.0;
-            const double B = w;  // label[i] != alpha
-            const double C = w;  // label[j] != alpha
-            e1[ni] += C - A;
-            e1[nj] += -C;  // D - C
-            graph.addEdge(ni, nj, B + C - A, 0.0);
-          } else if (ni >= 0) {
-            e0[ni] += label[i] != label[j] ? w : 0.0;
-            e1[ni] += alpha != label[j] ? w : 0.0;
-          } else {
-            e0[nj] += label[j] != label[i] ? w : 0.0;
-            e1[nj] += alpha != label[i] ? w : 0.0;
-          }
-        }
-      for (int k = 0; k < m; ++k) {
-        const double lo = std::min(e0[k], e1[k]);
-        // Cut s->k when k takes alpha (sink side), k->t when it keeps its label.
-        if (e1[k] - lo > 0.0) graph.addSourceEdge(k, e1[k] - lo);
-        if (e0[k] - lo > 0.0) graph.addTargetEdge(k, e0[k] - lo);
-      }
-      graph.solve();
-      for (int k = 0; k < m; ++k)
-        if (graph.inSinkTree(k)) label[members[k]] = alpha, changed_any = true;
-      for (int i : members) node[i] = -1;
     }
+    if (members.empty()) return false;
+    // The points whose edges (stored at their lower end) touch a member, in point order: the
+    // edges visited in the same order as a scan over all points, which skips the others.
+    touched.clear();
+    for (int i : members) {
+      touched.push_back(i);
+      for (int lo : lower_ends[i]) touched.push_back(lo);
+    }
+    std::sort(touched.begin(), touched.end());
+    touched.erase(std::unique(touched.begin(), touched.end()), touched.end());
+    const int m = static_cast<int>(members.size());
+    std::vector<double> e0(m), e1(m);
+    for (int k = 0; k < m; ++k) {
+      e0[k] = unaryOf(members[k], label[members[k]]);
+      e1[k] = unaryOf(members[k], alpha);
+    }
+    pcl::segmentation::grabcut::BoykovKolmogorov graph(m);
+    graph.addNodes(m);
+    for (int i : touched)
+      for (const auto& [j, w] : edges[i]) {
+        const int ni = node[i], nj = node[j];
+        if (ni < 0 && nj < 0) continue;
+        if (ni >= 0 && nj >= 0) {
+          // E(xi, xj), x = 1: take alpha. A = E00, B = E01, C = E10, D = E11 = 0.
+          const double A = label[i] != label[j] ? w : 0.0;
+          const double B = w;  // label[i] != alpha
+          const double C = w;  // label[j] != alpha
+          e1[ni] += C - A;
+          e1[nj] += -C;  // D - C
+          graph.addEdge(ni, nj, B + C - A, 0.0);
+        } else if (ni >= 0) {
+          e0[ni] += label[i] != label[j] ? w : 0.0;
+          e1[ni] += alpha != label[j] ? w : 0.0;
+        } else {
+          e0[nj] += label[j] != label[i] ? w : 0.0;
+          e1[nj] += alpha != label[i] ? w : 0.0;
+        }
+      }
+    for (int k = 0; k < m; ++k) {
+      const double lo = std::min(e0[k], e1[k]);
+      // Cut s->k when k takes alpha (sink side), k->t when it keeps its label.
+      if (e1[k] - lo > 0.0) graph.addSourceEdge(k, e1[k] - lo);
+      if (e0[k] - lo > 0.0) graph.addTargetEdge(k, e0[k] - lo);
+    }
+    graph.solve();
+    for (int k = 0; k < m; ++k)
+      if (graph.inSinkTree(k)) label[members[k]] = alpha, changed_any = true;
+    for (int i : members) node[i] = -1;
     return changed_any;
   };
   std::vector<std::vector<int>> node(std::max(1, omp_get_max_threads()));
