@@ -72,6 +72,11 @@ PipelineResult runPipeline(const PointCloudSequence& sequence, const PipelinePar
  * a build without the CUDA module. Keep it alive until runPipeline returns: its destructor waits
  * for the check to finish.
  *
+ * Construct it before the process starts other threads or a CUDA context: unless the environment
+ * sets CUDA_DEVICE_MAX_CONNECTIONS, it sets it to 2 (the context's hardware work queues, 8 by
+ * default: the context starts about 0.05 s sooner with 2, and the pipeline keeps at most two
+ * streams busy). A program with CUDA work of its own can set the variable first.
+ *
  * \code
  * pcl_animseg::DeviceWarmUp warm_up(params.device);
  * const auto seq = pcl_animseg::io::loadSequence(dir);

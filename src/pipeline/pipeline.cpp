@@ -13,6 +13,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <memory>
 #include <utility>
 
@@ -68,7 +69,19 @@ std::string keypointDetail(const SequenceFeatures& f) {
 
 DeviceWarmUp::DeviceWarmUp(const std::string& device) {
 #ifdef PCL_ANIMSEG_HAVE_CUDA
-  if (device != "cpu") thread_ = std::thread([] { gpu::gpuAvailable(); });
+  if (device == "cpu") return;
+  // The context's hardware work queues: CUDA makes 8 unless CUDA_DEVICE_MAX_CONNECTIONS says
+  // otherwise, and on the H100 machine each took about 7 ms of the context's start (8 queues:
+  // 0.11-0.13 s, 2: 0.06-0.08 s, 32: 0.49-0.58 s). Streams share the queues (work of two streams
+  // in one queue starts in order), and the pipeline has at most two streams busy at once (every
+  // host thread has its own; the main thread's and a helper's beside it), so two: the 800k
+  // humanoid's merges beside its labels took as long with two queues as with eight. Set on the
+  // caller's thread before the check starts (setenv beside another thread's getenv is a data
+  // race) and before this library starts a context (later it would do nothing); a value the
+  // user set is kept.
+  if (gpu::probeState() == gpu::ProbeState::NotStarted)
+    ::setenv("CUDA_DEVICE_MAX_CONNECTIONS", "2", /*overwrite=*/0);
+  thread_ = std::thread([] { gpu::gpuAvailable(); });
 #else
   (void)device;
 #endif

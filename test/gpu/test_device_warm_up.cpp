@@ -11,6 +11,7 @@
 #include <pcl_animseg/synth/articulated.h>
 
 #include <algorithm>
+#include <cstdlib>
 #include <string>
 
 namespace gpu = pcl_animseg::gpu;
@@ -101,4 +102,34 @@ TEST(DeviceWarmUp, CpuStartsNoCheck) {
     EXPECT_EQ(r.device_used, "cpu");
   }
   EXPECT_EQ(gpu::probeState(), gpu::ProbeState::NotStarted);
+}
+
+namespace {
+
+// CUDA_DEVICE_MAX_CONNECTIONS now, or "" where unset.
+std::string queues() {
+  const char* v = std::getenv("CUDA_DEVICE_MAX_CONNECTIONS");
+  return v ? v : "";
+}
+
+}  // namespace
+
+// A GPU run's warm-up asks for two hardware queues (the context starts sooner) unless the
+// environment names a number; a CPU run's leaves the environment alone.
+TEST(DeviceWarmUp, AsksForTwoHardwareQueues) {
+  if (gpu::probeState() != gpu::ProbeState::NotStarted)
+    GTEST_SKIP() << "an earlier test of this process checked the GPU (ctest runs each alone)";
+  ::unsetenv("CUDA_DEVICE_MAX_CONNECTIONS");
+  { const pcl_animseg::DeviceWarmUp warm_up("cpu"); }
+  EXPECT_EQ(queues(), "");
+  { const pcl_animseg::DeviceWarmUp warm_up("auto"); }
+  EXPECT_EQ(queues(), "2");
+}
+
+TEST(DeviceWarmUp, KeepsTheHardwareQueuesTheUserSet) {
+  if (gpu::probeState() != gpu::ProbeState::NotStarted)
+    GTEST_SKIP() << "an earlier test of this process checked the GPU (ctest runs each alone)";
+  ::setenv("CUDA_DEVICE_MAX_CONNECTIONS", "5", 1);
+  { const pcl_animseg::DeviceWarmUp warm_up("gpu"); }
+  EXPECT_EQ(queues(), "5");
 }
