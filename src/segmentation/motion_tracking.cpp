@@ -898,6 +898,79 @@ class SpareCoreWhileStarting {
   int saved_ = 0;
 };
 
+/** Residuals (residual()) of many sources under many motions against the frames, computed at
+ * once: on the device when there is one (motion_device.h), else in one parallel loop; the same
+ * values either way. Add the sources and motions, then the jobs; run() returns one residual per
+ * job, in job order. */
+class ResidualBatch {
+ public:
+  ResidualBatch(const std::vector<Frame>& frames, MotionDevice* device)
+      : frames_(frames), device_(device) {}
+  /** With a device, sources and motions go into the device's batch as they come (appendPoints,
+   * appendMotion), and packed ones may be added as they are (addPackedSource, addPackedMotions). */
+  bool packed() const { return device_ != nullptr; }
+  int addSource(Source s) {
+    if (device_) {
+      appendPoints(s.p, s.n, d_.points);
+      d_.source_begin.push_back(static_cast<int>(d_.points.size() / 6));
+      return static_cast<int>(d_.source_begin.size()) - 2;
+    }
+    sources_.push_back(std::move(s));
+    return static_cast<int>(sources_.size()) - 1;
+  }
+  int addMotion(const Pose& p) {
+    if (device_) {
+      appendMotion(p, d_.motions);
+      return motions() - 1;
+    }
+    motions_.push_back(p);
+    return static_cast<int>(motions_.size()) - 1;
+  }
+  /** A source as appendPoints packs it (packed() batches only). */
+  int addPackedSource(const std::vector<double>& points) {
+    d_.points.insert(d_.points.end(), points.begin(), points.end());
+    d_.source_begin.push_back(static_cast<int>(d_.points.size() / 6));
+    return static_cast<int>(d_.source_begin.size()) - 2;
+  }
+  /** `count` motions as appendMotion packs them (packed() batches only); returns the first's
+   * index. */
+  int addPackedMotions(const double* m, int count) {
+    const int first = motions();
+    d_.motions.insert(d_.motions.end(), m, m + 12 * static_cast<std::size_t>(count));
+    return first;
+  }
+  int motions() const {
+    return device_ ? static_cast<int>(d_.motions.size() / 12) : static_cast<int>(motions_.size());
+  }
+  /** Returns the job's index. */
+  int add(int source, int motion, int frame) {
+    d_.jobs.push_back({source, motion, frame});
+    return static_cast<int>(d_.jobs.size()) - 1;
+  }
+
+  std::vector<double> run() const {
+    std::vector<double> out(d_.jobs.size(), 0.0);
+    if (device_) {
+      device_->residuals(d_, out);
+      return out;
+    }
+    const long n = static_cast<long>(d_.jobs.size());
+#pragma omp parallel for schedule(dynamic, 16) if (!omp_in_parallel() && n > 1)
+    for (long j = 0; j < n; ++j) {
+      const ResidualJobs::Job& job = d_.jobs[j];
+      out[j] = residual(sources_[job.source], motions_[job.motion], frames_[job.frame]);
+    }
+    return out;
+  }
+
+ private:
+  const std::vector<Frame>& frames_;
+  MotionDevice* device_;
+  ResidualJobs d_;               // the jobs; with a device also the packed sources and motions
+  std::vector<Source> sources_;  // without one
+  std::vector<Pose> motions_;
+};
+
 // `before_poses`, where given, is called once the samples' poses are all that is left of the
 // tracking (their fits leave the cores idle on a device).
 SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Frame>& frames,
@@ -1006,12 +1079,28 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
   // each.
   std::vector<std::vector<int>> level_of(T);
   std::vector<std::vector<double>> groots(F, std::vector<double>(S));
+  // With a device, the residuals are its first call (one batch, the same values): by then it
+  // has started, and they took 0.015-0.02 s of the cores before the samples' first wave.
+  if (params.device) {
+    ResidualBatch batch(frames, params.device);
+    for (int s = 0; s < S; ++s) batch.addSource(probe[s]);
+    for (int k = 0; k < F; ++k) {
+      const int t = frame_order[k], motion = batch.addMotion(global[t]);
+      for (int s = 0; s < S; ++s) batch.add(s, motion, t);
+    }
+    const std::vector<double> r = batch.run();
+    for (int k = 0; k < F; ++k)
+      std::copy(r.begin() + static_cast<long>(k) * S, r.begin() + static_cast<long>(k + 1) * S,
+                groots[k].begin());
+  }
 #pragma omp parallel
   {
+    if (!params.device) {
 #pragma omp for schedule(dynamic, 64)
-    for (long x = 0; x < static_cast<long>(F) * S; ++x) {
-      const int k = static_cast<int>(x / S), s = static_cast<int>(x % S), t = frame_order[k];
-      groots[k][s] = residual(probe[s], global[t], frames[t]);
+      for (long x = 0; x < static_cast<long>(F) * S; ++x) {
+        const int k = static_cast<int>(x / S), s = static_cast<int>(x % S), t = frame_order[k];
+        groots[k][s] = residual(probe[s], global[t], frames[t]);
+      }
     }
 #pragma omp for schedule(dynamic, 1)
     for (int k = 0; k < F; ++k) {
@@ -1908,79 +1997,6 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   timer.lap("part motions: fits (device)");
   return motion;
 }
-
-/** Residuals (residual()) of many sources under many motions against the frames, computed at
- * once: on the device when there is one (motion_device.h), else in one parallel loop; the same
- * values either way. Add the sources and motions, then the jobs; run() returns one residual per
- * job, in job order. */
-class ResidualBatch {
- public:
-  ResidualBatch(const std::vector<Frame>& frames, MotionDevice* device)
-      : frames_(frames), device_(device) {}
-  /** With a device, sources and motions go into the device's batch as they come (appendPoints,
-   * appendMotion), and packed ones may be added as they are (addPackedSource, addPackedMotions). */
-  bool packed() const { return device_ != nullptr; }
-  int addSource(Source s) {
-    if (device_) {
-      appendPoints(s.p, s.n, d_.points);
-      d_.source_begin.push_back(static_cast<int>(d_.points.size() / 6));
-      return static_cast<int>(d_.source_begin.size()) - 2;
-    }
-    sources_.push_back(std::move(s));
-    return static_cast<int>(sources_.size()) - 1;
-  }
-  int addMotion(const Pose& p) {
-    if (device_) {
-      appendMotion(p, d_.motions);
-      return motions() - 1;
-    }
-    motions_.push_back(p);
-    return static_cast<int>(motions_.size()) - 1;
-  }
-  /** A source as appendPoints packs it (packed() batches only). */
-  int addPackedSource(const std::vector<double>& points) {
-    d_.points.insert(d_.points.end(), points.begin(), points.end());
-    d_.source_begin.push_back(static_cast<int>(d_.points.size() / 6));
-    return static_cast<int>(d_.source_begin.size()) - 2;
-  }
-  /** `count` motions as appendMotion packs them (packed() batches only); returns the first's
-   * index. */
-  int addPackedMotions(const double* m, int count) {
-    const int first = motions();
-    d_.motions.insert(d_.motions.end(), m, m + 12 * static_cast<std::size_t>(count));
-    return first;
-  }
-  int motions() const {
-    return device_ ? static_cast<int>(d_.motions.size() / 12) : static_cast<int>(motions_.size());
-  }
-  /** Returns the job's index. */
-  int add(int source, int motion, int frame) {
-    d_.jobs.push_back({source, motion, frame});
-    return static_cast<int>(d_.jobs.size()) - 1;
-  }
-
-  std::vector<double> run() const {
-    std::vector<double> out(d_.jobs.size(), 0.0);
-    if (device_) {
-      device_->residuals(d_, out);
-      return out;
-    }
-    const long n = static_cast<long>(d_.jobs.size());
-#pragma omp parallel for schedule(dynamic, 16) if (!omp_in_parallel() && n > 1)
-    for (long j = 0; j < n; ++j) {
-      const ResidualJobs::Job& job = d_.jobs[j];
-      out[j] = residual(sources_[job.source], motions_[job.motion], frames_[job.frame]);
-    }
-    return out;
-  }
-
- private:
-  const std::vector<Frame>& frames_;
-  MotionDevice* device_;
-  ResidualJobs d_;               // the jobs; with a device also the packed sources and motions
-  std::vector<Source> sources_;  // without one
-  std::vector<Pose> motions_;
-};
 
 // `with_parts`, where given, is called with the parts (everything but the merges above them)
 // before this returns; with `merges_device` (a device that may be called beside the caller's:
