@@ -189,15 +189,17 @@ std::unique_ptr<segmentation::MotionDevice> MotionTracking::fork() {
   return f;
 }
 
-void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,
-                                  std::vector<std::vector<Eigen::Isometry3d>>& poses,
-                                  std::vector<std::vector<double>>& residual) {
-  if (!store()) throw DeviceError("GPU tracking: no frames were set");
-  const int T = frames_->frames, S = problem.samples;
+namespace {
+
+// A tracking problem's arrays for the device but its tasks (levels missing: 0), checked against
+// T frames; throws Error where they do not match.
+detail::TrackingArrays packTracking(const segmentation::SampleTrackingProblem& problem, int T,
+                                    bool with_levels) {
+  const int S = problem.samples;
   const std::size_t uS = static_cast<std::size_t>(S), uT = static_cast<std::size_t>(T);
   if (S < 0 || problem.source_p.size() != uS || problem.source_n.size() != uS ||
       problem.probe_p.size() != uS || problem.probe_n.size() != uS || problem.graph.size() != uS ||
-      problem.level.size() != uT || problem.before.size() != uT ||
+      (with_levels && problem.level.size() != uT) || problem.before.size() != uT ||
       problem.two_before.size() != uT || problem.global.size() != uT)
     throw DeviceError("GPU tracking: the problem's arrays do not match its frames and samples");
   detail::TrackingArrays a;
@@ -207,7 +209,7 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     segmentation::appendMotion(problem.global[t], a.global);
     a.before.push_back(problem.before[t]);
     a.two_before.push_back(problem.two_before[t]);
-    if (problem.level[t].empty())
+    if (!with_levels || problem.level[t].empty())
       a.level.insert(a.level.end(), uS, 0);
     else if (problem.level[t].size() != uS)
       throw DeviceError("GPU tracking: frame " + std::to_string(t) +
@@ -227,6 +229,32 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     }
     a.adjacency_begin.push_back(static_cast<int>(a.adjacency.size()));
   }
+  return a;
+}
+
+// Flat poses and residuals (frames x samples) as the tracking's vectors.
+void unpackTracking(int T, int S, const std::vector<double>& flat_poses,
+                    const std::vector<double>& flat_res,
+                    std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                    std::vector<std::vector<double>>& residual) {
+  const std::size_t uT = static_cast<std::size_t>(T), uS = static_cast<std::size_t>(S);
+  poses.assign(uT, std::vector<Eigen::Isometry3d>(uS, Eigen::Isometry3d::Identity()));
+  residual.assign(uT, std::vector<double>(uS, 0.0));
+  for (std::size_t t = 0; t < uT; ++t)
+    for (std::size_t s = 0; s < uS; ++s) {
+      poses[t][s] = segmentation::motionAt(&flat_poses[(t * uS + s) * detail::kPoseDoubles]);
+      residual[t][s] = flat_res[t * uS + s];
+    }
+}
+
+}  // namespace
+
+void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& problem,
+                                  std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                                  std::vector<std::vector<double>>& residual) {
+  if (!store()) throw DeviceError("GPU tracking: no frames were set");
+  const int T = frames_->frames, S = problem.samples;
+  detail::TrackingArrays a = packTracking(problem, T, true);
   const long long TS = static_cast<long long>(T) * S;
   for (const std::vector<int>& wave : problem.waves) {
     for (int task : wave) {
@@ -273,13 +301,81 @@ void MotionTracking::trackSamples(const segmentation::SampleTrackingProblem& pro
     std::fprintf(stderr, "[gpu tracking] sample poses: %d waves, %zu tasks (widest %zu), %.3f s\n",
                  waves_, a.tasks.size(), widest, device_seconds_);
   }
-  poses.assign(uT, std::vector<Eigen::Isometry3d>(uS, Eigen::Isometry3d::Identity()));
-  residual.assign(uT, std::vector<double>(uS, 0.0));
-  for (std::size_t t = 0; t < uT; ++t)
-    for (std::size_t s = 0; s < uS; ++s) {
-      poses[t][s] = segmentation::motionAt(&flat_poses[(t * uS + s) * detail::kPoseDoubles]);
-      residual[t][s] = flat_res[t * uS + s];
+  unpackTracking(T, S, flat_poses, flat_res, poses, residual);
+}
+
+void MotionTracking::beginSamples(const segmentation::SampleTrackingProblem& problem) {
+  if (!store()) throw DeviceError("GPU tracking: no frames were set");
+  stream_.reset();
+  const int T = frames_->frames;
+  const detail::TrackingArrays a = packTracking(problem, T, false);
+  // What frameTasks() checks the frames against.
+  streamed_ = segmentation::SampleTrackingProblem();
+  streamed_.samples = problem.samples;
+  streamed_.before = problem.before;
+  streamed_.two_before = problem.two_before;
+  streamed_frame_.assign(static_cast<std::size_t>(T), 0);
+  for (int t = 0; t < T; ++t) streamed_frame_[t] = problem.before[t] < 0;
+  graph_ = problem.graph;
+  depth_.assign(static_cast<std::size_t>(T) * std::max(problem.samples, 0), 0);
+  stream_ = std::make_unique<detail::TrackingStream>(*frames_, a);
+  waves_ = 0;
+}
+
+void MotionTracking::trackFrames(const std::vector<int>& frames,
+                                 const std::vector<Eigen::Isometry3d>& global,
+                                 const std::vector<std::vector<int>>& level) {
+  if (!stream_) throw DeviceError("GPU tracking: frames without beginSamples");
+  if (global.size() != frames.size() || level.size() != frames.size())
+    throw DeviceError("GPU tracking: one global pose and levels per frame expected");
+  // The kernel's blocks take the tasks in the order given, and a block whose task still waits
+  // for another holds its place: frame after frame (each by level), most of the blocks waited
+  // for the slow ends of the frames before (0.14 s for the 800k humanoid's 47 frames in three
+  // calls, against 0.05 s in one call in waves). So the tasks go by depth, the length of the
+  // longest chain of fits that ends in them (trackSamples' waves), ties in frame and level order.
+  const int S = streamed_.samples;
+  std::vector<std::pair<int, int>> by_depth;  // (depth, task)
+  std::vector<int> levels;
+  std::vector<double> g;
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    const int t = frames[i];
+    const std::vector<int> own = frameTasks(streamed_, streamed_frame_, t, level[i]);
+    streamed_frame_[t] = 1;
+    const int tp = streamed_.before[t], tpp = streamed_.two_before[t];
+    auto depthOf = [&](int f, int s) { return depth_[static_cast<std::size_t>(f) * S + s]; };
+    for (int task : own) {  // level order: a sample's neighbours of lower level come first
+      const int s = task % S;
+      int d = depthOf(tp, s);
+      if (tpp >= 0) d = std::max(d, depthOf(tpp, s));
+      for (int o : graph_[s])
+        if (level[i][o] < level[i][s]) d = std::max(d, depthOf(t, o));
+      depth_[static_cast<std::size_t>(task)] = d + 1;
+      by_depth.emplace_back(d + 1, task);
     }
+    levels.insert(levels.end(), level[i].begin(), level[i].end());
+    segmentation::appendMotion(global[i], g);
+  }
+  std::stable_sort(by_depth.begin(), by_depth.end(),
+                   [](const auto& a, const auto& b) { return a.first < b.first; });
+  std::vector<int> tasks;
+  tasks.reserve(by_depth.size());
+  for (const auto& dt : by_depth) tasks.push_back(dt.second);
+  stream_->frames(frames, g.data(), levels.data(), tasks.data());
+  waves_ += static_cast<int>(frames.empty() ? 0 : 1);
+}
+
+void MotionTracking::endSamples(std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                                std::vector<std::vector<double>>& residual) {
+  if (!stream_) throw DeviceError("GPU tracking: endSamples without beginSamples");
+  std::unique_ptr<detail::TrackingStream> stream = std::move(stream_);
+  std::vector<double> flat_poses, flat_res;
+  device_seconds_ = stream->end(flat_poses, flat_res);
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(stderr,
+                 "[gpu tracking] sample poses: %d kernels as the frames came, %.3f s from the "
+                 "first\n",
+                 waves_, device_seconds_);
+  unpackTracking(frames_->frames, streamed_.samples, flat_poses, flat_res, poses, residual);
 }
 
 void MotionTracking::residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) {

@@ -1340,6 +1340,134 @@ double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vect
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
+struct TrackingStream::Impl {
+  std::chrono::steady_clock::time_point t0;
+  const FrameStore& frames;
+  int T, S, blocks = 1;
+  DeviceArray<double> source, probe, global, poses, res;
+  DeviceArray<int> source_begin, probe_begin, adj, adj_begin, level, before, two_before, tasks;
+  DeviceArray<int> done, next;
+  // Each frame's global pose, levels and tasks staged in pinned memory (a slot per frame: the
+  // copies run after frame() has returned) for the copies that precede its kernel.
+  PinnedHost staging;
+  std::size_t queued = 0;  // tasks given so far
+  int launches = 0;
+  Dev d{};
+  Impl(const FrameStore& f, const TrackingArrays& in)
+      : t0(std::chrono::steady_clock::now()), frames(f), T(f.frames), S(in.samples) {}
+};
+
+TrackingStream::TrackingStream(const FrameStore& frames, const TrackingArrays& in)
+    : impl_(std::make_unique<Impl>(frames, in)) {
+  Impl& m = *impl_;
+  const long long TS = static_cast<long long>(m.T) * m.S;
+  m.source.upload(in.source.data(), in.source.size());
+  m.source_begin.upload(in.source_begin.data(), in.source_begin.size());
+  m.probe.upload(in.probe.data(), in.probe.size());
+  m.probe_begin.upload(in.probe_begin.data(), in.probe_begin.size());
+  m.adj.upload(in.adjacency.data(), in.adjacency.size());
+  m.adj_begin.upload(in.adjacency_begin.data(), in.adjacency_begin.size());
+  m.level.upload(in.level.data(), in.level.size());
+  m.before.upload(in.before.data(), in.before.size());
+  m.two_before.upload(in.two_before.data(), in.two_before.size());
+  m.global.upload(in.global.data(), in.global.size());
+  m.tasks.create(static_cast<std::size_t>(std::max<long long>(TS, 1)));
+  // Every pose starts as the identity (the reference frame's stay so), and the reference
+  // frame's are done.
+  std::vector<double> identity(static_cast<std::size_t>(TS) * kPoseDoubles, 0.0);
+  for (long long i = 0; i < TS; ++i)
+    for (int k = 0; k < 9; k += 4) identity[static_cast<std::size_t>(i) * kPoseDoubles + k] = 1.0;
+  m.poses.upload(identity.data(), identity.size());
+  m.res.create(static_cast<std::size_t>(std::max<long long>(TS, 1)));
+  m.res.setZero();
+  std::vector<int> done(static_cast<std::size_t>(TS), 0);
+  for (int t = 0; t < m.T; ++t)
+    if (in.before[t] < 0)
+      for (int s = 0; s < m.S; ++s) done[static_cast<std::size_t>(t) * m.S + s] = 1;
+  m.done.upload(done.data(), done.size());
+  m.next.create(static_cast<std::size_t>(std::max(m.T, 1)));
+  m.next.setZero();
+  m.staging.reserve(
+      static_cast<std::size_t>(m.T) *
+      (2 * static_cast<std::size_t>(m.S) * sizeof(int) + kPoseDoubles * sizeof(double)));
+  static_assert(kPoseDoubles * sizeof(double) % alignof(int) == 0, "staging slots stay aligned");
+  m.d = frameView(frames);
+  m.d.source = m.source.ptr();
+  m.d.source_begin = m.source_begin.ptr();
+  m.d.probe = m.probe.ptr();
+  m.d.probe_begin = m.probe_begin.ptr();
+  m.d.adj = m.adj.ptr();
+  m.d.adj_begin = m.adj_begin.ptr();
+  m.d.level = m.level.ptr();
+  m.d.before = m.before.ptr();
+  m.d.two_before = m.two_before.ptr();
+  m.d.global = m.global.ptr();
+  m.d.poses = m.poses.ptr();
+  m.d.residual = m.res.ptr();
+  m.d.S = m.S;
+  m.d.iterations = in.iterations;
+  int device = 0, sms = 0, per_sm = 0;
+  cudaSafeCall(cudaGetDevice(&device));
+  cudaSafeCall(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
+  cudaSafeCall(
+      cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, trackTasks, kTrackThreads, 0));
+  m.blocks = std::max(1, std::min(m.S, sms * std::max(per_sm, 1)));
+}
+
+TrackingStream::~TrackingStream() {
+  // A stream ended by an error: its kernels finish before the arrays they use are freed.
+  if (impl_) cudaStreamSynchronize(cudaStreamPerThread);
+}
+
+void TrackingStream::frames(const std::vector<int>& frames, const double* global, const int* level,
+                            const int* tasks) {
+  Impl& m = *impl_;
+  if (m.S <= 0 || frames.empty()) return;
+  const std::size_t S = static_cast<std::size_t>(m.S), n = frames.size() * S;
+  // The staging: per frame a slot of its global pose and levels, then the tasks in call order.
+  const std::size_t slot = kPoseDoubles * sizeof(double) + S * sizeof(int);
+  unsigned char* base = m.staging.reserve(0);
+  int* staged_tasks =
+      reinterpret_cast<int*>(base + static_cast<std::size_t>(m.T) * slot) + m.queued;
+  std::memcpy(staged_tasks, tasks, n * sizeof(int));
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    const std::size_t t = static_cast<std::size_t>(frames[i]);
+    double* g = reinterpret_cast<double*>(base + t * slot);
+    int* lv = reinterpret_cast<int*>(base + t * slot + kPoseDoubles * sizeof(double));
+    std::memcpy(g, global + i * kPoseDoubles, kPoseDoubles * sizeof(double));
+    std::memcpy(lv, level + i * S, S * sizeof(int));
+    cudaSafeCall(cudaMemcpyAsync(m.global.ptr() + t * kPoseDoubles, g,
+                                 kPoseDoubles * sizeof(double), cudaMemcpyHostToDevice,
+                                 cudaStreamPerThread));
+    cudaSafeCall(cudaMemcpyAsync(m.level.ptr() + t * S, lv, S * sizeof(int), cudaMemcpyHostToDevice,
+                                 cudaStreamPerThread));
+  }
+  int* order = m.tasks.ptr() + m.queued;
+  cudaSafeCall(cudaMemcpyAsync(order, staged_tasks, n * sizeof(int), cudaMemcpyHostToDevice,
+                               cudaStreamPerThread));
+  // The fits of these frames in one kernel, after the earlier calls' (the stream's order); the
+  // blocks take them in the given order, each waiting for the poses its starts read.
+  const int count = static_cast<int>(n);
+  trackTasks<<<std::max(1, std::min(count, m.blocks)), kTrackThreads, 0, cudaStreamPerThread>>>(
+      m.d, order, count, m.next.ptr() + m.launches, m.done.ptr());
+  cudaCheckLaunch();
+  m.queued += n;
+  ++m.launches;
+}
+
+double TrackingStream::end(std::vector<double>& poses, std::vector<double>& residual) {
+  Impl& m = *impl_;
+  cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
+  poses.resize(static_cast<std::size_t>(m.T) * m.S * kPoseDoubles);
+  m.poses.download(poses);
+  residual.resize(static_cast<std::size_t>(m.T) * m.S);
+  m.res.download(residual);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - m.t0).count();
+  impl_.reset();
+  return seconds;
+}
+
 void runResiduals(FrameStore& frames, const std::vector<double>& points,
                   const std::vector<int>& source_begin, const std::vector<double>& motions,
                   const std::vector<ResidualJob>& jobs, long long point_parallel_limit,

@@ -180,6 +180,29 @@ struct TrackingArrays {
 double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vector<double>& poses,
                    std::vector<double>& residual);
 
+/** runTracking() as the frames come (MotionTracking::beginSamples .. endSamples): the
+ * constructor uploads `in` but its tasks (`level` and `global` as given: their entries for the
+ * frames to come are filled by frames()), frames() uploads some frames' global poses (12 doubles
+ * each), levels and tasks (`samples` each, frame after frame, in a topological order) and starts
+ * their fits as one kernel on the calling thread's stream without waiting, end() waits for them
+ * and downloads poses and residuals as runTracking does. Every call from one thread. Throws Error
+ * on a CUDA failure. */
+class TrackingStream {
+ public:
+  TrackingStream(const FrameStore& frames, const TrackingArrays& in);
+  ~TrackingStream();
+  TrackingStream(const TrackingStream&) = delete;
+  TrackingStream& operator=(const TrackingStream&) = delete;
+  void frames(const std::vector<int>& frames, const double* global, const int* level,
+              const int* tasks);
+  /** Returns the seconds since the constructor began. */
+  double end(std::vector<double>& poses, std::vector<double>& residual);
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
 /** A residual job: source, motion (12 doubles), frame. */
 struct ResidualJob {
   int source;

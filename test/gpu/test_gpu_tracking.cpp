@@ -125,6 +125,44 @@ TEST(GpuTracking, WavesOutOfOrderAreAnError) {
   EXPECT_NO_THROW(device.trackSamples(p, poses, residual));
 }
 
+// The frames given as they come (beginSamples .. endSamples): a frame before one it starts from,
+// or twice, is refused with an error, not left waiting; in order they run.
+TEST(GpuTracking, StreamedFramesOutOfOrderAreAnError) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const auto seq = generated(synth::BodyPlan::Humanoid, 4, 3000, 7);
+  seg::MotionTrackingParams params;
+  gpu::MotionTracking device;
+  params.device = &device;
+  const seg::SampleTracks good = seg::trackSamples(*seq, params);  // sets the device's frames
+  const int S = static_cast<int>(good.sample_points.size());
+  seg::SampleTrackingProblem p;
+  p.samples = S;
+  for (int s = 0; s < S; ++s) {
+    p.source_p.push_back(Eigen::Matrix3Xd::Zero(3, 8));
+    p.source_n.push_back(Eigen::Matrix3Xd::Zero(3, 8));
+    p.probe_p.push_back(Eigen::Matrix3Xd::Zero(3, 2));
+    p.probe_n.push_back(Eigen::Matrix3Xd::Zero(3, 2));
+  }
+  p.graph.assign(S, {});
+  p.before = {-1, 0, 1, 2};
+  p.two_before = {-1, -1, 0, 1};
+  p.global.assign(seq->size(), Eigen::Isometry3d::Identity());
+  const std::vector<int> flat(S, 0);
+  const Eigen::Isometry3d I = Eigen::Isometry3d::Identity();
+  EXPECT_THROW(device.trackFrames({1}, {I}, {flat}), pcl_animseg::Error);  // not begun
+  device.beginSamples(p);
+  EXPECT_THROW(device.trackFrames({2}, {I}, {flat}), pcl_animseg::Error);
+  EXPECT_NO_THROW(device.trackFrames({1, 2}, {I, I}, {flat, flat}));
+  EXPECT_THROW(device.trackFrames({1}, {I}, {flat}), pcl_animseg::Error);
+  EXPECT_NO_THROW(device.trackFrames({3}, {I}, {flat}));
+  std::vector<std::vector<Eigen::Isometry3d>> poses;
+  std::vector<std::vector<double>> residual;
+  EXPECT_NO_THROW(device.endSamples(poses, residual));
+  EXPECT_EQ(poses.size(), seq->size());
+  EXPECT_EQ(device.lastWaves(), 2);  // a kernel per call that gave frames
+}
+
 TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;

@@ -56,6 +56,17 @@ class RecordingDevice : public seg::MotionDevice {
       for (std::size_t i = 0; i < rows.size(); ++i) leaf_of[t][rows[i]] = static_cast<int>(i);
     }
   }
+  void beginSamples(const seg::SampleTrackingProblem& p) override {
+    tracker = std::this_thread::get_id();
+    trackingThread() = true;
+    seg::MotionDevice::beginSamples(p);
+  }
+  void trackFrames(const std::vector<int>& t, const std::vector<Eigen::Isometry3d>& global,
+                   const std::vector<std::vector<int>>& level) override {
+    EXPECT_EQ(std::this_thread::get_id(), tracker);
+    frames_given += static_cast<int>(t.size());
+    seg::MotionDevice::trackFrames(t, global, level);
+  }
   void trackSamples(const seg::SampleTrackingProblem& p,
                     std::vector<std::vector<Eigen::Isometry3d>>& poses,
                     std::vector<std::vector<double>>& residual) override {
@@ -214,11 +225,14 @@ class RecordingDevice : public seg::MotionDevice {
   struct Call {
     explicit Call(RecordingDevice& d) : device(d) {
       if (device.inside.fetch_add(1) != 0) device.overlapped = true;
-      {
-        const std::lock_guard<std::mutex> lock(device.callers_mutex);
-        device.callers.insert(std::this_thread::get_id());
-      }
-      if (device.fail_off_thread && std::this_thread::get_id() != device.home) {
+      const std::thread::id me = std::this_thread::get_id();
+      if (me == device.home && device.home_threads < 0) device.home_threads = omp_get_max_threads();
+      // (A thread's id may be reused by a later thread: the tracker is told by a flag of its own.)
+      const bool beside = me != device.home && !trackingThread();
+      (trackingThread() ? device.tracker_calls
+       : beside         ? device.beside_calls
+                        : device.home_calls)++;
+      if (device.fail_off_thread && beside) {
         device.inside.fetch_sub(1);
         throw pcl_animseg::Error("recording device: kernel fault beside the part labels");
       }
@@ -226,20 +240,28 @@ class RecordingDevice : public seg::MotionDevice {
     ~Call() { device.inside.fetch_sub(1); }
     RecordingDevice& device;
   };
-  // Calls from any thread but `home` fail (the hierarchy's merges run on a thread of their own).
+  // Calls from any thread but `home` and the samples' tracker fail (the hierarchy's merges run on
+  // a thread of their own).
   bool fail_off_thread = false;
   std::thread::id home = std::this_thread::get_id();
+  // Whether this thread gave the samples' frames (beginSamples .. endSamples, beside the chain of
+  // global poses).
+  static bool& trackingThread() {
+    thread_local bool tracking = false;
+    return tracking;
+  }
+  std::thread::id tracker;
+  int home_threads = -1;  // the caller's thread count at its first call
+  std::atomic<int> home_calls{0}, tracker_calls{0}, beside_calls{0};
   std::atomic<int> inside{0};
   std::atomic<bool> overlapped{false};
-  std::mutex callers_mutex;
-  std::set<std::thread::id> callers;
   int fit_batches = 0;
   std::size_t fits = 0;
   int calls = 0, frame_calls = 0, batches = 0, cost_batches = 0, error_batches = 0;
   std::size_t jobs = 0;
   bool fail = false;
   bool start = false;  // starting() until the first call
-  int threads_at_frames = 0, threads_at_tracking = 0;
+  int threads_at_frames = 0, threads_at_tracking = 0, frames_given = 0;
   seg::DeviceFrames frames;
   std::vector<std::vector<int>> leaf_of;  // per frame: tree row -> leaf index
   std::vector<std::vector<Eigen::Isometry3d>> answer;
@@ -294,6 +316,7 @@ TEST(MotionDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
   params.device = &device;
   const seg::SampleTracks dev = seg::trackSamples(*seq, params);
   EXPECT_EQ(device.calls, 1);
+  EXPECT_EQ(device.frames_given, 6);  // every frame but the reference, as the chain found it
   // The device's poses are the tracks' poses and positions.
   ASSERT_EQ(dev.poses.size(), cpu.poses.size());
   for (std::size_t t = 0; t < cpu.poses.size(); ++t) {
@@ -332,9 +355,14 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
   // The merges the device's run evaluated ahead, in batches, are the CPU's one at a time.
   EXPECT_EQ(got.merges, expected.merges);
-  // The hierarchy's merges above the parts ran beside the parts' motions and labels, on a thread
-  // of their own, and the two threads' calls took turns.
-  EXPECT_EQ(backend->device.callers.size(), 2u);
+  // The samples' frames were given one by one, from a thread beside the chain of global poses;
+  // the hierarchy's merges above the parts ran beside the parts' motions and labels, on a thread
+  // of their own; and the three threads' calls took turns.
+  EXPECT_EQ(backend->device.frames_given, static_cast<int>(seq->size()) - 1);
+  EXPECT_NE(backend->device.tracker, backend->device.home);
+  EXPECT_GT(backend->device.tracker_calls, 0);  // the frames' levels
+  EXPECT_GT(backend->device.beside_calls, 0);   // the hierarchy's merges
+  EXPECT_GT(backend->device.home_calls, 0);
   EXPECT_FALSE(backend->device.overlapped);
 }
 
@@ -371,7 +399,8 @@ TEST(MotionDevice, AFailureBesideThePartLabelsStopsTheStageOrFallsBack) {
       EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
       EXPECT_EQ(got.merges, expected.merges);
     }
-    EXPECT_EQ(backend->device.callers.size(), 2u);  // it did run on a thread of its own
+    // It did run on a thread of its own (beside the caller's and the samples' tracking's).
+    EXPECT_GT(backend->device.beside_calls, 0);
   }
 }
 
@@ -391,9 +420,10 @@ TEST(MotionDevice, ADeviceStillStartingIsLeftACoreUntilItsFirstCall) {
   dev.setDeviceBackend(backend);
   seg::SegmentationResult got;
   dev.segment(got);
-  // The CPU work before the first call ran on one thread fewer; the calls, on every thread.
+  // The CPU work before the first call ran on one thread fewer (as did the chain of global poses
+  // beside the samples' tracking); the caller's calls after it, on every thread.
   EXPECT_EQ(backend->device.threads_at_frames, 3);
-  EXPECT_EQ(backend->device.threads_at_tracking, 4);
+  EXPECT_EQ(backend->device.home_threads, 4);
   EXPECT_EQ(omp_get_max_threads(), 4);
   // The thread count does not change the result.
   EXPECT_EQ(got.num_clusters, expected.num_clusters);
@@ -634,4 +664,30 @@ TEST(MotionTracking, AlphaExpansionsSideBySideGiveTheSerialLabels) {
   EXPECT_THROW(seg::detail::alphaExpansions(cand, short_unary, edges, label, true),
                pcl_animseg::Error);
   EXPECT_EQ(label, start);  // nothing moved by a call that threw
+}
+
+// Frames given as they come (beginSamples .. endSamples): each after the frames it starts from,
+// once, with a level per sample; anything else is an error, not a wait or a wrong pose.
+TEST(MotionDevice, FramesGivenOutOfOrderAreAnError) {
+  const auto seq = chain(4, 2000, 3);
+  seg::MotionTrackingParams params;
+  const int S = static_cast<int>(seg::trackSamples(*seq, params).sample_points.size());
+  RecordingDevice device;
+  seg::SampleTrackingProblem p;
+  p.samples = S;
+  p.graph.assign(S, {});
+  p.before = {-1, 0, 1, 2};
+  p.two_before = {-1, -1, 0, 1};
+  p.global.assign(4, Eigen::Isometry3d::Identity());
+  const std::vector<int> flat(S, 0);
+  const Eigen::Isometry3d I = Eigen::Isometry3d::Identity();
+  device.beginSamples(p);
+  EXPECT_THROW(device.trackFrames({2}, {I}, {flat}), pcl_animseg::Error);  // before frame 1
+  EXPECT_THROW(device.trackFrames({0}, {I}, {flat}), pcl_animseg::Error);  // the reference
+  EXPECT_THROW(device.trackFrames({4}, {I}, {flat}), pcl_animseg::Error);  // no such frame
+  EXPECT_THROW(device.trackFrames({1}, {I}, {std::vector<int>(S - 1, 0)}), pcl_animseg::Error);
+  EXPECT_THROW(device.trackFrames({1}, {}, {flat}), pcl_animseg::Error);
+  EXPECT_NO_THROW(device.trackFrames({1, 2}, {I, I}, {flat, flat}));
+  EXPECT_THROW(device.trackFrames({2}, {I}, {flat}), pcl_animseg::Error);  // twice
+  EXPECT_NO_THROW(device.trackFrames({3}, {I}, {flat}));
 }

@@ -161,6 +161,24 @@ class MotionDevice {
   virtual void trackSamples(const SampleTrackingProblem& problem,
                             std::vector<std::vector<Eigen::Isometry3d>>& poses,
                             std::vector<std::vector<double>>& residual) = 0;
+  /** \brief trackSamples() as the frames come, so that their fits run while the caller still
+   * finds the global poses and levels of later frames (the motion method's chain of whole-body
+   * ICPs on the cores): beginSamples() with the problem without `level` and `waves` (`global`
+   * sized T: the reference frame's entry, the one without a frame before, is read there, the
+   * others as trackFrames() gives them), then trackFrames() with every other frame once, each
+   * after its `before` and `two_before` (in an earlier call or earlier in the same call), then
+   * endSamples(). The same poses and residuals as trackSamples() with all the levels. A frame's
+   * fits go in level order (a sample after its neighbours of lower level), a valid order for
+   * trackSamples()' waves. Call all three from one thread. The default keeps the frames and calls
+   * trackSamples() in endSamples(); a device that overrides them starts a call's fits in
+   * trackFrames() and returns at once. Throws Error on a frame out of range, given twice, given
+   * before a frame it starts from, or without a level per sample. */
+  virtual void beginSamples(const SampleTrackingProblem& problem);
+  virtual void trackFrames(const std::vector<int>& frames,
+                           const std::vector<Eigen::Isometry3d>& global,
+                           const std::vector<std::vector<int>>& level);
+  virtual void endSamples(std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                          std::vector<std::vector<double>>& residual);
   /** \brief One residual per job, in job order. */
   virtual void residuals(const ResidualJobs& jobs, std::vector<double>& out) = 0;
   /** \brief One point cost per job, in job order (T per job with PointCostJobs::per_frame). */
@@ -172,6 +190,18 @@ class MotionDevice {
    * (the default: the callers then take turns). It uses this device's frames: it must not
    * outlive this device, nor be called after setFrames() on this one. */
   virtual std::unique_ptr<MotionDevice> fork() { return nullptr; }
+
+ protected:
+  /** \brief The default beginSamples() .. endSamples(): the problem, and the frames given so far
+   * (each frame's tasks in level order, appended as its waves). */
+  SampleTrackingProblem streamed_;
+  std::vector<char> streamed_frame_;  ///< per frame: given (or the reference)
+  /** \brief Checks a frame for trackFrame() against the problem and the frames given so far
+   * (`given`: per frame, given or the reference) and returns its tasks in level order (a sample
+   * after its neighbours of lower level, ties by sample). Throws Error. */
+  static std::vector<int> frameTasks(const SampleTrackingProblem& problem,
+                                     const std::vector<char>& given, int t,
+                                     const std::vector<int>& level);
 };
 
 }  // namespace segmentation

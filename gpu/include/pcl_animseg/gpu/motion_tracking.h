@@ -26,6 +26,7 @@ namespace gpu {
 namespace detail {
 struct FrameStore;
 struct FrameArrays;
+class TrackingStream;
 }
 
 /** \brief segmentation::MotionDevice on the current CUDA device. */
@@ -45,6 +46,16 @@ class MotionTracking : public segmentation::MotionDevice {
   void trackSamples(const segmentation::SampleTrackingProblem& problem,
                     std::vector<std::vector<Eigen::Isometry3d>>& poses,
                     std::vector<std::vector<double>>& residual) override;
+  /** \brief The frames' fits as they come: beginSamples() uploads the problem (it waits for the
+   * GPU's start), each trackFrames() queues its frames' copies and one kernel for their fits on
+   * the calling thread's stream and returns at once, endSamples() waits and downloads
+   * (MotionDevice's contract: the same poses as trackSamples()). Throws Error on a CUDA failure, no
+   * frames set, a problem whose arrays do not match, or a frame out of order. */
+  void beginSamples(const segmentation::SampleTrackingProblem& problem) override;
+  void trackFrames(const std::vector<int>& frames, const std::vector<Eigen::Isometry3d>& global,
+                   const std::vector<std::vector<int>>& level) override;
+  void endSamples(std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                  std::vector<std::vector<double>>& residual) override;
   void residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) override;
   void pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) override;
   void partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) override;
@@ -52,9 +63,11 @@ class MotionTracking : public segmentation::MotionDevice {
    * buffers: its calls from another thread run beside this one's on the GPU (each host thread
    * queues on a stream of its own). Throws Error where no frames were set or on a CUDA failure. */
   std::unique_ptr<segmentation::MotionDevice> fork() override;
-  /** \brief Seconds of the last trackSamples on the device (uploads, kernels, downloads). */
+  /** \brief Seconds of the last trackSamples on the device (uploads, kernels, downloads), or
+   * of the last beginSamples .. endSamples. */
   double lastDeviceSeconds() const { return device_seconds_; }
-  /** \brief Kernel launches (waves) of the last trackSamples. */
+  /** \brief Waves of the last trackSamples (one kernel), or kernels of the last beginSamples ..
+   * endSamples (one per trackFrames). */
   int lastWaves() const { return waves_; }
   /** \brief Residual batches of at most this many source points in all (the default 2^21) run
    * a thread per point and then a thread per job for the sums; larger ones a warp per job. The
@@ -67,6 +80,9 @@ class MotionTracking : public segmentation::MotionDevice {
 
   std::unique_ptr<detail::FrameArrays> pending_;  ///< set, not uploaded yet
   std::unique_ptr<detail::FrameStore> frames_;
+  std::unique_ptr<detail::TrackingStream> stream_;  ///< beginSamples .. endSamples
+  std::vector<std::vector<int>> graph_;             ///< the streamed problem's sample graph
+  std::vector<int> depth_;  ///< per task given: its longest chain of fits (the reference's: 0)
   double device_seconds_ = 0.0;
   int waves_ = 0;
   long long point_parallel_limit_ = 1LL << 21;
