@@ -1277,67 +1277,9 @@ void uploadFrames(const FrameArrays& in, FrameStore& store) {
 
 double runTracking(const FrameStore& frames, const TrackingArrays& in, std::vector<double>& poses,
                    std::vector<double>& residual) {
-  const auto t0 = std::chrono::steady_clock::now();
-  const long long TS = static_cast<long long>(frames.frames) * in.samples;
-  DeviceArray<double> source(in.source.data(), in.source.size());
-  DeviceArray<int> source_begin(in.source_begin.data(), in.source_begin.size());
-  DeviceArray<double> probe(in.probe.data(), in.probe.size());
-  DeviceArray<int> probe_begin(in.probe_begin.data(), in.probe_begin.size());
-  DeviceArray<int> adj(in.adjacency.data(), in.adjacency.size());
-  DeviceArray<int> adj_begin(in.adjacency_begin.data(), in.adjacency_begin.size());
-  DeviceArray<int> level(in.level.data(), in.level.size());
-  DeviceArray<int> before(in.before.data(), in.before.size());
-  DeviceArray<int> two_before(in.two_before.data(), in.two_before.size());
-  DeviceArray<double> global(in.global.data(), in.global.size());
-  DeviceArray<int> tasks(in.tasks.data(), in.tasks.size());
-  // Every pose starts as the identity (the reference frame's stay so).
-  poses.assign(static_cast<std::size_t>(TS) * kPoseDoubles, 0.0);
-  for (long long i = 0; i < TS; ++i)
-    for (int k = 0; k < 9; k += 4) poses[static_cast<std::size_t>(i) * kPoseDoubles + k] = 1.0;
-  DeviceArray<double> d_poses(poses.data(), poses.size());
-  DeviceArray<double> d_res(static_cast<std::size_t>(TS));
-  d_res.setZero();
-
-  Dev d = frameView(frames);
-  d.source = source.ptr();
-  d.source_begin = source_begin.ptr();
-  d.probe = probe.ptr();
-  d.probe_begin = probe_begin.ptr();
-  d.adj = adj.ptr();
-  d.adj_begin = adj_begin.ptr();
-  d.level = level.ptr();
-  d.before = before.ptr();
-  d.two_before = two_before.ptr();
-  d.global = global.ptr();
-  d.poses = d_poses.ptr();
-  d.residual = d_res.ptr();
-  d.S = in.samples;
-  d.iterations = in.iterations;
-  // The tasks in the waves' order; a pose of the reference frame (no frame before) is done.
-  const int n = static_cast<int>(in.tasks.size());
-  if (n > 0) {
-    std::vector<int> done(static_cast<std::size_t>(TS), 0);
-    for (int t = 0; t < frames.frames; ++t)
-      if (in.before[t] < 0)
-        for (int s = 0; s < in.samples; ++s) done[static_cast<std::size_t>(t) * in.samples + s] = 1;
-    DeviceArray<int> d_done(done.data(), done.size());
-    DeviceArray<int> next(1);
-    next.setZero();
-    int device = 0, sms = 0, per_sm = 0;
-    cudaSafeCall(cudaGetDevice(&device));
-    cudaSafeCall(cudaDeviceGetAttribute(&sms, cudaDevAttrMultiProcessorCount, device));
-    cudaSafeCall(
-        cudaOccupancyMaxActiveBlocksPerMultiprocessor(&per_sm, trackTasks, kTrackThreads, 0));
-    const int blocks = std::max(1, std::min(n, sms * std::max(per_sm, 1)));
-    trackTasks<<<blocks, kTrackThreads>>>(d, tasks.ptr(), n, next.ptr(), d_done.ptr());
-    cudaCheckLaunch();
-  }
-  // This thread's stream only: the refinement's preparation queues its searches beside it.
-  cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
-  d_poses.download(poses);
-  residual.resize(static_cast<std::size_t>(TS));
-  d_res.download(residual);
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  TrackingStream stream(frames, in);
+  stream.tasks(in.tasks.data(), in.tasks.size());
+  return stream.end(poses, residual);
 }
 
 struct TrackingStream::Impl {
@@ -1423,13 +1365,10 @@ void TrackingStream::frames(const std::vector<int>& frames, const double* global
                             const int* tasks) {
   Impl& m = *impl_;
   if (m.S <= 0 || frames.empty()) return;
-  const std::size_t S = static_cast<std::size_t>(m.S), n = frames.size() * S;
+  const std::size_t S = static_cast<std::size_t>(m.S);
   // The staging: per frame a slot of its global pose and levels, then the tasks in call order.
   const std::size_t slot = kPoseDoubles * sizeof(double) + S * sizeof(int);
   unsigned char* base = m.staging.reserve(0);
-  int* staged_tasks =
-      reinterpret_cast<int*>(base + static_cast<std::size_t>(m.T) * slot) + m.queued;
-  std::memcpy(staged_tasks, tasks, n * sizeof(int));
   for (std::size_t i = 0; i < frames.size(); ++i) {
     const std::size_t t = static_cast<std::size_t>(frames[i]);
     double* g = reinterpret_cast<double*>(base + t * slot);
@@ -1442,11 +1381,26 @@ void TrackingStream::frames(const std::vector<int>& frames, const double* global
     cudaSafeCall(cudaMemcpyAsync(m.level.ptr() + t * S, lv, S * sizeof(int), cudaMemcpyHostToDevice,
                                  cudaStreamPerThread));
   }
+  this->tasks(tasks, frames.size() * S);
+}
+
+void TrackingStream::tasks(const int* tasks, std::size_t n) {
+  Impl& m = *impl_;
+  if (n == 0) return;
+  if (m.queued + n > static_cast<std::size_t>(m.T) * static_cast<std::size_t>(m.S))
+    throw DeviceError("GPU tracking: more tasks than the frames hold");
+  const std::size_t slot =
+      kPoseDoubles * sizeof(double) + static_cast<std::size_t>(m.S) * sizeof(int);
+  int* staged =
+      reinterpret_cast<int*>(m.staging.reserve(0) + static_cast<std::size_t>(m.T) * slot) +
+      m.queued;
+  std::memcpy(staged, tasks, n * sizeof(int));
   int* order = m.tasks.ptr() + m.queued;
-  cudaSafeCall(cudaMemcpyAsync(order, staged_tasks, n * sizeof(int), cudaMemcpyHostToDevice,
-                               cudaStreamPerThread));
-  // The fits of these frames in one kernel, after the earlier calls' (the stream's order); the
-  // blocks take them in the given order, each waiting for the poses its starts read.
+  cudaSafeCall(
+      cudaMemcpyAsync(order, staged, n * sizeof(int), cudaMemcpyHostToDevice, cudaStreamPerThread));
+  // These fits in one kernel, after the earlier calls' (the stream's order): the blocks take
+  // them in the given order (a topological one), each waiting for the poses its starts read, so
+  // a block waits only for tasks taken before its own, which running blocks hold.
   const int count = static_cast<int>(n);
   trackTasks<<<std::max(1, std::min(count, m.blocks)), kTrackThreads, 0, cudaStreamPerThread>>>(
       m.d, order, count, m.next.ptr() + m.launches, m.done.ptr());

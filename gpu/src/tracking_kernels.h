@@ -195,6 +195,9 @@ class TrackingStream {
   TrackingStream& operator=(const TrackingStream&) = delete;
   void frames(const std::vector<int>& frames, const double* global, const int* level,
               const int* tasks);
+  /** Starts `n` tasks (a topological order, after the earlier calls') whose frames' levels and
+   * global poses are on the device: those the constructor uploaded, or a frames() call's. */
+  void tasks(const int* tasks, std::size_t n);
   /** Returns the seconds since the constructor began. */
   double end(std::vector<double>& poses, std::vector<double>& residual);
 

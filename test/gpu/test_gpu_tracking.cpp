@@ -47,6 +47,24 @@ pcl_animseg::PointCloudSequence::Ptr generated(synth::BodyPlan plan, int frames,
       synth::toSequence(synth::generate(animseg_test::sequenceParams(plan, frames, points, seed))));
 }
 
+// A tracking problem of S samples in 4 frames, a chain from frame 0, whose fits are of zero
+// points (the order of the tasks is what the tests below look at).
+seg::SampleTrackingProblem fourFrameProblem(int S) {
+  seg::SampleTrackingProblem p;
+  p.samples = S;
+  for (int s = 0; s < S; ++s) {
+    p.source_p.push_back(Eigen::Matrix3Xd::Zero(3, 8));
+    p.source_n.push_back(Eigen::Matrix3Xd::Zero(3, 8));
+    p.probe_p.push_back(Eigen::Matrix3Xd::Zero(3, 2));
+    p.probe_n.push_back(Eigen::Matrix3Xd::Zero(3, 2));
+  }
+  p.graph.assign(S, {});
+  p.before = {-1, 0, 1, 2};
+  p.two_before = {-1, -1, 0, 1};
+  p.global.assign(4, Eigen::Isometry3d::Identity());
+  return p;
+}
+
 }  // namespace
 
 TEST(GpuTracking, PosesAreTheCpusBitForBit) {
@@ -78,7 +96,7 @@ TEST(GpuTracking, PosesAreTheCpusBitForBit) {
                          (dev.positions[t].col(s) - cpu.positions[t].col(s)).norm() / cpu.spacing);
       }
     std::printf(
-        "%s, %d frames: %d sample poses, %d waves, %.4f s on the device; %d differ from the "
+        "%s, %d frames: %d sample poses, %d kernels, %.4f s on the device; %d differ from the "
         "CPU's (largest offset %.2e spacings)\n",
         synth::toString(plan).c_str(), c.frames, poses, device.lastWaves(),
         device.lastDeviceSeconds(), differ, worst);
@@ -99,19 +117,8 @@ TEST(GpuTracking, WavesOutOfOrderAreAnError) {
   params.device = &device;
   const seg::SampleTracks good = seg::trackSamples(*seq, params);  // sets the device's frames
   const int S = static_cast<int>(good.sample_points.size());
-  seg::SampleTrackingProblem p;
-  p.samples = S;
-  for (int s = 0; s < S; ++s) {
-    p.source_p.push_back(Eigen::Matrix3Xd::Zero(3, 8));
-    p.source_n.push_back(Eigen::Matrix3Xd::Zero(3, 8));
-    p.probe_p.push_back(Eigen::Matrix3Xd::Zero(3, 2));
-    p.probe_n.push_back(Eigen::Matrix3Xd::Zero(3, 2));
-  }
-  p.graph.assign(S, {});
+  seg::SampleTrackingProblem p = fourFrameProblem(S);
   p.level.assign(seq->size(), {});
-  p.before = {-1, 0, 1, 2};
-  p.two_before = {-1, -1, 0, 1};
-  p.global.assign(seq->size(), Eigen::Isometry3d::Identity());
   // Frame 2's tasks before frame 1's, which they start from.
   std::vector<int> w1, w2, w3;
   for (int s = 0; s < S; ++s)
@@ -136,18 +143,7 @@ TEST(GpuTracking, StreamedFramesOutOfOrderAreAnError) {
   params.device = &device;
   const seg::SampleTracks good = seg::trackSamples(*seq, params);  // sets the device's frames
   const int S = static_cast<int>(good.sample_points.size());
-  seg::SampleTrackingProblem p;
-  p.samples = S;
-  for (int s = 0; s < S; ++s) {
-    p.source_p.push_back(Eigen::Matrix3Xd::Zero(3, 8));
-    p.source_n.push_back(Eigen::Matrix3Xd::Zero(3, 8));
-    p.probe_p.push_back(Eigen::Matrix3Xd::Zero(3, 2));
-    p.probe_n.push_back(Eigen::Matrix3Xd::Zero(3, 2));
-  }
-  p.graph.assign(S, {});
-  p.before = {-1, 0, 1, 2};
-  p.two_before = {-1, -1, 0, 1};
-  p.global.assign(seq->size(), Eigen::Isometry3d::Identity());
+  seg::SampleTrackingProblem p = fourFrameProblem(S);
   const std::vector<int> flat(S, 0);
   const Eigen::Isometry3d I = Eigen::Isometry3d::Identity();
   EXPECT_THROW(device.trackFrames({1}, {I}, {flat}), pcl_animseg::Error);  // not begun
