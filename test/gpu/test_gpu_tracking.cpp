@@ -65,6 +65,22 @@ seg::SampleTrackingProblem fourFrameProblem(int S) {
   return p;
 }
 
+// A device whose frames are those of a 4-frame humanoid (set by a tracking run), and the run's
+// sample count, for the tests of the order the device takes its tasks in.
+class GpuTrackingOrder : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string why;
+    if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+    const auto seq = generated(synth::BodyPlan::Humanoid, 4, 3000, 7);
+    seg::MotionTrackingParams params;
+    params.device = &device;
+    S = static_cast<int>(seg::trackSamples(*seq, params).sample_points.size());
+  }
+  gpu::MotionTracking device;
+  int S = 0;
+};
+
 }  // namespace
 
 TEST(GpuTracking, PosesAreTheCpusBitForBit) {
@@ -108,17 +124,9 @@ TEST(GpuTracking, PosesAreTheCpusBitForBit) {
 // The device takes the tracking's tasks in the waves' order, each after the poses it starts
 // from: a problem whose waves put a task before one of those is refused with an error, not left
 // waiting.
-TEST(GpuTracking, WavesOutOfOrderAreAnError) {
-  std::string why;
-  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  const auto seq = generated(synth::BodyPlan::Humanoid, 4, 3000, 7);
-  seg::MotionTrackingParams params;
-  gpu::MotionTracking device;
-  params.device = &device;
-  const seg::SampleTracks good = seg::trackSamples(*seq, params);  // sets the device's frames
-  const int S = static_cast<int>(good.sample_points.size());
+TEST_F(GpuTrackingOrder, WavesOutOfOrderAreAnError) {
   seg::SampleTrackingProblem p = fourFrameProblem(S);
-  p.level.assign(seq->size(), {});
+  p.level.assign(4, {});
   // Frame 2's tasks before frame 1's, which they start from.
   std::vector<int> w1, w2, w3;
   for (int s = 0; s < S; ++s)
@@ -134,15 +142,7 @@ TEST(GpuTracking, WavesOutOfOrderAreAnError) {
 
 // The frames given as they come (beginSamples .. endSamples): a frame before one it starts from,
 // or twice, is refused with an error, not left waiting; in order they run.
-TEST(GpuTracking, StreamedFramesOutOfOrderAreAnError) {
-  std::string why;
-  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  const auto seq = generated(synth::BodyPlan::Humanoid, 4, 3000, 7);
-  seg::MotionTrackingParams params;
-  gpu::MotionTracking device;
-  params.device = &device;
-  const seg::SampleTracks good = seg::trackSamples(*seq, params);  // sets the device's frames
-  const int S = static_cast<int>(good.sample_points.size());
+TEST_F(GpuTrackingOrder, StreamedFramesOutOfOrderAreAnError) {
   seg::SampleTrackingProblem p = fourFrameProblem(S);
   const std::vector<int> flat(S, 0);
   const Eigen::Isometry3d I = Eigen::Isometry3d::Identity();
@@ -155,7 +155,7 @@ TEST(GpuTracking, StreamedFramesOutOfOrderAreAnError) {
   std::vector<std::vector<Eigen::Isometry3d>> poses;
   std::vector<std::vector<double>> residual;
   EXPECT_NO_THROW(device.endSamples(poses, residual));
-  EXPECT_EQ(poses.size(), seq->size());
+  EXPECT_EQ(poses.size(), 4u);
   EXPECT_EQ(device.lastWaves(), 2);  // a kernel per call that gave frames
 }
 
