@@ -227,8 +227,13 @@ inline double surfaceError(const Eigen::Vector3d& y, const Eigen::Vector3d& n, c
  * is moved, matched and turned into per-point terms in parallel; the sums stay in point order,
  * so that the result is the same bit for bit on any number of threads. */
 constexpr Eigen::Index kParallelSource = 256;
-bool searchInParallel(const Source& src) {
-  return src.p.cols() >= kParallelSource && !omp_in_parallel() && omp_get_max_threads() > 1;
+/** The whole body's ICP searches in parallel from this many points: its chain of frames runs
+ * alone on the cores, and a frame of 2000 points has 250 samples (96k-point humanoid, 2 cores:
+ * its global poses 0.116 s one thread, 0.069 s two; the same poses). Every other source keeps
+ * kParallelSource: the samples' and parts' smaller ICPs below it ran twice as long in parallel. */
+constexpr Eigen::Index kParallelWholeBody = 128;
+bool searchInParallel(const Source& src, Eigen::Index at_least = kParallelSource) {
+  return src.p.cols() >= at_least && !omp_in_parallel() && omp_get_max_threads() > 1;
 }
 
 /** A source point's ICP terms (icp_step::kTerms doubles) against its nearest point within
@@ -276,7 +281,8 @@ inline bool takeStep(const double* sums, int used, const double* c, double spaci
 
 /** RMS over the source of the surface error (in the frame's spacings); the errors are added in
  * point order. A source that searches in parallel (searchInParallel) goes through residualsOf. */
-std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& poses, const Frame& f);
+std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& poses, const Frame& f,
+                                Eigen::Index parallel_from = kParallelSource);
 double residual(const Source& src, const Pose& T, const Frame& f) {
   const Eigen::Index m = src.p.cols();
   if (m == 0) return 0.0;
@@ -294,7 +300,8 @@ double residual(const Source& src, const Pose& T, const Frame& f) {
  * pose, which comes from a neighbour on the same part. Every sum runs in point order. A source
  * that searches in parallel (searchInParallel) goes through icpFromStarts. */
 std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& inits, const Frame& f,
-                                int iterations, double max_dist);
+                                int iterations, double max_dist,
+                                Eigen::Index parallel_from = kParallelSource);
 Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, double max_dist) {
   if (searchInParallel(src)) return icpFromStarts(src, {init}, f, iterations, max_dist).front();
   icp_step::Rigid T = toRigid(init);
@@ -329,10 +336,11 @@ Pose icp(const Source& src, const Pose& init, const Frame& f, int iterations, do
  * has two starts per frame: one after the other they paid the start and end of each parallel
  * loop twice per iteration, in a chain along the frames.) Otherwise one icp() after the other. */
 std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& inits, const Frame& f,
-                                int iterations, double max_dist) {
+                                int iterations, double max_dist, Eigen::Index parallel_from) {
   const std::size_t n = inits.size();
   std::vector<Pose> out;
-  if (!searchInParallel(src)) {  // icp() then runs one thread: no call back here
+  // Below kParallelSource icp() runs one thread: no call back here.
+  if (!searchInParallel(src, std::min(parallel_from, kParallelSource))) {
     for (const Pose& p : inits) out.push_back(icp(src, p, f, iterations, max_dist));
     return out;
   }
@@ -418,11 +426,12 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
 /** residual() of several poses of one source. For a source that searches in parallel, all the
  * errors in one parallel loop, each pose's added in point order (the one-thread residual()'s
  * bits); otherwise one residual() after the other. */
-std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& poses, const Frame& f) {
+std::vector<double> residualsOf(const Source& src, const std::vector<Pose>& poses, const Frame& f,
+                                Eigen::Index parallel_from) {
   const std::size_t n = poses.size();
   std::vector<double> out;
   const Eigen::Index m = src.p.cols();
-  if (m == 0 || !searchInParallel(src)) {  // residual() then runs one thread
+  if (m == 0 || !searchInParallel(src, std::min(parallel_from, kParallelSource))) {
     for (const Pose& p : poses) out.push_back(residual(src, p, f));
     return out;
   }
@@ -1249,8 +1258,8 @@ SampleTracks trackSamplesOn(const PointCloudSequence& seq, const std::vector<Fra
     std::vector<Pose> inits{global[tp]};
     if (tpp >= 0) inits.push_back(constantVelocity(global[tp], global[tpp]));
     const std::vector<Pose> cands =
-        icpFromStarts(whole, inits, frames[t], 30, 10.0 * frames[t].spacing);
-    const std::vector<double> r = residualsOf(whole, cands, frames[t]);
+        icpFromStarts(whole, inits, frames[t], 30, 10.0 * frames[t].spacing, kParallelWholeBody);
+    const std::vector<double> r = residualsOf(whole, cands, frames[t], kParallelWholeBody);
     double best = std::numeric_limits<double>::max();
     Pose pick = global[t];
     for (std::size_t c = 0; c < cands.size(); ++c)

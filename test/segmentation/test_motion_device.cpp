@@ -691,3 +691,26 @@ TEST(MotionDevice, FramesGivenOutOfOrderAreAnError) {
   EXPECT_THROW(device.trackFrames({2}, {I}, {flat}), pcl_animseg::Error);  // twice
   EXPECT_NO_THROW(device.trackFrames({3}, {I}, {flat}));
 }
+
+// A body of 1500 points a frame has 187 tracked samples: its whole-body ICP searches in parallel
+// (from 128 points) and its sums stay in point order, so the tracks are the same bit for bit on
+// one thread (where it runs serially) and on three.
+TEST(MotionTracking, SmallBodyTracksTheSameOnAnyNumberOfThreads) {
+  const auto seq = chain(6, 1500, 4);
+  seg::MotionTrackingParams params;
+  const int threads = omp_get_max_threads();
+  omp_set_num_threads(1);
+  const seg::SampleTracks one = seg::trackSamples(*seq, params);
+  omp_set_num_threads(3);
+  const seg::SampleTracks three = seg::trackSamples(*seq, params);
+  omp_set_num_threads(threads);
+  ASSERT_GE(one.sample_points.size(), 128u);
+  ASSERT_LT(one.sample_points.size(), 256u);
+  ASSERT_EQ(one.poses.size(), three.poses.size());
+  int differ = 0;
+  for (std::size_t t = 0; t < one.poses.size(); ++t)
+    for (std::size_t s = 0; s < one.poses[t].size(); ++s)
+      differ += one.poses[t][s].matrix() != three.poses[t][s].matrix();
+  EXPECT_EQ(differ, 0);
+  EXPECT_EQ(one.residual, three.residual);
+}
