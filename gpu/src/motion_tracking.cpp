@@ -309,14 +309,13 @@ void MotionTracking::beginSamples(const segmentation::SampleTrackingProblem& pro
   stream_.reset();
   const int T = frames_->frames;
   const detail::TrackingArrays a = packTracking(problem, T, false);
-  // What frameTasks() checks the frames against.
-  streamed_ = segmentation::SampleTrackingProblem();
-  streamed_.samples = problem.samples;
-  streamed_.before = problem.before;
-  streamed_.two_before = problem.two_before;
-  streamed_frame_.assign(static_cast<std::size_t>(T), 0);
-  for (int t = 0; t < T; ++t) streamed_frame_[t] = problem.before[t] < 0;
-  graph_ = problem.graph;
+  // What frameTasks() checks the frames against, and the sample graph for the tasks' depths.
+  segmentation::SampleTrackingProblem kept;
+  kept.samples = problem.samples;
+  kept.before = problem.before;
+  kept.two_before = problem.two_before;
+  kept.graph = problem.graph;
+  startStreamed(std::move(kept));
   depth_.assign(static_cast<std::size_t>(T) * std::max(problem.samples, 0), 0);
   stream_ = std::make_unique<detail::TrackingStream>(*frames_, a);
   waves_ = 0;
@@ -347,7 +346,7 @@ void MotionTracking::trackFrames(const std::vector<int>& frames,
       const int s = task % S;
       int d = depthOf(tp, s);
       if (tpp >= 0) d = std::max(d, depthOf(tpp, s));
-      for (int o : graph_[s])
+      for (int o : streamed_.graph[s])
         if (level[i][o] < level[i][s]) d = std::max(d, depthOf(t, o));
       depth_[static_cast<std::size_t>(task)] = d + 1;
       by_depth.emplace_back(d + 1, task);

@@ -755,14 +755,16 @@ std::vector<int> MotionDevice::frameTasks(const SampleTrackingProblem& problem,
   return order;
 }
 
-void MotionDevice::beginSamples(const SampleTrackingProblem& problem) {
-  streamed_ = problem;
-  streamed_.level.assign(problem.before.size(), {});
+void MotionDevice::startStreamed(SampleTrackingProblem kept) {
+  streamed_ = std::move(kept);
+  streamed_.level.assign(streamed_.before.size(), {});
   streamed_.waves.clear();
-  streamed_frame_.assign(problem.before.size(), 0);
-  for (std::size_t t = 0; t < problem.before.size(); ++t)
-    streamed_frame_[t] = problem.before[t] < 0;
+  streamed_frame_.assign(streamed_.before.size(), 0);
+  for (std::size_t t = 0; t < streamed_.before.size(); ++t)
+    streamed_frame_[t] = streamed_.before[t] < 0;
 }
+
+void MotionDevice::beginSamples(const SampleTrackingProblem& problem) { startStreamed(problem); }
 
 void MotionDevice::trackFrames(const std::vector<int>& frames,
                                const std::vector<Eigen::Isometry3d>& global,

@@ -196,7 +196,10 @@ class MotionDevice {
    * (each frame's tasks in level order, appended as its waves). */
   SampleTrackingProblem streamed_;
   std::vector<char> streamed_frame_;  ///< per frame: given (or the reference)
-  /** \brief Checks a frame for trackFrame() against the problem and the frames given so far
+  /** \brief Starts the streamed state: `kept` (the parts of the problem a device keeps; the
+   * default, all of it) without levels and waves, and no frame given but the reference. */
+  void startStreamed(SampleTrackingProblem kept);
+  /** \brief Checks a frame for trackFrames() against the problem and the frames given so far
    * (`given`: per frame, given or the reference) and returns its tasks in level order (a sample
    * after its neighbours of lower level, ties by sample). Throws Error. */
   static std::vector<int> frameTasks(const SampleTrackingProblem& problem,

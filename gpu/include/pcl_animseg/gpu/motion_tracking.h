@@ -81,7 +81,6 @@ class MotionTracking : public segmentation::MotionDevice {
   std::unique_ptr<detail::FrameArrays> pending_;  ///< set, not uploaded yet
   std::unique_ptr<detail::FrameStore> frames_;
   std::unique_ptr<detail::TrackingStream> stream_;  ///< beginSamples .. endSamples
-  std::vector<std::vector<int>> graph_;             ///< the streamed problem's sample graph
   std::vector<int> depth_;  ///< per task given: its longest chain of fits (the reference's: 0)
   double device_seconds_ = 0.0;
   int waves_ = 0;
