@@ -148,6 +148,29 @@ void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
   ++batches_;
 }
 
+bool RigidFits::scores(const std::vector<segmentation::RigidScoreJob>& jobs,
+                       std::vector<double>& out) {
+  if (!surfaces_ || !sources_)
+    throw DeviceError("GPU rigid scores: no surfaces or sources were set");
+  std::vector<detail::RigidScoreJob> list;
+  list.reserve(jobs.size());
+  const int n_sources = static_cast<int>(sources_->begin.size());
+  for (const segmentation::RigidScoreJob& j : jobs) {
+    if (j.source < 0 || j.source >= n_sources || j.surface < 0 || j.surface >= surfaces_->frames)
+      throw DeviceError("GPU rigid scores: a job out of range");
+    detail::RigidScoreJob r{};
+    r.source_begin = sources_->begin[j.source];
+    r.source_count = sources_->count[j.source];
+    r.surface = j.surface;
+    r.probes = std::max(0, j.probes);
+    for (int k = 0; k < detail::kPoseDoubles; ++k) r.pose[k] = j.pose[k];
+    list.push_back(r);
+  }
+  detail::runRigidScores(*surfaces_, sources_->points, list, out);
+  ++score_batches_;
+  return true;
+}
+
 bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     const std::vector<float>& queries, const std::vector<int>& tree_of,
                     std::vector<int>& rows, std::vector<int>& count) {

@@ -836,6 +836,36 @@ __global__ void __launch_bounds__(kRigidBlockThreads)
   clusterSync(rb);
 }
 
+// rigid_motion.cpp's rigidScore, a block per job: the block's threads search the probes'
+// nearest surface points (probe k is source point k n / probes), then one thread adds their
+// squared distances in probe order, as the CPU does.
+constexpr int kScoreThreads = 128;
+constexpr int kScoreMaxProbes = 512;
+__global__ void __launch_bounds__(kScoreThreads)
+    rigidScoreJobs(Dev d, const double* __restrict__ sources,
+                   const RigidScoreJob* __restrict__ jobs, double* out) {
+  __shared__ float d2s[kScoreMaxProbes];
+  const RigidScoreJob job = jobs[blockIdx.x];
+  const long long n = job.source_count;
+  const int m = static_cast<int>(min(static_cast<long long>(job.probes), n));
+  const Rigid T = icp_step::load(job.pose);
+  const int root = d.root[job.surface];
+  const double* src = sources + 3LL * job.source_begin;
+  for (int k = threadIdx.x; k < m; k += blockDim.x) {
+    double y[3];
+    icp_step::apply(T, src + 3 * (static_cast<long long>(k) * n / m), y);
+    float d2 = 0.0f;
+    nearest(d, root, static_cast<float>(y[0]), static_cast<float>(y[1]), static_cast<float>(y[2]),
+            CUDART_INF_F, d2);
+    d2s[k] = d2;
+  }
+  __syncthreads();
+  if (threadIdx.x != 0) return;
+  double sum = 0.0;
+  for (int k = 0; k < m; ++k) sum += d2s[k];
+  out[blockIdx.x] = m > 0 ? sqrt(sum / static_cast<double>(m)) : 0.0;
+}
+
 Dev frameView(const FrameStore& store) {
   const FrameStore& f = store.shared ? *store.shared : store;
   Dev d{};
@@ -1000,6 +1030,23 @@ int rigidClusterSize(FrameStore& store, int jobs, int max_points, int forced) {
       R *= 2;
   while (R > 1 && rigidClusterLimit(store, R) < jobs) R /= 2;
   return R;
+}
+
+void runRigidScores(FrameStore& surfaces, const DeviceArray<double>& sources,
+                    const std::vector<RigidScoreJob>& jobs, std::vector<double>& out) {
+  out.assign(jobs.size(), 0.0);
+  if (jobs.empty()) return;
+  for (const RigidScoreJob& j : jobs)
+    if (j.probes > kScoreMaxProbes)
+      throw DeviceError("GPU rigid scores: more than " + std::to_string(kScoreMaxProbes) +
+                        " probes");
+  put(surfaces.job_in, jobs.data(), jobs.size() * sizeof(RigidScoreJob));
+  const Dev d = frameView(surfaces);
+  double* res = resultsOnHost(surfaces, out.size() * sizeof(double));
+  rigidScoreJobs<<<static_cast<unsigned>(jobs.size()), kScoreThreads>>>(
+      d, sources.ptr(), static_cast<const RigidScoreJob*>(surfaces.job_in.rawPtr()), res);
+  cudaCheckLaunch();
+  takeResults(surfaces, out.data(), out.size() * sizeof(double));
 }
 
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,

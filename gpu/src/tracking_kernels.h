@@ -345,6 +345,21 @@ int rigidClusterSize(FrameStore& store, int jobs, int max_points, int forced = 0
  * rigidClusterSize): poses (12 doubles per job) and rms. `surfaces`: the parts' trees as frames
  * (their spacing and orientation unused); `sources`: the packed sources on the device, `orders`
  * their rigidSearchOrder()s packed the same way. The same results for every cluster size. */
+/** A score of segmentation::rigidScore: the first `probes` of the source's points from
+ * source_begin (x, y, z doubles each), of its source_count, under `pose`, onto surface
+ * `surface`. */
+struct RigidScoreJob {
+  int source_begin;
+  int source_count;
+  int surface;
+  int probes;
+  double pose[kPoseDoubles];
+};
+
+/** Every job's rigidScore into `out`, a block per job. */
+void runRigidScores(FrameStore& surfaces, const DeviceArray<double>& sources,
+                    const std::vector<RigidScoreJob>& jobs, std::vector<double>& out);
+
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
                   const DeviceArray<int>& orders, const std::vector<RigidJob>& jobs,
                   const RigidParams& params, int cluster, std::vector<double>& poses,

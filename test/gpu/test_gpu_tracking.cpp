@@ -262,11 +262,13 @@ TEST(GpuTracking, RigidMotionsAreTheCpusBitForBit) {
       for (std::size_t p = 0; p < cpu_chained.size(); ++p) compare(dev_chained[p], cpu_chained[p]);
       std::printf(
           "%s, %d frames, cluster %d (last batch %d blocks per fit): %d transforms, %lld GPU "
-          "fits in %lld batches; %d differ from the CPU's\n",
+          "fits in %lld batches, %lld batches of the starts' scores; %d differ from the "
+          "CPU's\n",
           synth::toString(plan).c_str(), c.frames, cluster, device.lastClusterSize(), transforms,
-          device.fits(), device.batches(), differ);
+          device.fits(), device.batches(), device.scoreBatches(), differ);
       EXPECT_EQ(differ, 0) << synth::toString(plan) << ", cluster " << cluster;
       EXPECT_GT(device.fits(), 0);
+      EXPECT_GT(device.scoreBatches(), 0);  // level 0's starts scored on the GPU
       if (cluster > 0) {
         EXPECT_LE(device.lastClusterSize(), cluster);
         EXPECT_GE(device.lastClusterSize(), 1);

@@ -50,6 +50,18 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
                                              rms[j]);
     }
   }
+  // The starts' scores from the copies (offer_scores), with rigidScore.
+  bool scores(const std::vector<pcl_animseg::segmentation::RigidScoreJob>& jobs,
+              std::vector<double>& out) override {
+    if (!offer_scores) return false;
+    if (fail) throw pcl_animseg::Error("test device: score kernel failed");
+    ++score_batches;
+    out.clear();
+    for (const auto& j : jobs)
+      out.push_back(pcl_animseg::segmentation::rigidScore(sources.at(j.source), j.probes,
+                                                          trees.at(j.surface), j.pose));
+    return true;
+  }
   // The k-NN from copies of the trees (as a GPU uploads them), with FlatKdTree3::knn.
   bool knn(const std::vector<const pcl_animseg::FlatKdTree3*>& t, int k,
            const std::vector<float>& queries, const std::vector<int>& tree_of,
@@ -144,8 +156,8 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
   std::vector<pcl_animseg::FlatKdTree3> trees;
   std::vector<std::vector<float>> normals;
   std::vector<std::vector<double>> sources;
-  int batches = 0, fits = 0, wide = 0;
-  bool fail = false;
+  int batches = 0, fits = 0, wide = 0, score_batches = 0;
+  bool fail = false, offer_scores = true;
   std::thread::id fit_thread, knn_thread;  // of the last fit and k-NN calls
 };
 

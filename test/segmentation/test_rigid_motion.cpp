@@ -2,6 +2,7 @@
 #include <omp.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
+#include <pcl_animseg/flat_kdtree.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
 #include <Eigen/Geometry>
@@ -324,6 +325,42 @@ TEST(RigidMotion, InitialMotionsStartEachFrame) {
   expectSameMotion(est.compute(chain.truth)[1], chained[1], "part 1 after clearing");
 }
 
+// A start's score (rigidScore): the RMS nearest-point distance of the probes (every few source
+// points, point k n / probes) moved by the pose; all points when fewer than the probes asked for.
+TEST(RigidMotion, ScoreIsTheProbesRmsNearestDistance) {
+  // A 20 x 20 grid in the plane z = 0, spacing 0.1, as the surface; the source: the same points.
+  std::vector<float> grid;
+  std::vector<double> source;
+  for (int i = 0; i < 20; ++i)
+    for (int j = 0; j < 20; ++j) {
+      grid.insert(grid.end(), {0.1f * i, 0.1f * j, 0.0f});
+      source.insert(source.end(), {0.1f * i, 0.1f * j, 0.0f});
+    }
+  pcl_animseg::FlatKdTree3 tree;
+  tree.build(grid.data(), 400);
+  double pose[12] = {1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0};
+  EXPECT_EQ(pcl_animseg::segmentation::rigidScore(source, 50, tree, pose), 0.0);
+  // Lifted by 0.03: every probe's nearest point lies right below it.
+  pose[11] = 0.03;
+  EXPECT_NEAR(pcl_animseg::segmentation::rigidScore(source, 50, tree, pose), 0.03, 1e-6);
+  // Shifted by 0.05 along x as well: every probe midway between two grid points.
+  pose[9] = 0.05;
+  EXPECT_NEAR(pcl_animseg::segmentation::rigidScore(source, 50, tree, pose),
+              std::sqrt(0.03 * 0.03 + 0.05 * 0.05), 1e-6);
+  // More probes than points: every point, once; none: 0.
+  pose[9] = 0.0;
+  EXPECT_NEAR(pcl_animseg::segmentation::rigidScore(source, 1000, tree, pose), 0.03, 1e-6);
+  EXPECT_EQ(pcl_animseg::segmentation::rigidScore(source, 0, tree, pose), 0.0);
+  // Moved by 1 along y: a point of row j (y = 0.1 j) lands on the grid for j < 10, 0.1 (j - 9)
+  // beyond its last row otherwise. 200 probes of the 400 points are the points 2 k: rows 0, 2,
+  // .., 18 alike, so the mean square is (0.1^2 + 0.3^2 + 0.5^2 + 0.7^2 + 0.9^2) / 10 (the
+  // first 200 points, rows 0 .. 19, would give 0.1925).
+  pose[10] = 1.0;
+  pose[11] = 0.0;
+  EXPECT_NEAR(pcl_animseg::segmentation::rigidScore(source, 200, tree, pose), std::sqrt(0.165),
+              1e-5);
+}
+
 // Spacings given (measured once by the pipeline) give the motions of spacings measured here; a
 // count other than the frame count is an error.
 TEST(RigidMotion, SpacingsGivenAreTheMeasuredOnes) {
@@ -375,6 +412,7 @@ TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
   EXPECT_LT(dev.batches, dev.fits);       // in batches
   EXPECT_GT(dev.wide, 0);                 // chained starts and merged parts: the wide passes
   EXPECT_LT(dev.wide, dev.fits);          // starts from init: without
+  EXPECT_GT(dev.score_batches, 0);        // the seeded parts' starts scored there too
 
   const auto got_chained = gpu_like.compute(levels[1]);
   for (std::size_t p = 0; p < got_chained.size(); ++p)

@@ -95,6 +95,16 @@ struct RigidFitJob {
   bool wide = true;
 };
 
+/** \brief A score of a pose for a device (RigidFitDevice::scores): how well `pose` (12 doubles,
+ * as RigidFitJob::start) lays the first `probes` of source `source`'s points onto surface
+ * `surface` (rigidScore). */
+struct RigidScoreJob {
+  int source = 0;
+  int surface = 0;
+  int probes = 0;
+  double pose[12] = {1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0};
+};
+
 /** \brief The refinement's motion check for a device (RigidFitDevice::motionResiduals):
  * residual r's point x0 (starts[3r..]) carried by part part[r]'s motion into every frame u of
  * `scored` but own[r] where that motion is valid, each copy y (icp_step::apply, in double) scored
@@ -168,7 +178,23 @@ class RigidFitDevice {
     (void)token, (void)jobs, (void)out;
     return false;
   }
+  /** \brief rigidScore of each job (RigidScoreJob) into out[j], against the surfaces and
+   * sources of the last setSurfaces and setSources. Returns false where the device does not
+   * offer it (the default): the caller scores on the CPU, with the same bits. */
+  virtual bool scores(const std::vector<RigidScoreJob>& jobs, std::vector<double>& out) {
+    (void)jobs, (void)out;
+    return false;
+  }
 };
+
+/** \brief How far a pose lays a source onto a surface, as the rigid motions choose between a
+ * fit's starts: the root mean square, over `probes` points of the source (x, y, z per point; of
+ * its n points, point k n / probes for k = 0 .. probes - 1), of the squared distance from the
+ * point moved by `pose` (icp_step::apply, in double, then to float) to its nearest point of
+ * `tree` (FlatKdTree3::nearest without a bound; 0 where it finds none), added in probe order in
+ * double. 0 for no probes. */
+double rigidScore(const std::vector<double>& source, int probes, const FlatKdTree3& tree,
+                  const double* pose);
 
 /** \brief The CPU's fit of one job, which a RigidFitDevice reproduces: the source (x, y, z per
  * point) aligned onto a surface given as a device sees it (its tree and the normals in the tree's

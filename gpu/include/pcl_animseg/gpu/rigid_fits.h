@@ -65,9 +65,16 @@ class RigidFits : public segmentation::RigidFitDevice {
    * throws Error on a CUDA failure or jobs that do not match the trees. */
   bool motionResiduals(long long token, const segmentation::MotionCheckJobs& jobs,
                        std::vector<float>& out) override;
+  /** \brief Every job's rigidScore (segmentation/rigid_motion.h), a block per job, against the
+   * surfaces and sources set; throws Error on a CUDA failure, nothing set, or a job out of
+   * range. */
+  bool scores(const std::vector<segmentation::RigidScoreJob>& jobs,
+              std::vector<double>& out) override;
   /** \brief Fits and kernel launches since construction. */
   long long fits() const { return fits_; }
   long long batches() const { return batches_; }
+  /** \brief Score batches (scores()) since construction. */
+  long long scoreBatches() const { return score_batches_; }
 
   /** \brief Blocks per fit: 0 (the default) chooses per batch (enough that a block searches
    * about a point per thread while every fit's cluster runs at once); 1, 2, 4 or 8 asks for that
@@ -83,7 +90,7 @@ class RigidFits : public segmentation::RigidFitDevice {
   std::unique_ptr<detail::KnnStore> knn_;  // the kept trees
   long long knn_token_ = 0;                // the kept trees' token (0: none kept)
   long long knn_keeps_ = 0;                // keepKnnTrees() calls that uploaded trees
-  long long fits_ = 0, batches_ = 0;
+  long long fits_ = 0, batches_ = 0, score_batches_ = 0;
   int cluster_ = 0, last_cluster_ = 0;
 };
 
