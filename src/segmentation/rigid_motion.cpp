@@ -652,38 +652,52 @@ void fitChained(const PointCloudSequence& seq, const RigidMotionParams& p,
       p.max_chain_steps));
 }
 
-// The motions of merged parts of a nested level from those of the level below (children), each
+// Merged parts of one nested level to fit from their children (fitFromChildren): `merged` lists
+// the parts of `cur` to fit; every one of their points is labelled in `prev` with a part of
+// `children` (or unlabelled, then unused). Their motions go to (*out)[b].
+struct MergedSet {
+  const std::vector<std::vector<int>>* prev = nullptr;
+  const std::vector<std::vector<int>>* cur = nullptr;
+  const std::vector<PartMotion>* children = nullptr;
+  std::vector<int> merged;
+  const std::vector<std::size_t>* frame0_points = nullptr;
+  std::vector<PartMotion>* out = nullptr;
+};
+
+// The motions of merged parts of nested levels from those of the levels below (children), each
 // frame on its own: the ICP passes of a chained fit (alignPasses) start from the least-squares
 // rigid map (Umeyama, Eigen) of the part's frame-0 points onto where their children's motions
-// carry them, instead of from the previous frame's result. `merged` lists the parts of `cur` to
-// fit; every one of their points is labelled in `prev` with a part of `children` (or unlabelled,
-// then unused).
+// carry them, instead of from the previous frame's result. The parts of several sets (levels
+// whose children are all known) in one batch: each fit depends on its own part alone.
 void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
-                     const std::vector<double>& spacing, const std::vector<std::vector<int>>& prev,
-                     const std::vector<std::vector<int>>& cur,
-                     const std::vector<PartMotion>& children, const std::vector<int>& merged,
-                     const std::vector<std::size_t>& frame0_points, std::vector<PartMotion>& out,
+                     const std::vector<double>& spacing, const std::vector<MergedSet>& sets,
                      RigidFitDevice* device) {
   const std::size_t frames = seq.size();
-  std::vector<Cloud::Ptr> sources(merged.size());
-  std::vector<std::vector<int>> source_child(merged.size());
-  std::vector<double> part_diag(merged.size(), 0.0);
-  std::vector<std::vector<double>> xyz(merged.size());
-  for (std::size_t k = 0; k < merged.size(); ++k) {
-    const int b = merged[k];
+  // The parts to fit, (set, part), in the sets' order.
+  std::vector<std::pair<std::size_t, int>> items;
+  for (std::size_t s = 0; s < sets.size(); ++s)
+    for (int b : sets[s].merged) items.push_back({s, b});
+  const std::size_t np = items.size();
+  std::vector<Cloud::Ptr> sources(np);
+  std::vector<std::vector<int>> source_child(np);
+  std::vector<double> part_diag(np, 0.0);
+  std::vector<std::vector<double>> xyz(np);
+  for (std::size_t k = 0; k < np; ++k) {
+    const MergedSet& set = sets[items[k].first];
+    const int b = items[k].second;
     sources[k].reset(new Cloud);
-    for (int j : partIndices(cur[0], b, p.max_points)) {
+    for (int j : partIndices((*set.cur)[0], b, p.max_points)) {
       sources[k]->push_back((*seq.frame(0))[j]);
-      source_child[k].push_back(prev[0][j]);
+      source_child[k].push_back((*set.prev)[0][j]);
     }
-    if (startMotion(out[b], frames, frame0_points[b], *sources[k], p.min_points))
+    if (startMotion((*set.out)[b], frames, (*set.frame0_points)[b], *sources[k], p.min_points))
       part_diag[k] = boundingBoxDiagonal(*sources[k]);
     xyz[k] = sourceXyz(*sources[k]);
   }
   // Every (part, frame) on its own: no chain along the sequence, so the frames run in parallel
   // (the chained ICPs of a coarse level's few large parts were one long serial job each).
   // With a device, every job's surface and start first (kept), then one batch.
-  const int jobs = static_cast<int>(merged.size() * (frames - 1));
+  const int jobs = static_cast<int>(np * (frames - 1));
   std::vector<Surface> surfaces(device ? jobs : 0);
   std::vector<RigidFitJob> fits(device ? jobs : 0);
   std::vector<char> ready(device ? jobs : 0, 0);
@@ -691,16 +705,19 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
   for (int job = 0; job < jobs; ++job) {
     const std::size_t k = static_cast<std::size_t>(job) / (frames - 1);
     const std::size_t t = static_cast<std::size_t>(job) % (frames - 1) + 1;
-    PartMotion& motion = out[merged[k]];
+    const MergedSet& set = sets[items[k].first];
+    const int b = items[k].second;
+    PartMotion& motion = (*set.out)[b];
     if (!motion.frames[0].valid) continue;
     const Cloud& source = *sources[k];
-    Cloud::Ptr target = partCloud(*seq.frame(t), cur[t], merged[k], 0);
+    Cloud::Ptr target = partCloud(*seq.frame(t), (*set.cur)[t], b, 0);
     if (static_cast<int>(target->size()) < p.min_points) continue;
     Surface local;
     Surface& surface = device ? surfaces[job] : local;
     surface.build(target);
     Eigen::Matrix3Xd from(3, source.size()), to(3, source.size());
     Eigen::Index n = 0;
+    const std::vector<PartMotion>& children = *set.children;
     for (std::size_t i = 0; i < source.size(); ++i) {
       const int a = source_child[k][i];
       if (a < 0 || a >= static_cast<int>(children.size())) continue;
@@ -732,7 +749,7 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
   }
   if (device) {
     DeviceFits dev(*device);
-    for (std::size_t k = 0; k < merged.size(); ++k) dev.addSource(xyz[k]);
+    for (std::size_t k = 0; k < np; ++k) dev.addSource(xyz[k]);
     std::vector<RigidFitJob> batch;
     std::vector<int> at;
     for (int job = 0; job < jobs; ++job) {
@@ -749,18 +766,20 @@ void fitFromChildren(const PointCloudSequence& seq, const RigidMotionParams& p,
       for (std::size_t j = 0; j < at.size(); ++j) {
         const std::size_t k = static_cast<std::size_t>(at[j]) / (frames - 1);
         const std::size_t t = static_cast<std::size_t>(at[j]) % (frames - 1) + 1;
-        out[merged[k]].frames[t] = fitted(poses[j], rms[j]);
+        (*sets[items[k].first].out)[items[k].second].frames[t] = fitted(poses[j], rms[j]);
       }
     }
   }
   // As for chained fits, a frame without an estimate carries the last valid one.
-  for (int b : merged)
+  for (const auto& [s, b] : items) {
+    PartMotion& m = (*sets[s].out)[b];
     for (std::size_t t = 1; t < frames; ++t)
-      if (!out[b].frames[t].valid) {
-        out[b].frames[t] = out[b].frames[t - 1];
-        out[b].frames[t].valid = false;
-        out[b].frames[t].rms = -1.0;
+      if (!m.frames[t].valid) {
+        m.frames[t] = m.frames[t - 1];
+        m.frames[t].valid = false;
+        m.frames[t].rms = -1.0;
       }
+  }
 }
 
 }  // namespace
@@ -883,6 +902,7 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
   std::vector<std::vector<int>> source(nl);
   std::vector<std::vector<char>> fit(nl);
   std::vector<std::vector<int>> merged(nl);  // parts fitted from their children's motions
+  std::vector<std::vector<int>> parent(nl);  // of a nested level's parts: to[a] of the next one
   for (std::size_t l = 1; l < nl; ++l) {
     const auto& prev = levels(l - 1);
     const auto& cur = levels(l);
@@ -942,6 +962,7 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
         same_shape && std::none_of(to.begin(), to.end(), [](int m) { return m == -3; });
     for (int b = 0; nested && b < nb; ++b)
       if (fit[l][b]) merged[l].push_back(b), fit[l][b] = 0;
+    if (nested) parent[l - 1] = to;
   }
   // Computed once, for the chained fits and the fits from children alike.
   const std::vector<double> spacing = frameSpacings();
@@ -954,15 +975,58 @@ std::vector<LevelMotion> RigidMotionEstimation::computeLevels(
   for (std::size_t l = 0; l < nl; ++l) {
     out[l].level = static_cast<int>(l);
     out[l].parts = std::move(parts[l]);
-    for (std::size_t b = 0; l > 0 && b < source[l].size(); ++b)
-      if (source[l][b] >= 0) {
-        out[l].parts[b] = out[l - 1].parts[source[l][b]];
-        out[l].parts[b].part = static_cast<int>(b);
-      }
-    if (merged[l].empty()) continue;
-    fitFromChildren(*sequence_, params_, spacing, levels(l - 1), levels(l), out[l - 1].parts,
-                    merged[l], frame0_points[l], out[l].parts, device_);
-    timer.lap("merged parts of a level");
+  }
+  // The merged parts in waves: a part's wave follows those of its children (0: fitted above;
+  // a copy: its source's), and the parts of a wave, whatever their level, are one batch (the
+  // 800k humanoid's four levels of merged parts were four batches one after the other, 0.006 s
+  // each). The same motions: each part's fit reads only its children's.
+  std::vector<std::vector<int>> wave(nl);
+  int waves = 0;
+  for (std::size_t l = 0; l < nl; ++l) {
+    wave[l].assign(static_cast<std::size_t>(np[l]), 0);
+    if (l == 0) continue;
+    for (int b = 0; b < np[l]; ++b)
+      if (source[l][b] >= 0) wave[l][b] = wave[l - 1][source[l][b]];
+    for (int b : merged[l]) {
+      int w = 0;
+      for (int a = 0; a < np[l - 1]; ++a)
+        if (a < static_cast<int>(parent[l - 1].size()) && parent[l - 1][a] == b)
+          w = std::max(w, wave[l - 1][a]);
+      wave[l][b] = w + 1;
+      waves = std::max(waves, w + 1);
+    }
+  }
+  // Copies whose source is known after wave w, level by level (a chain of copies resolves).
+  std::vector<std::vector<char>> copied(nl);
+  auto copyUpTo = [&](int w) {
+    for (std::size_t l = 1; l < nl; ++l) {
+      copied[l].resize(source[l].size(), 0);
+      for (std::size_t b = 0; b < source[l].size(); ++b)
+        if (source[l][b] >= 0 && !copied[l][b] && wave[l][b] <= w) {
+          out[l].parts[b] = out[l - 1].parts[source[l][b]];
+          out[l].parts[b].part = static_cast<int>(b);
+          copied[l][b] = 1;
+        }
+    }
+  };
+  copyUpTo(0);
+  for (int w = 1; w <= waves; ++w) {
+    std::vector<MergedSet> sets;
+    for (std::size_t l = 1; l < nl; ++l) {
+      MergedSet set;
+      for (int b : merged[l])
+        if (wave[l][b] == w) set.merged.push_back(b);
+      if (set.merged.empty()) continue;
+      set.prev = &levels(l - 1);
+      set.cur = &levels(l);
+      set.children = &out[l - 1].parts;
+      set.frame0_points = &frame0_points[l];
+      set.out = &out[l].parts;
+      sets.push_back(std::move(set));
+    }
+    fitFromChildren(*sequence_, params_, spacing, sets, device_);
+    copyUpTo(w);
+    timer.lap("merged parts of a wave");
   }
   return out;
 }
