@@ -422,6 +422,46 @@ TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
   EXPECT_THROW(gpu_like.computeLevels(levels), pcl_animseg::Error);
 }
 
+// Merged parts of different levels whose children are all known are one batch (a wave): level
+// 0 with part 2 split in two halves (2 and 3), level 1 merges parts 0 and 1, level 2 keeps that
+// part (a copy) and merges the two halves, whose children are level 0's parts (copies at level
+// 1). Both merged parts go to the device in one batch instead of one per level, with the CPU's
+// motions bit for bit.
+TEST(RigidMotion, MergedPartsOfSeveralLevelsInOneBatch) {
+  const animseg_test::BoxChain chain = animseg_test::makeBoxChain(6, 4000, false, 5);
+  std::vector<std::vector<std::vector<int>>> levels(3, chain.truth);
+  for (std::size_t t = 0; t < chain.truth.size(); ++t) {
+    int halves = 0;
+    for (int& l : levels[0][t])
+      if (l == 2 && (halves++ % 2)) l = 3;
+    for (std::size_t j = 0; j < levels[0][t].size(); ++j) {
+      const int l0 = levels[0][t][j];
+      levels[1][t][j] = l0 <= 1 ? 0 : l0 - 1;  // {0, 1} -> 0, 2 -> 1, 3 -> 2
+      levels[2][t][j] = l0 <= 1 ? 0 : 1;       // {0, 1} -> 0, {2, 3} -> 1
+    }
+  }
+  RigidMotionEstimation cpu;
+  cpu.setInputSequence(&chain.sequence);
+  const auto expected = cpu.computeLevels(levels);
+  animseg_test::CpuRigidDevice dev;
+  RigidMotionEstimation on_device = cpu;
+  on_device.setDevice(&dev);
+  on_device.computeLevels({levels[0]});
+  const int level0_batches = dev.batches;
+  dev.batches = 0;
+  const auto got = on_device.computeLevels(levels);
+  EXPECT_EQ(dev.batches, level0_batches + 1);  // level 0's chains, then one wave
+  ASSERT_EQ(got.size(), expected.size());
+  for (std::size_t l = 0; l < got.size(); ++l) {
+    ASSERT_EQ(got[l].parts.size(), expected[l].parts.size());
+    for (std::size_t p = 0; p < got[l].parts.size(); ++p)
+      expectSameMotion(got[l].parts[p], expected[l].parts[p],
+                       "level " + std::to_string(l) + " part " + std::to_string(p));
+  }
+  // Level 2's part 0 is level 1's part 0.
+  expectSameMotion(got[2].parts[0], got[1].parts[0], "level 2 part 0 (a copy)");
+}
+
 // A 48-frame sequence: the parts' chains go through key frames (RigidMotionParams::
 // max_chain_steps, 12: key frames 4 apart), so a device fits them in 14 batches one after the
 // other instead of 47, the CPU's motions bit for bit; each part's motion in every frame still
