@@ -460,6 +460,23 @@ TEST(RigidMotion, MergedPartsOfSeveralLevelsInOneBatch) {
   }
   // Level 2's part 0 is level 1's part 0.
   expectSameMotion(got[2].parts[0], got[1].parts[0], "level 2 part 0 (a copy)");
+
+  // With starts of their own for every part of level 0 (as the pipeline passes the
+  // refinement's), the merged parts are prepared beside the seeded fits: the same motions.
+  RigidMotionEstimation coarse;
+  coarse.setInputSequence(&chain.sequence);
+  pcl_animseg::segmentation::RigidMotionParams cp;
+  cp.max_points = 300;
+  coarse.setParams(cp);
+  cpu.setInitialMotions(coarse.compute(levels[0]));
+  on_device.setInitialMotions(cpu.getInitialMotions());
+  const auto seeded_expected = cpu.computeLevels(levels);
+  const auto seeded_got = on_device.computeLevels(levels);
+  ASSERT_EQ(seeded_got.size(), seeded_expected.size());
+  for (std::size_t l = 0; l < seeded_got.size(); ++l)
+    for (std::size_t p = 0; p < seeded_got[l].parts.size(); ++p)
+      expectSameMotion(seeded_got[l].parts[p], seeded_expected[l].parts[p],
+                       "seeded, level " + std::to_string(l) + " part " + std::to_string(p));
 }
 
 // A 48-frame sequence: the parts' chains go through key frames (RigidMotionParams::
