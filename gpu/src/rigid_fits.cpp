@@ -152,6 +152,10 @@ bool RigidFits::scores(const std::vector<segmentation::RigidScoreJob>& jobs,
                        std::vector<double>& out) {
   if (!surfaces_ || !sources_)
     throw DeviceError("GPU rigid scores: no surfaces or sources were set");
+  // More probes than a block holds: the caller scores them on the CPU (the rigid motions ask
+  // for 500).
+  for (const segmentation::RigidScoreJob& j : jobs)
+    if (j.probes > detail::kRigidScoreMaxProbes) return false;
   std::vector<detail::RigidScoreJob> list;
   list.reserve(jobs.size());
   const int n_sources = static_cast<int>(sources_->begin.size());

@@ -840,7 +840,7 @@ __global__ void __launch_bounds__(kRigidBlockThreads)
 // nearest surface points (probe k is source point k n / probes), then one thread adds their
 // squared distances in probe order, as the CPU does.
 constexpr int kScoreThreads = 128;
-constexpr int kScoreMaxProbes = 512;
+constexpr int kScoreMaxProbes = kRigidScoreMaxProbes;
 __global__ void __launch_bounds__(kScoreThreads)
     rigidScoreJobs(Dev d, const double* __restrict__ sources,
                    const RigidScoreJob* __restrict__ jobs, double* out) {

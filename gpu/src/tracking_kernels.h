@@ -356,7 +356,10 @@ struct RigidScoreJob {
   double pose[kPoseDoubles];
 };
 
-/** Every job's rigidScore into `out`, a block per job. */
+/** The most probes a score job may have (runRigidScores' shared memory). */
+constexpr int kRigidScoreMaxProbes = 512;
+
+/** Every job's rigidScore into `out`, a block per job (at most kRigidScoreMaxProbes probes). */
 void runRigidScores(FrameStore& surfaces, const DeviceArray<double>& sources,
                     const std::vector<RigidScoreJob>& jobs, std::vector<double>& out);
 

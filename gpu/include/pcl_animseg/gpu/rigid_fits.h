@@ -66,8 +66,8 @@ class RigidFits : public segmentation::RigidFitDevice {
   bool motionResiduals(long long token, const segmentation::MotionCheckJobs& jobs,
                        std::vector<float>& out) override;
   /** \brief Every job's rigidScore (segmentation/rigid_motion.h), a block per job, against the
-   * surfaces and sources set; throws Error on a CUDA failure, nothing set, or a job out of
-   * range. */
+   * surfaces and sources set; false (the caller scores on the CPU) where a job has more than 512
+   * probes; throws Error on a CUDA failure, nothing set, or a job out of range. */
   bool scores(const std::vector<segmentation::RigidScoreJob>& jobs,
               std::vector<double>& out) override;
   /** \brief Fits and kernel launches since construction. */
