@@ -10,6 +10,8 @@
 #include <cstdio>
 #include <cstdlib>
 #include <string>
+#include <tuple>
+#include <utility>
 #include <vector>
 
 #include "frame_packing.h"
@@ -68,6 +70,16 @@ std::vector<int> rigidSearchOrder(const std::vector<double>& xyz) {
   return order;
 }
 
+// Where a job's source lies among the sources set (its first point and count), with the job's
+// source and surface checked against those set; `what` names the call in the error.
+std::pair<int, int> jobSource(const RigidSources& sources, const FrameStore& surfaces, int source,
+                              int surface, const char* what) {
+  const int n_sources = static_cast<int>(sources.begin.size());
+  if (source < 0 || source >= n_sources || surface < 0 || surface >= surfaces.frames)
+    throw DeviceError(std::string(what) + ": a job out of range");
+  return {sources.begin[source], sources.count[source]};
+}
+
 }  // namespace detail
 
 RigidFits::RigidFits() = default;
@@ -115,13 +127,10 @@ void RigidFits::fit(const std::vector<segmentation::RigidFitJob>& jobs,
   if (!surfaces_ || !sources_) throw DeviceError("GPU rigid fits: no surfaces or sources were set");
   std::vector<detail::RigidJob> list;
   list.reserve(jobs.size());
-  const int n_sources = static_cast<int>(sources_->begin.size());
   for (const segmentation::RigidFitJob& j : jobs) {
-    if (j.source < 0 || j.source >= n_sources || j.surface < 0 || j.surface >= surfaces_->frames)
-      throw DeviceError("GPU rigid fits: a job out of range");
     detail::RigidJob r{};
-    r.source_begin = sources_->begin[j.source];
-    r.source_count = sources_->count[j.source];
+    std::tie(r.source_begin, r.source_count) =
+        detail::jobSource(*sources_, *surfaces_, j.source, j.surface, "GPU rigid fits");
     r.surface = j.surface;
     r.wide = j.wide ? 1 : 0;
     r.spacing = j.spacing;
@@ -158,13 +167,10 @@ bool RigidFits::scores(const std::vector<segmentation::RigidScoreJob>& jobs,
     if (j.probes > detail::kRigidScoreMaxProbes) return false;
   std::vector<detail::RigidScoreJob> list;
   list.reserve(jobs.size());
-  const int n_sources = static_cast<int>(sources_->begin.size());
   for (const segmentation::RigidScoreJob& j : jobs) {
-    if (j.source < 0 || j.source >= n_sources || j.surface < 0 || j.surface >= surfaces_->frames)
-      throw DeviceError("GPU rigid scores: a job out of range");
     detail::RigidScoreJob r{};
-    r.source_begin = sources_->begin[j.source];
-    r.source_count = sources_->count[j.source];
+    std::tie(r.source_begin, r.source_count) =
+        detail::jobSource(*sources_, *surfaces_, j.source, j.surface, "GPU rigid scores");
     r.surface = j.surface;
     r.probes = std::max(0, j.probes);
     for (int k = 0; k < detail::kPoseDoubles; ++k) r.pose[k] = j.pose[k];

@@ -595,38 +595,36 @@ std::vector<std::vector<ChainedPart::Link>> fitOnDevice(const std::vector<Chaine
   };
   // Where the time goes (ANIMSEG_MS_TIMING): the fit batches and the score batches.
   detail::StageTimer timer("rigid motion");
-  double t_fit = 0.0, t_score = 0.0;
-  int fit_calls = 0, score_calls = 0;
-  std::size_t fit_jobs = 0, score_items = 0;
+  struct Tally {
+    int calls = 0;
+    std::size_t items = 0;
+    double seconds = 0.0;
+  } fit_tally, score_tally;
+  // batch(input) for a batch of `input`, counted in `tally`.
+  auto counted = [&](Tally& tally, auto batch) {
+    return [&tally, batch, since](const auto& input) {
+      const auto t0 = Clock::now();
+      auto r = batch(input);
+      tally.seconds += since(t0);
+      ++tally.calls;
+      tally.items += input.size();
+      return r;
+    };
+  };
   // Speculative rounds cost a device little and save batches of step 3.
   auto out = fitChainsBatched(
       static_cast<int>(act.size()), frames, 0, act.front()->first(),
       [&](int c, int t, const ChainStep& step, const std::vector<Link>* fits) {
         return act[c]->starts(t, step.before, fits);
       },
-      [&](const std::vector<ChainScore<Link>>& items) {
-        const auto t0 = Clock::now();
-        std::vector<double> r = scoreBatch(items);
-        t_score += since(t0);
-        ++score_calls;
-        score_items += items.size();
-        return r;
-      },
-      [&](const std::vector<ChainFit<Link>>& jobs) {
-        const auto t0 = Clock::now();
-        std::vector<Link> r = fitBatch(jobs);
-        t_fit += since(t0);
-        ++fit_calls;
-        fit_jobs += jobs.size();
-        return r;
-      },
-      ChainedPart::same, speculate, speculate ? 6 : 0, p.max_chain_steps);
+      counted(score_tally, scoreBatch), counted(fit_tally, fitBatch), ChainedPart::same, speculate,
+      speculate ? 6 : 0, p.max_chain_steps);
   if (timer.on())
     std::fprintf(stderr,
                  "[rigid motion] %zu chains: surfaces and sources uploaded %.3f s, %d fit batches "
                  "(%zu fits, %.3f s), %d score batches (%zu starts, %.3f s), %.3f s in all\n",
-                 act.size(), t_upload, fit_calls, fit_jobs, t_fit, score_calls, score_items,
-                 t_score, since(t_begin));
+                 act.size(), t_upload, fit_tally.calls, fit_tally.items, fit_tally.seconds,
+                 score_tally.calls, score_tally.items, score_tally.seconds, since(t_begin));
   return out;
 }
 

@@ -211,6 +211,19 @@ std::vector<std::vector<std::vector<int>>> nestedLevels(const animseg_test::BoxC
   return levels;
 }
 
+// Every level's motions the same bits; `what` names the comparison in failures.
+void expectSameLevels(const std::vector<pcl_animseg::segmentation::LevelMotion>& got,
+                      const std::vector<pcl_animseg::segmentation::LevelMotion>& expected,
+                      const std::string& what) {
+  ASSERT_EQ(got.size(), expected.size()) << what;
+  for (std::size_t l = 0; l < got.size(); ++l) {
+    ASSERT_EQ(got[l].parts.size(), expected[l].parts.size()) << what << ", level " << l;
+    for (std::size_t p = 0; p < got[l].parts.size(); ++p)
+      expectSameMotion(got[l].parts[p], expected[l].parts[p],
+                       what + ", level " + std::to_string(l) + " part " + std::to_string(p));
+  }
+}
+
 // Starts from nearly the same labels, as the pipeline passes the refinement's motions: the
 // motions of a coarser subsample (300 points per part).
 std::vector<PartMotion> coarseMotions(const animseg_test::BoxChain& chain) {
@@ -399,13 +412,7 @@ TEST(RigidMotion, DeviceFitsGiveTheCpuMotions) {
   gpu_like.setDevice(&dev);
   EXPECT_EQ(gpu_like.getDevice(), &dev);
   const auto got = gpu_like.computeLevels(levels);
-  ASSERT_EQ(got.size(), expected.size());
-  for (std::size_t l = 0; l < got.size(); ++l) {
-    ASSERT_EQ(got[l].parts.size(), expected[l].parts.size());
-    for (std::size_t p = 0; p < got[l].parts.size(); ++p)
-      expectSameMotion(got[l].parts[p], expected[l].parts[p],
-                       "level " + std::to_string(l) + " part " + std::to_string(p));
-  }
+  expectSameLevels(got, expected, "on the device");
   const int frames = static_cast<int>(chain.sequence.size());
   std::printf("%d fits in %d batches, %d with the wide passes\n", dev.fits, dev.batches, dev.wide);
   EXPECT_GT(dev.fits, 3 * (frames - 1));  // the fits ran on the device
@@ -451,13 +458,7 @@ TEST(RigidMotion, MergedPartsOfSeveralLevelsInOneBatch) {
   dev.batches = 0;
   const auto got = on_device.computeLevels(levels);
   EXPECT_EQ(dev.batches, level0_batches + 1);  // level 0's chains, then one wave
-  ASSERT_EQ(got.size(), expected.size());
-  for (std::size_t l = 0; l < got.size(); ++l) {
-    ASSERT_EQ(got[l].parts.size(), expected[l].parts.size());
-    for (std::size_t p = 0; p < got[l].parts.size(); ++p)
-      expectSameMotion(got[l].parts[p], expected[l].parts[p],
-                       "level " + std::to_string(l) + " part " + std::to_string(p));
-  }
+  expectSameLevels(got, expected, "chained level 0");
   // Level 2's part 0 is level 1's part 0.
   expectSameMotion(got[2].parts[0], got[1].parts[0], "level 2 part 0 (a copy)");
 
@@ -470,13 +471,7 @@ TEST(RigidMotion, MergedPartsOfSeveralLevelsInOneBatch) {
   coarse.setParams(cp);
   cpu.setInitialMotions(coarse.compute(levels[0]));
   on_device.setInitialMotions(cpu.getInitialMotions());
-  const auto seeded_expected = cpu.computeLevels(levels);
-  const auto seeded_got = on_device.computeLevels(levels);
-  ASSERT_EQ(seeded_got.size(), seeded_expected.size());
-  for (std::size_t l = 0; l < seeded_got.size(); ++l)
-    for (std::size_t p = 0; p < seeded_got[l].parts.size(); ++p)
-      expectSameMotion(seeded_got[l].parts[p], seeded_expected[l].parts[p],
-                       "seeded, level " + std::to_string(l) + " part " + std::to_string(p));
+  expectSameLevels(on_device.computeLevels(levels), cpu.computeLevels(levels), "seeded level 0");
 }
 
 // A 48-frame sequence: the parts' chains go through key frames (RigidMotionParams::
