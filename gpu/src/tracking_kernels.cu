@@ -840,11 +840,10 @@ __global__ void __launch_bounds__(kRigidBlockThreads)
 // nearest surface points (probe k is source point k n / probes), then one thread adds their
 // squared distances in probe order, as the CPU does.
 constexpr int kScoreThreads = 128;
-constexpr int kScoreMaxProbes = kRigidScoreMaxProbes;
 __global__ void __launch_bounds__(kScoreThreads)
     rigidScoreJobs(Dev d, const double* __restrict__ sources,
                    const RigidScoreJob* __restrict__ jobs, double* out) {
-  __shared__ float d2s[kScoreMaxProbes];
+  __shared__ float d2s[kRigidScoreMaxProbes];
   const RigidScoreJob job = jobs[blockIdx.x];
   const long long n = job.source_count;
   const int m = static_cast<int>(min(static_cast<long long>(job.probes), n));
@@ -1037,8 +1036,8 @@ void runRigidScores(FrameStore& surfaces, const DeviceArray<double>& sources,
   out.assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
   for (const RigidScoreJob& j : jobs)
-    if (j.probes > kScoreMaxProbes)
-      throw DeviceError("GPU rigid scores: more than " + std::to_string(kScoreMaxProbes) +
+    if (j.probes > kRigidScoreMaxProbes)
+      throw DeviceError("GPU rigid scores: more than " + std::to_string(kRigidScoreMaxProbes) +
                         " probes");
   put(surfaces.job_in, jobs.data(), jobs.size() * sizeof(RigidScoreJob));
   const Dev d = frameView(surfaces);
@@ -1344,6 +1343,11 @@ struct TrackingStream::Impl {
   Dev d{};
   Impl(const FrameStore& f, const TrackingArrays& in)
       : t0(std::chrono::steady_clock::now()), frames(f), T(f.frames), S(in.samples) {}
+  // A frame's slot of the staging: its global pose, then its levels. The tasks follow the T
+  // slots, in call order.
+  std::size_t slot() const {
+    return kPoseDoubles * sizeof(double) + static_cast<std::size_t>(S) * sizeof(int);
+  }
 };
 
 TrackingStream::TrackingStream(const FrameStore& frames, const TrackingArrays& in)
@@ -1376,9 +1380,8 @@ TrackingStream::TrackingStream(const FrameStore& frames, const TrackingArrays& i
   m.done.upload(done.data(), done.size());
   m.next.create(static_cast<std::size_t>(std::max(m.T, 1)));
   m.next.setZero();
-  m.staging.reserve(
-      static_cast<std::size_t>(m.T) *
-      (2 * static_cast<std::size_t>(m.S) * sizeof(int) + kPoseDoubles * sizeof(double)));
+  m.staging.reserve(static_cast<std::size_t>(m.T) *
+                    (m.slot() + static_cast<std::size_t>(m.S) * sizeof(int)));
   static_assert(kPoseDoubles * sizeof(double) % alignof(int) == 0, "staging slots stay aligned");
   m.d = frameView(frames);
   m.d.source = m.source.ptr();
@@ -1413,8 +1416,7 @@ void TrackingStream::frames(const std::vector<int>& frames, const double* global
   Impl& m = *impl_;
   if (m.S <= 0 || frames.empty()) return;
   const std::size_t S = static_cast<std::size_t>(m.S);
-  // The staging: per frame a slot of its global pose and levels, then the tasks in call order.
-  const std::size_t slot = kPoseDoubles * sizeof(double) + S * sizeof(int);
+  const std::size_t slot = m.slot();
   unsigned char* base = m.staging.reserve(0);
   for (std::size_t i = 0; i < frames.size(); ++i) {
     const std::size_t t = static_cast<std::size_t>(frames[i]);
@@ -1436,10 +1438,8 @@ void TrackingStream::tasks(const int* tasks, std::size_t n) {
   if (n == 0) return;
   if (m.queued + n > static_cast<std::size_t>(m.T) * static_cast<std::size_t>(m.S))
     throw DeviceError("GPU tracking: more tasks than the frames hold");
-  const std::size_t slot =
-      kPoseDoubles * sizeof(double) + static_cast<std::size_t>(m.S) * sizeof(int);
   int* staged =
-      reinterpret_cast<int*>(m.staging.reserve(0) + static_cast<std::size_t>(m.T) * slot) +
+      reinterpret_cast<int*>(m.staging.reserve(0) + static_cast<std::size_t>(m.T) * m.slot()) +
       m.queued;
   std::memcpy(staged, tasks, n * sizeof(int));
   int* order = m.tasks.ptr() + m.queued;

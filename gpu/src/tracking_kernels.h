@@ -341,12 +341,8 @@ std::vector<int> rigidSearchOrder(const std::vector<double>& xyz);
  * `forced` > 0: that size, or the largest below it that the device runs. */
 int rigidClusterSize(FrameStore& store, int jobs, int max_points, int forced = 0);
 
-/** segmentation::fitRigidJob for every job, one cluster of `cluster` blocks each (see
- * rigidClusterSize): poses (12 doubles per job) and rms. `surfaces`: the parts' trees as frames
- * (their spacing and orientation unused); `sources`: the packed sources on the device, `orders`
- * their rigidSearchOrder()s packed the same way. The same results for every cluster size. */
-/** A score of segmentation::rigidScore: the first `probes` of the source's points from
- * source_begin (x, y, z doubles each), of its source_count, under `pose`, onto surface
+/** A score of segmentation::rigidScore: `probes` of the source's source_count points from
+ * source_begin (x, y, z doubles each; point k source_count / probes), under `pose`, onto surface
  * `surface`. */
 struct RigidScoreJob {
   int source_begin;
@@ -363,6 +359,10 @@ constexpr int kRigidScoreMaxProbes = 512;
 void runRigidScores(FrameStore& surfaces, const DeviceArray<double>& sources,
                     const std::vector<RigidScoreJob>& jobs, std::vector<double>& out);
 
+/** segmentation::fitRigidJob for every job, one cluster of `cluster` blocks each (see
+ * rigidClusterSize): poses (12 doubles per job) and rms. `surfaces`: the parts' trees as frames
+ * (their spacing and orientation unused); `sources`: the packed sources on the device, `orders`
+ * their rigidSearchOrder()s packed the same way. The same results for every cluster size. */
 void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
                   const DeviceArray<int>& orders, const std::vector<RigidJob>& jobs,
                   const RigidParams& params, int cluster, std::vector<double>& poses,

@@ -502,10 +502,6 @@ class DeviceFits {
   DeviceFrames surfaces_;
 };
 
-// The chains of several parts with every fit on a device, in batches (fitChainsBatched: the
-// same links as fitChains and the serial chains). speculate: the frames of all chains side by
-// side (parts with a start of their own in every frame); otherwise one frame position of every
-// chain per batch.
 // The parts of `parts` that have a motion to fit.
 std::vector<ChainedPart*> activeOf(const std::vector<std::unique_ptr<ChainedPart>>& parts) {
   std::vector<ChainedPart*> act;
@@ -526,6 +522,10 @@ std::unique_ptr<DeviceFits> uploadChains(const std::vector<ChainedPart*>& act, i
   return dev;
 }
 
+// The chains of several parts with every fit on a device, in batches (fitChainsBatched: the
+// same links as fitChains and the serial chains). speculate: the frames of all chains side by
+// side (parts with a start of their own in every frame); otherwise one frame position of every
+// chain per batch.
 // `uploaded`: uploadChains(act, ...)'s, or null (uploaded here).
 std::vector<std::vector<ChainedPart::Link>> fitOnDevice(const std::vector<ChainedPart*>& act,
                                                         int frames, RigidFitDevice& device,
@@ -1127,6 +1127,19 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
   const RigidMotionParams p = params_;
   // The first labelling's parts with a start of their own in every frame (setInitialMotions) run
   // with all their frames side by side (fitChainedParts); the others are chains, side by side.
+  // The device's fits of `chained` on a thread of their own beside `beside` (fitBeside), their
+  // sources and surfaces uploaded before the fork, on every core: on the fits' thread (one core)
+  // their packing took 0.025 s of the refinement's 0.060 s of chains at 800k, against 0.007 s.
+  auto fitOnDeviceBeside = [&](std::vector<std::unique_ptr<ChainedPart>>& chained, bool speculate,
+                               detail::StageTimer& timer, const char* uploaded_lap) {
+    const std::vector<ChainedPart*> act = activeOf(chained);
+    std::unique_ptr<DeviceFits> up;
+    if (!act.empty()) up = uploadChains(act, static_cast<int>(sequence_->size()), *device_);
+    timer.lap(uploaded_lap);
+    fitBeside(*beside, [&] {
+      fitChainedParts(chained, sequence_->size(), device_, p, speculate, up.get());
+    });
+  };
   std::vector<std::pair<std::size_t, int>> seeded;
   bool beside_done = false;  // `beside` ran (with the seeded parts' fits)
   if (!init_.empty() && !sets.empty()) {
@@ -1145,16 +1158,9 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
                                                       out[s][part]));
     buildTargets(chained, sequence_->size());
     timer.lap("seeded: targets");
-    const std::vector<ChainedPart*> act = activeOf(chained);
-    if (beside && device_ && jobs.empty() && !act.empty()) {
-      // The caller's work beside the device's fits, which no chains follow; the sources and
-      // surfaces go up before the fork, on every core (on the fits' thread alone: 0.025 s at
-      // 800k, against 0.007 s).
-      std::unique_ptr<DeviceFits> up =
-          uploadChains(act, static_cast<int>(sequence_->size()), *device_);
-      timer.lap("seeded: sources and surfaces uploaded");
-      fitBeside(*beside,
-                [&] { fitChainedParts(chained, sequence_->size(), device_, p, true, up.get()); });
+    // The caller's work beside the device's fits when no chains follow them.
+    if (beside && device_ && jobs.empty() && !activeOf(chained).empty()) {
+      fitOnDeviceBeside(chained, true, timer, "seeded: sources and surfaces uploaded");
       beside_done = true;
       timer.lap("seeded: fits, beside the caller's work");
     } else {
@@ -1171,14 +1177,7 @@ std::vector<std::vector<PartMotion>> RigidMotionEstimation::computeParts(
     buildTargets(chained, sequence_->size());
     timer.lap("chains: targets");
     if (beside && !beside_done) {
-      // The sources and surfaces go up before the fork, on every core: on the fits' thread
-      // (one core) their packing took 0.025 s of the refinement's 0.060 s of chains at 800k.
-      const std::vector<ChainedPart*> act = activeOf(chained);
-      std::unique_ptr<DeviceFits> up;
-      if (!act.empty()) up = uploadChains(act, static_cast<int>(sequence_->size()), *device_);
-      timer.lap("chains: sources and surfaces uploaded");
-      fitBeside(*beside,
-                [&] { fitChainedParts(chained, sequence_->size(), device_, p, false, up.get()); });
+      fitOnDeviceBeside(chained, false, timer, "chains: sources and surfaces uploaded");
       timer.lap("chains: fits, beside the caller's work");
     } else {
       fitChainedParts(chained, sequence_->size(), device_, p, false);

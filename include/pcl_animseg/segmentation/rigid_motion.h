@@ -96,7 +96,7 @@ struct RigidFitJob {
 };
 
 /** \brief A score of a pose for a device (RigidFitDevice::scores): how well `pose` (12 doubles,
- * as RigidFitJob::start) lays the first `probes` of source `source`'s points onto surface
+ * as RigidFitJob::start) lays `probes` of source `source`'s points, spread over it, onto surface
  * `surface` (rigidScore). */
 struct RigidScoreJob {
   int source = 0;
