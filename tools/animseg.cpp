@@ -4,19 +4,22 @@
 #include <pcl_animseg/io/segmentation_io.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/pipeline.h>
+#include <pcl_animseg/progress.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
 #include <pcl_animseg/segmentation/rigid_motion.h>
-#include <pcl_animseg/progress.h>
 #include <pcl_animseg/tool_common.h>
 #include <pcl_animseg/visualization/contact_sheet.h>
 
-#include "motion_options.h"
-#include "scale_space_options.h"
-
+#include <algorithm>
+#include <chrono>
+#include <cmath>
 #include <iomanip>
 #include <iostream>
 #include <sstream>
 #include <string>
+
+#include "motion_options.h"
+#include "scale_space_options.h"
 
 namespace po = boost::program_options;
 using namespace pcl_animseg;
@@ -31,7 +34,8 @@ std::string num(double v) {
 
 std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
                         const PointCloudSequence& seq, const PipelineResult& r,
-                        const std::vector<std::pair<std::string, double>>& timings, double total) {
+                        const std::vector<std::pair<std::string, double>>& timings, double total,
+                        double steal) {
   using tools::jsonEscape;
   std::ostringstream os;
   os << "{\n  \"input\": \"" << jsonEscape(input) << "\",\n";
@@ -45,6 +49,9 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
     os << num(static_cast<double>(r.device_peak_bytes) / 1048576.0);
   os << ",\n";
   os << "  \"threads\": " << ctx.threads << ",\n";
+  // CPU time the machine's host took from its CPUs during the stages (null where the OS does
+  // not say): the timings below waited for it.
+  os << "  \"cpu_steal_s\": " << (steal >= 0.0 ? num(steal) : std::string("null")) << ",\n";
   os << "  \"frames\": " << seq.size() << ",\n  \"points_per_frame\": [";
   for (std::size_t t = 0; t < seq.size(); ++t) os << (t ? ", " : "") << seq.inputSize(t);
   os << "],\n  \"total_points\": " << seq.totalPoints() << ",\n";
@@ -190,7 +197,22 @@ int main(int argc, char** argv) {
         progress.info("loaded " + std::to_string(seq.size()) + " frames, " +
                       std::to_string(seq.totalPoints()) + " points");
 
+        // The host's steal over the stages (a virtual machine's CPUs given to other work).
+        const double steal0 = cpuStealSeconds();
+        const auto run0 = std::chrono::steady_clock::now();
         PipelineResult r = runPipeline(seq, params, progress);
+        const double run_s =
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - run0).count();
+        const double steal1 = cpuStealSeconds();
+        const double steal = steal0 >= 0.0 && steal1 >= 0.0 ? std::max(0.0, steal1 - steal0) : -1.0;
+        // Worth a note where the host took more than 2% of the CPUs' time: the timings are then
+        // the host's as much as this run's.
+        const double stolen = run_s > 0.0 ? steal / (run_s * onlineCpus()) : 0.0;
+        if (steal >= 0.0 && stolen > 0.02)
+          r.notes.push_back("the machine's host took " + num(std::round(stolen * 1000.0) / 10.0) +
+                            "% of its CPUs' time during the run (" + num(steal) +
+                            " CPU seconds of steal): the timings are slower than this machine's "
+                            "own");
 
         progress.begin("write", seq.size());
         io::saveSequenceLabels(out, seq, r.levels, /*ply=*/true,
@@ -207,8 +229,8 @@ int main(int argc, char** argv) {
           progress.end(png);
         }
         const auto timings = progress.timings();
-        io::writeTextAtomically(out + "/summary.json",
-                                summaryJson(ctx, input, seq, r, timings, progress.elapsed()));
+        io::writeTextAtomically(out + "/summary.json", summaryJson(ctx, input, seq, r, timings,
+                                                                   progress.elapsed(), steal));
 
         // One screen at the end: what was decomposed, into what, and where the time went.
         std::ostringstream parts, sum;
@@ -226,6 +248,7 @@ int main(int argc, char** argv) {
                           " MiB)")
             << "\n"
             << "  threads           " << ctx.threads << "\n";
+        if (steal >= 0.0) sum << "  host steal        " << num(steal) << " CPU s\n";
         for (const auto& st : timings) {
           if (st.first.find('/') != std::string::npos) continue;  // sub-stages: see --verbose log
           sum << "  " << std::left << std::setw(18) << (st.first + " (s)") << num(st.second) << "\n";

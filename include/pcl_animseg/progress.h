@@ -11,6 +11,21 @@ namespace pcl_animseg {
 /** \brief Peak resident memory of this process so far, in MiB (0 where the OS cannot say). */
 double peakResidentMiB();
 
+/** \brief CPU time that the machine's host gave to other work while this machine's CPUs had work
+ * to do ("steal" on the "cpu" line of Linux's /proc/stat: the hypervisor of a virtual machine ran
+ * something else on them), summed over the CPUs, in seconds since boot; negative where the OS
+ * does not say (not Linux, or a kernel that does not count it). The difference over a run is how
+ * much CPU time its timings waited for: on a busy host, a run of 16 threads whose barriers wait
+ * for a CPU that was taken away. */
+double cpuStealSeconds();
+
+/** \brief The steal of a /proc/stat text (the 8th number of its "cpu" line) in seconds, at
+ * `ticks_per_second` clock ticks a second; negative where the text has no such number. */
+double parseCpuSteal(const std::string& proc_stat, double ticks_per_second);
+
+/** \brief The CPUs online (at least 1). */
+int onlineCpus();
+
 /** \brief Records how long each stage took and reports progress on stderr.
  *
  * On a terminal, counts are shown as an updating bar; otherwise as plain lines (at most one per

@@ -1,10 +1,11 @@
 #include <pcl_animseg/progress.h>
-
 #include <sys/resource.h>
 #include <unistd.h>
 
 #include <algorithm>
 #include <cstdio>
+#include <cstdlib>
+#include <fstream>
 #include <iostream>
 #include <sstream>
 
@@ -14,6 +15,40 @@ double peakResidentMiB() {
   struct rusage usage;
   if (getrusage(RUSAGE_SELF, &usage) != 0) return 0.0;
   return static_cast<double>(usage.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
+}
+
+double parseCpuSteal(const std::string& proc_stat, double ticks_per_second) {
+  std::istringstream in(proc_stat);
+  std::string line;
+  while (std::getline(in, line)) {
+    std::istringstream fields(line);
+    std::string name;
+    if (!(fields >> name) || name != "cpu") continue;  // the sum over the CPUs, not cpu0, cpu1 ..
+    // user nice system idle iowait irq softirq steal (guest guest_nice): counts of clock ticks.
+    unsigned long long v = 0;
+    for (int k = 0; k < 8; ++k) {
+      std::string word;
+      if (!(fields >> word) || word.empty() ||
+          word.find_first_not_of("0123456789") != std::string::npos)
+        return -1.0;
+      v = std::strtoull(word.c_str(), nullptr, 10);
+    }
+    return ticks_per_second > 0.0 ? static_cast<double>(v) / ticks_per_second : -1.0;
+  }
+  return -1.0;
+}
+
+double cpuStealSeconds() {
+  std::ifstream in("/proc/stat");
+  if (!in) return -1.0;
+  std::string head;
+  if (!std::getline(in, head)) return -1.0;  // the "cpu" line comes first
+  return parseCpuSteal(head, static_cast<double>(sysconf(_SC_CLK_TCK)));
+}
+
+int onlineCpus() {
+  const long n = sysconf(_SC_NPROCESSORS_ONLN);
+  return n > 0 ? static_cast<int>(n) : 1;
 }
 
 Progress::Progress(bool quiet, bool verbose)

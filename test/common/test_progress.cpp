@@ -40,3 +40,41 @@ TEST(Progress, AStageRunAgainAddsToItsRecord) {
   EXPECT_GE(t[0].second, 0.0);
   EXPECT_GT(pcl_animseg::peakResidentMiB(), 1.0);  // a running test binary uses a few MiB
 }
+
+// The host's steal is the 8th number of /proc/stat's "cpu" line (the sum over the CPUs), in
+// clock ticks; anything else there is not a steal.
+TEST(HostSteal, ReadsTheCpuLinesEighthNumber) {
+  const std::string stat =
+      "cpu  4705 356 584 3699176 23 23 0 250 0 0\n"
+      "cpu0 1393 280 234 852248 13 0 0 125 0 0\n"
+      "cpu1 3312 76 350 2846928 10 23 0 125 0 0\n"
+      "intr 114930548 113199788 3 0 5 263 0 4 [...]\n";
+  EXPECT_DOUBLE_EQ(pcl_animseg::parseCpuSteal(stat, 100.0), 2.5);
+  EXPECT_DOUBLE_EQ(pcl_animseg::parseCpuSteal(stat, 1000.0), 0.25);
+  // Only the sum's line counts, wherever it is.
+  EXPECT_DOUBLE_EQ(pcl_animseg::parseCpuSteal("cpu0 1 2 3 4 5 6 7 8\ncpu 1 1 1 1 1 1 1 9\n", 1.0),
+                   9.0);
+  // A kernel that does not count it (7 numbers), words, negative numbers, no cpu line, no
+  // clock: unknown.
+  EXPECT_LT(pcl_animseg::parseCpuSteal("cpu  4705 356 584 3699176 23 23 0\n", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuSteal("cpu  4705 356 584 x 23 23 0 250\n", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuSteal("cpu  4705 356 584 3 23 23 0 -250\n", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuSteal("cpu0 1 2 3 4 5 6 7 8\n", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuSteal("", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuSteal("cpu  1 2 3 4 5 6 7 8\n", 0.0), 0.0);
+}
+
+// On Linux the machine's own count: a number that does not go down.
+TEST(HostSteal, ThisMachinesCountOnlyGrows) {
+#ifdef __linux__
+  const double a = pcl_animseg::cpuStealSeconds();
+  volatile double x = 0.0;
+  for (int i = 0; i < 1000000; ++i) x = x + 1.0;
+  const double b = pcl_animseg::cpuStealSeconds();
+  ASSERT_GE(a, 0.0);
+  EXPECT_GE(b, a);
+#else
+  GTEST_SKIP() << "no /proc/stat";
+#endif
+  EXPECT_GE(pcl_animseg::onlineCpus(), 1);
+}
