@@ -12,7 +12,6 @@
 
 #include <algorithm>
 #include <chrono>
-#include <cmath>
 #include <iomanip>
 #include <iostream>
 #include <sstream>
@@ -205,14 +204,8 @@ int main(int argc, char** argv) {
             std::chrono::duration<double>(std::chrono::steady_clock::now() - run0).count();
         const double steal1 = cpuStealSeconds();
         const double steal = steal0 >= 0.0 && steal1 >= 0.0 ? std::max(0.0, steal1 - steal0) : -1.0;
-        // Worth a note where the host took more than 2% of the CPUs' time: the timings are then
-        // the host's as much as this run's.
-        const double stolen = run_s > 0.0 ? steal / (run_s * onlineCpus()) : 0.0;
-        if (steal >= 0.0 && stolen > 0.02)
-          r.notes.push_back("the machine's host took " + num(std::round(stolen * 1000.0) / 10.0) +
-                            "% of its CPUs' time during the run (" + num(steal) +
-                            " CPU seconds of steal): the timings are slower than this machine's "
-                            "own");
+        const std::string steal_note = hostStealNote(steal, run_s, onlineCpus());
+        if (!steal_note.empty()) r.notes.push_back(steal_note);
 
         progress.begin("write", seq.size());
         io::saveSequenceLabels(out, seq, r.levels, /*ply=*/true,

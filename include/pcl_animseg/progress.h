@@ -26,6 +26,12 @@ double parseCpuSteal(const std::string& proc_stat, double ticks_per_second);
 /** \brief The CPUs online (at least 1). */
 int onlineCpus();
 
+/** \brief A note for a run's summary when the host took a notable share of the CPUs' time while
+ * it ran: `steal` CPU seconds over `seconds` of `cpus` CPUs, more than 2% of their time and at
+ * least 0.05 CPU seconds (5 clock ticks: one tick over a short run is not a share); empty
+ * otherwise, and where the steal is unknown (negative). */
+std::string hostStealNote(double steal, double seconds, int cpus);
+
 /** \brief Records how long each stage took and reports progress on stderr.
  *
  * On a terminal, counts are shown as an updating bar; otherwise as plain lines (at most one per

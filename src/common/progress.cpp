@@ -51,6 +51,18 @@ int onlineCpus() {
   return n > 0 ? static_cast<int>(n) : 1;
 }
 
+std::string hostStealNote(double steal, double seconds, int cpus) {
+  if (!(steal >= 0.05) || !(seconds > 0.0) || cpus < 1) return std::string();
+  const double share = steal / (seconds * cpus);
+  if (!(share > 0.02)) return std::string();
+  char text[256];
+  std::snprintf(text, sizeof(text),
+                "the machine's host took %.1f%% of its CPUs' time during the run (%.2f CPU "
+                "seconds of steal): the timings are slower than this machine's own",
+                100.0 * share, steal);
+  return text;
+}
+
 Progress::Progress(bool quiet, bool verbose)
     : quiet_(quiet),
       verbose_(verbose && !quiet),

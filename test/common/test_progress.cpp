@@ -78,3 +78,20 @@ TEST(HostSteal, ThisMachinesCountOnlyGrows) {
 #endif
   EXPECT_GE(pcl_animseg::onlineCpus(), 1);
 }
+
+// A share of the CPUs' time over 2%, and at least 5 clock ticks of it, gets a note that says
+// how much; less, or an unknown steal, none.
+TEST(HostSteal, NotesANotableShareOfTheCpusTime) {
+  using pcl_animseg::hostStealNote;
+  // 0.48 CPU s of 16 CPUs over 1 s: 3%.
+  const std::string note = hostStealNote(0.48, 1.0, 16);
+  EXPECT_NE(note.find("took 3.0% of its CPUs' time"), std::string::npos) << note;
+  EXPECT_NE(note.find("0.48 CPU seconds of steal"), std::string::npos) << note;
+  EXPECT_TRUE(hostStealNote(0.16, 1.0, 16).empty());  // 1%
+  EXPECT_TRUE(hostStealNote(0.32, 1.0, 16).empty());  // exactly 2%
+  EXPECT_TRUE(hostStealNote(0.04, 0.1, 2).empty());   // 20%, but 4 ticks
+  EXPECT_FALSE(hostStealNote(0.05, 0.1, 2).empty());  // 25%, 5 ticks
+  EXPECT_TRUE(hostStealNote(-1.0, 1.0, 16).empty());  // unknown
+  EXPECT_TRUE(hostStealNote(0.5, 0.0, 16).empty());   // no time
+  EXPECT_TRUE(hostStealNote(0.5, 1.0, 0).empty());    // no CPUs
+}
