@@ -67,12 +67,12 @@ double runOnce(const pcl_animseg::PipelineParams& p, std::map<std::string, doubl
   const auto t0 = std::chrono::steady_clock::now();
   r = pcl_animseg::runPipeline(sequence(), p, progress);
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const double steal1 = pcl_animseg::cpuStealSeconds();
+  const double steal = pcl_animseg::cpuStealSince(steal0);
   for (const auto& [name, sec] : r.timings)
     if (name.find('/') == std::string::npos) stages[name] += sec;
   // The CPU time the machine's host took meanwhile (a virtual machine's steal), which the run
   // waited for: runs are comparable where it is small.
-  if (steal0 >= 0.0 && steal1 >= 0.0) stages["host_steal_cpu"] += steal1 - steal0;
+  if (steal >= 0.0) stages["host_steal_cpu"] += steal;
   return s;
 }
 

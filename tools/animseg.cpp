@@ -202,8 +202,7 @@ int main(int argc, char** argv) {
         PipelineResult r = runPipeline(seq, params, progress);
         const double run_s =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - run0).count();
-        const double steal1 = cpuStealSeconds();
-        const double steal = steal0 >= 0.0 && steal1 >= 0.0 ? std::max(0.0, steal1 - steal0) : -1.0;
+        const double steal = cpuStealSince(steal0);
         const std::string steal_note = hostStealNote(steal, run_s, onlineCpus());
         if (!steal_note.empty()) r.notes.push_back(steal_note);
 

@@ -19,6 +19,10 @@ double peakResidentMiB();
  * for a CPU that was taken away. */
 double cpuStealSeconds();
 
+/** \brief The steal since `before` (a cpuStealSeconds() reading): the CPU time the host took over
+ * a run, at least 0; negative where either reading is unknown. */
+double cpuStealSince(double before);
+
 /** \brief The steal of a /proc/stat text (the 8th number of its "cpu" line) in seconds, at
  * `ticks_per_second` clock ticks a second; negative where the text has no such number. */
 double parseCpuSteal(const std::string& proc_stat, double ticks_per_second);

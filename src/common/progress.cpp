@@ -46,6 +46,12 @@ double cpuStealSeconds() {
   return parseCpuSteal(head, static_cast<double>(sysconf(_SC_CLK_TCK)));
 }
 
+double cpuStealSince(double before) {
+  if (before < 0.0) return -1.0;
+  const double now = cpuStealSeconds();
+  return now < 0.0 ? -1.0 : std::max(0.0, now - before);
+}
+
 int onlineCpus() {
   const long n = sysconf(_SC_NPROCESSORS_ONLN);
   return n > 0 ? static_cast<int>(n) : 1;

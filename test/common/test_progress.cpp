@@ -73,6 +73,11 @@ TEST(HostSteal, ThisMachinesCountOnlyGrows) {
   for (int i = 0; i < 1000000; ++i) x = x + 1.0;
   const double b = pcl_animseg::cpuStealSeconds();
   EXPECT_GE(b, a);
+  // The steal over a run: at least 0, and at most what the count grew by since its start.
+  const double since = pcl_animseg::cpuStealSince(a);
+  EXPECT_GE(since, 0.0);
+  EXPECT_LE(since, pcl_animseg::cpuStealSeconds() - a);
+  EXPECT_LT(pcl_animseg::cpuStealSince(-1.0), 0.0);  // an unknown start: unknown
 }
 
 // A share of the CPUs' time over 2%, and at least 5 clock ticks of it, gets a note that says
