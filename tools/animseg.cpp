@@ -12,6 +12,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cstdlib>
 #include <iomanip>
 #include <iostream>
 #include <sstream>
@@ -41,6 +42,10 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   os << "  \"parameters\": " << ctx.optionsJson() << ",\n";
   os << "  \"device\": \"" << r.device_used << "\",\n";
   // Peak GPU memory of the mean-shift stage (null on the CPU).
+  os << "  \"device_pci_bus_id\": "
+     << (r.device_pci_bus_id.empty() ? std::string("null")
+                                     : "\"" + jsonEscape(r.device_pci_bus_id) + "\"")
+     << ",\n";
   os << "  \"device_peak_mib\": ";
   if (r.device_used == "cpu")
     os << "null";
@@ -93,29 +98,32 @@ int main(int argc, char** argv) {
     return os.str();
   };
   po::options_description od("Options");
-  od.add_options()
-    ("input,i", po::value<std::string>()->required(),
-     "sequence: a directory of .obj/.ply/.off/.pcd/.xyz frames (natural order) or a list file")
-    ("output,o", po::value<std::string>()->required(), "output directory")
-    ("device", po::value<std::string>()->default_value("auto"), "mean shift device: auto|cpu|gpu")
-    ("levels", po::value<int>()->default_value(defaults.levels),
-     "hierarchy levels above level 0, at most (Sect. 5)")
-    ("bandwidth", po::value<double>()->default_value(msd.bandwidth),
-     "mean shift bandwidth w (Eq. 4), positions in units of the sequence size")
-    ("weights", po::value<std::string>()->default_value(w(msd.w1) + "," + w(msd.w2) + "," + w(msd.w3) +
-                                                        "," + w(msd.w4)),
-     "w1,w2,w3,w4: normal, position, signature between keypoints, signature otherwise (Eq. 5-6)")
-    ("method", po::value<std::string>()->default_value("motion"),
-     "motion (default: patches tracked by ICP, merged by rigid motion) | paper (joint mean shift "
-     "of Sect. 3.2 only)")
-    ("backend", po::value<std::string>()->default_value("gkdtree"),
-     "kernel sums: gkdtree (Gaussian kd-tree, Sect. 3.3) | exact (kd-tree, reference)")
-    ("parts", po::value<int>()->default_value(0),
-     "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")
-    ("patches", po::value<int>()->default_value(msd.patches),
-     ("motion method: tracked samples of the reference frame (0: one per 8 points, at most " +
-      std::to_string(pcl_animseg::segmentation::kMaxTrackedSamples) + ")")
-         .c_str());
+  od.add_options()(
+      "input,i", po::value<std::string>()->required(),
+      "sequence: a directory of .obj/.ply/.off/.pcd/.xyz frames (natural order) or a list file")(
+      "output,o", po::value<std::string>()->required(), "output directory")(
+      "device", po::value<std::string>()->default_value("auto"),
+      "auto|cpu|gpu|gpu:N: where the stages run (auto: a GPU when one works, else the cores; "
+      "gpu:N: the machine's GPU N as nvidia-smi numbers them, or the N-th of CUDA_VISIBLE_DEVICES "
+      "where that is set)")("levels", po::value<int>()->default_value(defaults.levels),
+                            "hierarchy levels above level 0, at most (Sect. 5)")(
+      "bandwidth", po::value<double>()->default_value(msd.bandwidth),
+      "mean shift bandwidth w (Eq. 4), positions in units of the sequence size")(
+      "weights",
+      po::value<std::string>()->default_value(w(msd.w1) + "," + w(msd.w2) + "," + w(msd.w3) + "," +
+                                              w(msd.w4)),
+      "w1,w2,w3,w4: normal, position, signature between keypoints, signature otherwise (Eq. 5-6)")(
+      "method", po::value<std::string>()->default_value("motion"),
+      "motion (default: patches tracked by ICP, merged by rigid motion) | paper (joint mean shift "
+      "of Sect. 3.2 only)")(
+      "backend", po::value<std::string>()->default_value("gkdtree"),
+      "kernel sums: gkdtree (Gaussian kd-tree, Sect. 3.3) | exact (kd-tree, reference)")(
+      "parts", po::value<int>()->default_value(0),
+      "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")(
+      "patches", po::value<int>()->default_value(msd.patches),
+      ("motion method: tracked samples of the reference frame (0: one per 8 points, at most " +
+       std::to_string(pcl_animseg::segmentation::kMaxTrackedSamples) + ")")
+          .c_str());
   tools::addMotionOptions(od, msd);
   tools::addPaperOptions(od, msd);
   tools::addScaleSpaceOptions(od, defaults.multiscale);
@@ -149,13 +157,14 @@ int main(int argc, char** argv) {
       "random seed (results are deterministic)");
   return tools::runTool(
       argc, argv, "animseg",
-      "animseg --input IN --output OUT [--device auto|cpu|gpu] [--levels L] [--bandwidth w]\n"
+      "animseg --input IN --output OUT [--device auto|cpu|gpu|gpu:N] [--levels L] [--bandwidth w]\n"
       "               [--weights w1,w2,w3,w4] [--seed S] [--config FILE]",
       od, [&](const tools::ToolContext& ctx) {
         Progress progress(ctx.quiet, ctx.verbose);
         const auto& vm = ctx.vm;
         PipelineParams params;
-        params.device = vm["device"].as<std::string>();
+        const DeviceChoice device = parseDeviceChoice(vm["device"].as<std::string>());
+        params.device = device.device;
         params.levels = vm["levels"].as<int>();
         auto& ms = params.mean_shift;
         ms.bandwidth = vm["bandwidth"].as<double>();
@@ -186,6 +195,17 @@ int main(int argc, char** argv) {
         params.motions = !vm.count("no-transforms");
         params.motion_levels = vm["transform-levels"].as<int>();
         validate(params);  // fail before the (long) load on a bad parameter
+        // gpu:N: the process sees that GPU alone, as its device 0 (the library's threads all
+        // run on device 0 of those visible). Set before the first CUDA call, which the warm-up
+        // below makes; numbered as nvidia-smi does (CUDA's default order puts the fastest
+        // first) unless the user chose an order or a list.
+        std::string visible;
+        if (device.gpu_index >= 0) {
+          const char* current = std::getenv("CUDA_VISIBLE_DEVICES");
+          visible = visibleDevicesFor(current, device.gpu_index);
+          if (!current) ::setenv("CUDA_DEVICE_ORDER", "PCI_BUS_ID", /*overwrite=*/0);
+          ::setenv("CUDA_VISIBLE_DEVICES", visible.c_str(), /*overwrite=*/1);
+        }
         // The GPU's start (0.2-0.35 s) runs beside the loading and the first CPU work.
         const DeviceWarmUp warm_up(params.device);
 
@@ -199,7 +219,18 @@ int main(int argc, char** argv) {
         // The host's steal over the stages (a virtual machine's CPUs given to other work).
         const double steal0 = cpuStealSeconds();
         const auto run0 = std::chrono::steady_clock::now();
-        PipelineResult r = runPipeline(seq, params, progress);
+        PipelineResult r;
+        try {
+          r = runPipeline(seq, params, progress);
+        } catch (const Error& e) {
+          // Which GPU was asked for: a number past the machine's last GPU leaves none visible.
+          const std::string what = e.what();
+          const bool gpu_error = dynamic_cast<const DeviceError*>(&e) != nullptr ||
+                                 what.find("no usable GPU") != std::string::npos;
+          if (device.gpu_index < 0 || !gpu_error) throw;
+          throw DeviceError(what + " (--device gpu:" + std::to_string(device.gpu_index) +
+                            ", CUDA_VISIBLE_DEVICES=" + visible + ")");
+        }
         const double run_s =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - run0).count();
         const double steal = cpuStealSince(steal0);
@@ -237,7 +268,8 @@ int main(int argc, char** argv) {
             << (r.device_used == "cpu"
                     ? std::string()
                     : " (peak " + num(static_cast<double>(r.device_peak_bytes) / 1048576.0) +
-                          " MiB)")
+                          " MiB" +
+                          (r.device_pci_bus_id.empty() ? "" : ", PCI " + r.device_pci_bus_id) + ")")
             << "\n"
             << "  threads           " << ctx.threads << "\n";
         if (steal >= 0.0) sum << "  host steal        " << num(steal) << " CPU s\n";

@@ -187,6 +187,9 @@ DeviceInfo deviceInfo() {
   info.compute_major = prop.major;
   info.compute_minor = prop.minor;
   info.multiprocessors = prop.multiProcessorCount;
+  char bus[32] = {0};
+  cudaSafeCall(cudaDeviceGetPCIBusId(bus, static_cast<int>(sizeof(bus)), info.id));
+  info.pci_bus_id = bus;
   cudaSafeCall(cudaMemGetInfo(&info.free_bytes, &info.total_bytes));
   return info;
 }

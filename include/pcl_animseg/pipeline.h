@@ -49,6 +49,9 @@ struct PipelineResult {
   /** Peak GPU memory of the run: the mean-shift stage, the refinement's and the rigid motions'
    * fits (bytes; 0 on the CPU). */
   std::size_t device_peak_bytes = 0;
+  /** The GPU's PCI bus id ("0000:1A:00.0", as nvidia-smi lists it; empty on the CPU): which of
+   * a machine's GPUs ran. */
+  std::string device_pci_bus_id;
   std::size_t keypoints = 0;
   std::vector<std::size_t> keypoints_per_frame;
   /** Points of the input whose normals the loader estimated (0 when every point came with one). */
@@ -95,5 +98,26 @@ class DeviceWarmUp {
 
 /** \brief Checks parameters (bandwidth > 0, weights >= 0, known device, levels >= 0). */
 void validate(const PipelineParams& params);
+
+/** \brief A `--device` value: "auto", "cpu", "gpu", or "gpu:N" for the machine's GPU N. */
+struct DeviceChoice {
+  std::string device = "auto";  ///< auto | cpu | gpu: PipelineParams::device
+  int gpu_index = -1;           ///< N of "gpu:N"; -1 when no GPU was named
+};
+
+/** \brief Parses a `--device` value; throws Error naming the accepted forms on anything else
+ * ("gpu:", "gpu:-1", "gpu:1x", "tpu"). */
+DeviceChoice parseDeviceChoice(const std::string& text);
+
+/** \brief The CUDA_VISIBLE_DEVICES value that leaves GPU `index` alone visible, given the
+ * variable's value now (`current`; null when it is unset): "N" when unset, else the list's N-th
+ * entry (an index or a GPU's UUID, as the user wrote it). Throws Error when the list is shorter.
+ *
+ * The library runs on the current CUDA device of the threads it starts, device 0 of those
+ * visible, so a program picks one of a machine's GPUs for the whole process by setting the
+ * variable to this value before its first CUDA call (before DeviceWarmUp): `animseg --device
+ * gpu:N` does, with CUDA_DEVICE_ORDER=PCI_BUS_ID where neither variable is set, so that N is
+ * nvidia-smi's number. */
+std::string visibleDevicesFor(const char* current, int index);
 
 }  // namespace pcl_animseg

@@ -35,6 +35,54 @@ void validate(const PipelineParams& p) {
   if (p.refine) segmentation::validate(p.refinement);
 }
 
+DeviceChoice parseDeviceChoice(const std::string& text) {
+  DeviceChoice c;
+  if (text == "auto" || text == "cpu" || text == "gpu") {
+    c.device = text;
+    return c;
+  }
+  const std::string prefix = "gpu:";
+  const std::string digits =
+      text.size() > prefix.size() && text.compare(0, prefix.size(), prefix) == 0
+          ? text.substr(prefix.size())
+          : std::string();
+  // A GPU's number: 1 to 4 decimal digits (no sign, no spaces: stoi would take "1x" or " 1").
+  const bool number =
+      !digits.empty() && digits.size() <= 4 &&
+      std::all_of(digits.begin(), digits.end(), [](char ch) { return ch >= '0' && ch <= '9'; });
+  if (!number)
+    throw Error("device must be auto, cpu, gpu or gpu:N (N a GPU's number, from 0) (got '" + text +
+                "')");
+  c.device = "gpu";
+  c.gpu_index = std::stoi(digits);
+  return c;
+}
+
+std::string visibleDevicesFor(const char* current, int index) {
+  if (index < 0) throw Error("a GPU's number must be >= 0 (got " + std::to_string(index) + ")");
+  if (current == nullptr) return std::to_string(index);
+  // CUDA's own reading: entries separated by commas; it stops at the first entry it cannot use,
+  // which the driver then reports as no device (here: the entry is passed on as written).
+  std::vector<std::string> entries;
+  std::string entry;
+  for (const char* ch = current;; ++ch) {
+    if (*ch == ',' || *ch == '\0') {
+      const auto b = entry.find_first_not_of(" \t");
+      const auto e = entry.find_last_not_of(" \t");
+      if (b != std::string::npos) entries.push_back(entry.substr(b, e - b + 1));
+      entry.clear();
+      if (*ch == '\0') break;
+    } else {
+      entry += *ch;
+    }
+  }
+  if (static_cast<std::size_t>(index) >= entries.size())
+    throw Error("GPU " + std::to_string(index) + " was asked for, but CUDA_VISIBLE_DEVICES='" +
+                current + "' leaves " + std::to_string(entries.size()) +
+                (entries.size() == 1 ? " GPU" : " GPUs") + " visible (numbered from 0)");
+  return entries[index];
+}
+
 namespace {
 
 // The number of distinct labels >= 0 (a flag per label: a std::set took 0.06-0.08 s for the
@@ -363,7 +411,14 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
     progress.end();
   }
 #ifdef PCL_ANIMSEG_HAVE_CUDA
-  if (r.device_used != "cpu") r.device_peak_bytes = gpu::peakDeviceBytes();
+  if (r.device_used != "cpu") {
+    r.device_peak_bytes = gpu::peakDeviceBytes();
+    try {
+      r.device_pci_bus_id = gpu::deviceInfo().pci_bus_id;
+    } catch (const Error&) {
+      // The device ran every stage; a bus id it cannot give leaves the field empty (null).
+    }
+  }
 #endif
   r.timings = progress.timings();
   return r;

@@ -52,6 +52,7 @@ TEST(DeviceWarmUp, AutoGivesTheCpuLabelsAndSaysWhichDeviceRan) {
   }
   const pcl_animseg::PipelineResult cpu = pcl_animseg::runPipeline(seq, params("cpu"), quiet);
   ASSERT_FALSE(cpu.levels.empty());
+  EXPECT_TRUE(cpu.device_pci_bus_id.empty()) << cpu.device_pci_bus_id;
   EXPECT_EQ(dev.levels, cpu.levels);
   EXPECT_EQ(dev.parts_per_level, cpu.parts_per_level);
   std::string why;
@@ -59,8 +60,13 @@ TEST(DeviceWarmUp, AutoGivesTheCpuLabelsAndSaysWhichDeviceRan) {
     EXPECT_NE(dev.device_used, "cpu");
     EXPECT_FALSE(hasNote(dev, "the CPU was used"));
     EXPECT_GT(dev.device_peak_bytes, 0u);
+    // Which GPU: its PCI bus id, "DDDD:BB:DD.F" as nvidia-smi lists it.
+    EXPECT_EQ(dev.device_pci_bus_id, gpu::deviceInfo().pci_bus_id);
+    EXPECT_EQ(dev.device_pci_bus_id.size(), 12u) << dev.device_pci_bus_id;
+    EXPECT_EQ(dev.device_pci_bus_id.find(':'), 4u) << dev.device_pci_bus_id;
   } else {
     EXPECT_EQ(dev.device_used, "cpu");
+    EXPECT_TRUE(dev.device_pci_bus_id.empty());
     EXPECT_TRUE(hasNote(dev, "device auto: the CPU was used: " + why));
     EXPECT_FALSE(hasNote(dev, "the GPU failed"));
   }

@@ -199,6 +199,9 @@ INSTANTIATE_TEST_SUITE_P(
         BadCase{"negative_weight", "--input {in} --output {out} --weights 0.5,-1,2,1"},
         BadCase{"short_weights", "--input {in} --output {out} --weights 0.5,1"},
         BadCase{"bad_device", "--input {in} --output {out} --device tpu"},
+        BadCase{"gpu_without_number", "--input {in} --output {out} --device gpu:"},
+        BadCase{"gpu_negative_number", "--input {in} --output {out} --device gpu:-1"},
+        BadCase{"gpu_number_and_text", "--input {in} --output {out} --device gpu:1x"},
         BadCase{"negative_transform_levels", "--input {in} --output {out} --transform-levels -1"},
         BadCase{"zero_refine_iterations", "--input {in} --output {out} --refine-iterations 0"},
         BadCase{"narrow_band_past_outer", "--input {in} --output {out} --narrow-band 12"},
@@ -211,6 +214,58 @@ INSTANTIATE_TEST_SUITE_P(
         BadCase{"broken_config", "--config {tmp}/brokencfg.json --input {in} --output {out}"},
         BadCase{"missing_config", "--config {tmp}/none.json --input {in} --output {out}"}),
     [](const ::testing::TestParamInfo<BadCase>& i) { return i.param.name; });
+
+// --device gpu:N picks one of the machine's GPUs. A number past the last one (here 97, or the
+// third entry of a CUDA_VISIBLE_DEVICES list of two) is one error line that names it, with no
+// output; without a GPU, gpu:0 is the same error as --device gpu. summary.json names the GPU that
+// ran by its PCI bus id, null on the CPU.
+TEST(AnimsegCli, DeviceGpuNPicksAGpuOrSaysWhichIsMissing) {
+  TempDir tmp;
+  makeSequence(tmp.dir() / "in");
+  const std::string io = " --input " + tmp.str() + "/in --output " + tmp.str() + "/out";
+  const RunResult far = run(tool("animseg") + " --quiet --device gpu:97" + io, tmp.dir());
+  EXPECT_EQ(far.code, 1);
+  EXPECT_TRUE(isOneErrorLine(far.err)) << far.err;
+  EXPECT_NE(far.err.find("--device gpu:97, CUDA_VISIBLE_DEVICES=97"), std::string::npos) << far.err;
+  EXPECT_FALSE(fs::exists(tmp.dir() / "out" / "summary.json"));
+  const RunResult listed = run(
+      "CUDA_VISIBLE_DEVICES=0,1 " + tool("animseg") + " --quiet --device gpu:2" + io, tmp.dir());
+  EXPECT_EQ(listed.code, 1);
+  EXPECT_TRUE(isOneErrorLine(listed.err)) << listed.err;
+  EXPECT_NE(listed.err.find("GPU 2 was asked for, but CUDA_VISIBLE_DEVICES='0,1' leaves 2 GPUs"),
+            std::string::npos)
+      << listed.err;
+  EXPECT_FALSE(fs::exists(tmp.dir() / "out" / "summary.json"));
+  // GPU 0 of the machine, or of a list whose first entry is 0: with a GPU it runs there, without
+  // one the error is --device gpu's, naming the GPU asked for.
+  const std::string gpu = run(tool("animseg") + " --quiet --device gpu" + io, tmp.dir()).err;
+  const bool have_gpu = gpu.empty();
+  for (const std::string env : {"", "CUDA_VISIBLE_DEVICES=0 "}) {
+    fs::remove_all(tmp.dir() / "out");
+    const RunResult r = run(env + tool("animseg") + " --quiet --device gpu:0" + io, tmp.dir());
+    const std::string summary = fs::exists(tmp.dir() / "out" / "summary.json")
+                                    ? slurp((tmp.dir() / "out" / "summary.json").string())
+                                    : std::string();
+    if (have_gpu) {
+      EXPECT_EQ(r.code, 0) << env << r.err;
+      EXPECT_EQ(summary.find("\"device_pci_bus_id\": null"), std::string::npos) << summary;
+      EXPECT_NE(summary.find("\"device_pci_bus_id\": \""), std::string::npos) << summary;
+      EXPECT_NE(summary.find("\"device\": \"gpu:0\""), std::string::npos) << summary;
+    } else {
+      EXPECT_EQ(r.code, 1) << env;
+      EXPECT_TRUE(isOneErrorLine(r.err)) << r.err;
+      EXPECT_NE(r.err.find("no usable GPU"), std::string::npos) << r.err;
+      EXPECT_NE(r.err.find("(--device gpu:0, CUDA_VISIBLE_DEVICES=0)"), std::string::npos) << r.err;
+      EXPECT_TRUE(summary.empty()) << summary;
+    }
+  }
+  // On the cores the field is null.
+  fs::remove_all(tmp.dir() / "out");
+  ASSERT_EQ(run(tool("animseg") + " --quiet --device cpu" + io, tmp.dir()).code, 0);
+  EXPECT_NE(
+      slurp((tmp.dir() / "out" / "summary.json").string()).find("\"device_pci_bus_id\": null"),
+      std::string::npos);
+}
 
 // Same input and seed: byte-identical labels, whatever the number of threads.
 TEST(AnimsegCli, DeterministicAcrossThreadCounts) {

@@ -28,6 +28,7 @@ struct DeviceInfo {
   int compute_major = 0;
   int compute_minor = 0;
   int multiprocessors = 0;
+  std::string pci_bus_id;  ///< "0000:1A:00.0" (domain:bus:device.function), as nvidia-smi lists it
   std::size_t total_bytes = 0;
   std::size_t free_bytes = 0;
 };
