@@ -35,7 +35,7 @@ std::string num(double v) {
 std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
                         const PointCloudSequence& seq, const PipelineResult& r,
                         const std::vector<std::pair<std::string, double>>& timings, double total,
-                        double steal) {
+                        double steal, double other) {
   using tools::jsonEscape;
   std::ostringstream os;
   os << "{\n  \"input\": \"" << jsonEscape(input) << "\",\n";
@@ -56,6 +56,10 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   // CPU time the machine's host took from its CPUs during the stages (null where the OS does
   // not say): the timings below waited for it.
   os << "  \"cpu_steal_s\": " << (steal >= 0.0 ? num(steal) : std::string("null")) << ",\n";
+  // CPU time the machine's other programs used during the stages (null where unknown): threads
+  // of this run that shared the CPUs with them.
+  os << "  \"other_programs_cpu_s\": " << (other >= 0.0 ? num(other) : std::string("null"))
+     << ",\n";
   os << "  \"frames\": " << seq.size() << ",\n  \"points_per_frame\": [";
   for (std::size_t t = 0; t < seq.size(); ++t) os << (t ? ", " : "") << seq.inputSize(t);
   os << "],\n  \"total_points\": " << seq.totalPoints() << ",\n";
@@ -218,6 +222,7 @@ int main(int argc, char** argv) {
 
         // The host's steal over the stages (a virtual machine's CPUs given to other work).
         const double steal0 = cpuStealSeconds();
+        const CpuReading cpu0 = readCpu();
         const auto run0 = std::chrono::steady_clock::now();
         PipelineResult r;
         try {
@@ -236,6 +241,9 @@ int main(int argc, char** argv) {
         const double steal = cpuStealSince(steal0);
         const std::string steal_note = hostStealNote(steal, run_s, onlineCpus());
         if (!steal_note.empty()) r.notes.push_back(steal_note);
+        const double other = otherProgramsCpuSince(cpu0);
+        const std::string other_note = otherProgramsNote(other, run_s, onlineCpus(), ctx.threads);
+        if (!other_note.empty()) r.notes.push_back(other_note);
 
         progress.begin("write", seq.size());
         io::saveSequenceLabels(out, seq, r.levels, /*ply=*/true,
@@ -252,8 +260,9 @@ int main(int argc, char** argv) {
           progress.end(png);
         }
         const auto timings = progress.timings();
-        io::writeTextAtomically(out + "/summary.json", summaryJson(ctx, input, seq, r, timings,
-                                                                   progress.elapsed(), steal));
+        io::writeTextAtomically(
+            out + "/summary.json",
+            summaryJson(ctx, input, seq, r, timings, progress.elapsed(), steal, other));
 
         // One screen at the end: what was decomposed, into what, and where the time went.
         std::ostringstream parts, sum;
@@ -273,6 +282,7 @@ int main(int argc, char** argv) {
             << "\n"
             << "  threads           " << ctx.threads << "\n";
         if (steal >= 0.0) sum << "  host steal        " << num(steal) << " CPU s\n";
+        if (other >= 0.0) sum << "  other programs    " << num(other) << " CPU s\n";
         for (const auto& st : timings) {
           if (st.first.find('/') != std::string::npos) continue;  // sub-stages: see --verbose log
           sum << "  " << std::left << std::setw(18) << (st.first + " (s)") << num(st.second) << "\n";

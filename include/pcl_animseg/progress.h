@@ -36,6 +36,39 @@ int onlineCpus();
  * otherwise, and where the steal is unknown (negative). */
 std::string hostStealNote(double steal, double seconds, int cpus);
 
+/** \brief The CPU time the machine's CPUs were busy, summed over them, in seconds since boot (user,
+ * nice, system, irq and softirq on the "cpu" line of Linux's /proc/stat; not idle, iowait or
+ * steal); negative where the OS does not say. */
+double cpuBusySeconds();
+
+/** \brief The busy time of a /proc/stat text's "cpu" line (its 1st, 2nd, 3rd, 6th and 7th
+ * numbers) in seconds, at `ticks_per_second` clock ticks a second; negative where the text has
+ * no such line. */
+double parseCpuBusy(const std::string& proc_stat, double ticks_per_second);
+
+/** \brief This process's CPU time so far (all its threads, user and system), in seconds;
+ * negative where the OS does not say. */
+double processCpuSeconds();
+
+/** \brief Two readings at one moment: the machine's busy time and this process's CPU time. */
+struct CpuReading {
+  double machine_busy = -1.0;
+  double own = -1.0;
+};
+
+/** \brief cpuBusySeconds() and processCpuSeconds() now. */
+CpuReading readCpu();
+
+/** \brief The CPU time the machine's other programs used since `before`: its CPUs' busy time
+ * less this process's own, at least 0; negative where a reading is unknown. */
+double otherProgramsCpuSince(const CpuReading& before);
+
+/** \brief A note for a run's summary when other programs used a notable share of the machine's
+ * CPUs while it ran: `other` CPU seconds over `seconds` of `cpus` CPUs, at least 10% of their
+ * time and 0.2 CPU seconds; it says what that does to a run of `threads` OpenMP threads and what
+ * to do about it. Empty otherwise, and where `other` is unknown (negative). */
+std::string otherProgramsNote(double other, double seconds, int cpus, int threads);
+
 /** \brief Records how long each stage took and reports progress on stderr.
  *
  * On a terminal, counts are shown as an updating bar; otherwise as plain lines (at most one per

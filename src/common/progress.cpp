@@ -69,6 +69,72 @@ std::string hostStealNote(double steal, double seconds, int cpus) {
   return text;
 }
 
+double parseCpuBusy(const std::string& proc_stat, double ticks_per_second) {
+  std::istringstream in(proc_stat);
+  std::string line;
+  while (std::getline(in, line)) {
+    std::istringstream fields(line);
+    std::string name;
+    if (!(fields >> name) || name != "cpu") continue;
+    // user nice system idle iowait irq softirq: the busy ones are 1, 2, 3, 6 and 7.
+    unsigned long long busy = 0;
+    for (int k = 1; k <= 7; ++k) {
+      std::string word;
+      if (!(fields >> word) || word.empty() ||
+          word.find_first_not_of("0123456789") != std::string::npos)
+        return -1.0;
+      if (k != 4 && k != 5) busy += std::strtoull(word.c_str(), nullptr, 10);
+    }
+    return ticks_per_second > 0.0 ? static_cast<double>(busy) / ticks_per_second : -1.0;
+  }
+  return -1.0;
+}
+
+double cpuBusySeconds() {
+  std::ifstream in("/proc/stat");
+  if (!in) return -1.0;
+  std::string head;
+  if (!std::getline(in, head)) return -1.0;
+  return parseCpuBusy(head, static_cast<double>(sysconf(_SC_CLK_TCK)));
+}
+
+double processCpuSeconds() {
+  struct rusage usage;
+  if (getrusage(RUSAGE_SELF, &usage) != 0) return -1.0;
+  auto sec = [](const timeval& tv) { return static_cast<double>(tv.tv_sec) + 1e-6 * tv.tv_usec; };
+  return sec(usage.ru_utime) + sec(usage.ru_stime);
+}
+
+CpuReading readCpu() {
+  CpuReading r;
+  r.machine_busy = cpuBusySeconds();
+  r.own = processCpuSeconds();
+  return r;
+}
+
+double otherProgramsCpuSince(const CpuReading& before) {
+  if (before.machine_busy < 0.0 || before.own < 0.0) return -1.0;
+  const CpuReading now = readCpu();
+  if (now.machine_busy < 0.0 || now.own < 0.0) return -1.0;
+  // The machine's count is in clock ticks and this process's exact: a little of either's
+  // rounding is left, never a negative share.
+  return std::max(0.0, (now.machine_busy - before.machine_busy) - (now.own - before.own));
+}
+
+std::string otherProgramsNote(double other, double seconds, int cpus, int threads) {
+  if (!(other >= 0.2) || !(seconds > 0.0) || cpus < 1) return std::string();
+  const double share = other / (seconds * cpus);
+  if (!(share >= 0.10)) return std::string();
+  char text[512];
+  std::snprintf(text, sizeof(text),
+                "other programs used %.0f%% of the CPUs' time during the run (%.1f CPU seconds): "
+                "this run's %d threads shared %d CPUs with them, and OpenMP threads that spin "
+                "while they wait slow runs side by side down many times over; give each run its "
+                "share of the CPUs (--threads, or taskset), or set OMP_WAIT_POLICY=passive",
+                100.0 * share, other, threads, cpus);
+  return text;
+}
+
 Progress::Progress(bool quiet, bool verbose)
     : quiet_(quiet),
       verbose_(verbose && !quiet),

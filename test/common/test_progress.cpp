@@ -1,6 +1,9 @@
-#include <pcl_animseg/progress.h>
-
 #include <gtest/gtest.h>
+#include <pcl_animseg/progress.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
 
 TEST(Progress, RecordsStagesAndNestedSubStages) {
   pcl_animseg::Progress p(/*quiet=*/true);
@@ -95,4 +98,69 @@ TEST(HostSteal, NotesANotableShareOfTheCpusTime) {
   EXPECT_TRUE(hostStealNote(-1.0, 1.0, 16).empty());  // unknown
   EXPECT_TRUE(hostStealNote(0.5, 0.0, 16).empty());   // no time
   EXPECT_TRUE(hostStealNote(0.5, 1.0, 0).empty());    // no CPUs
+}
+
+// The machine's busy time is the 1st, 2nd, 3rd, 6th and 7th numbers of /proc/stat's "cpu" line
+// (user, nice, system, irq, softirq), not idle, iowait or steal.
+TEST(OtherPrograms, ReadsTheCpuLinesBusyNumbers) {
+  const std::string stat =
+      "cpu  4705 356 584 3699176 23 23 7 250 0 0\n"
+      "cpu0 1393 280 234 852248 13 0 0 125 0 0\n";
+  EXPECT_DOUBLE_EQ(pcl_animseg::parseCpuBusy(stat, 100.0), (4705 + 356 + 584 + 23 + 7) / 100.0);
+  EXPECT_DOUBLE_EQ(pcl_animseg::parseCpuBusy("cpu0 9 9 9 9 9 9 9\ncpu 1 2 3 100 200 4 5\n", 1.0),
+                   15.0);
+  EXPECT_LT(pcl_animseg::parseCpuBusy("cpu  4705 356 584 3699176 23 23\n", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuBusy("cpu  4705 x 584 3699176 23 23 0\n", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuBusy("cpu0 1 2 3 4 5 6 7\n", 100.0), 0.0);
+  EXPECT_LT(pcl_animseg::parseCpuBusy("cpu  1 2 3 4 5 6 7\n", 0.0), 0.0);
+}
+
+// Another program's CPU time is counted: a child process that spins for 0.6 s, while this one
+// waits, is at least 0.3 CPU seconds of other programs' time, and this process's own spinning
+// is not (its own CPU time is taken off).
+TEST(OtherPrograms, CountsAnotherProcesssTimeNotThisOnes) {
+  const pcl_animseg::CpuReading start = pcl_animseg::readCpu();
+  if (start.machine_busy < 0.0 || start.own < 0.0)
+    GTEST_SKIP() << "this machine does not say its CPUs' busy time (/proc/stat, getrusage)";
+  auto spin = [](double seconds) {
+    const auto t0 = std::chrono::steady_clock::now();
+    volatile double x = 0.0;
+    while (std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < seconds)
+      x = x + 1.0;
+  };
+  const pid_t child = fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    spin(0.6);
+    _exit(0);
+  }
+  int status = 0;
+  ASSERT_EQ(waitpid(child, &status, 0), child);
+  const double other = pcl_animseg::otherProgramsCpuSince(start);
+  EXPECT_GE(other, 0.3);
+  // This process spinning alone: its own time grows by about as much, and is taken off.
+  const pcl_animseg::CpuReading mine = pcl_animseg::readCpu();
+  spin(0.6);
+  EXPECT_GE(pcl_animseg::processCpuSeconds() - mine.own, 0.3);
+  EXPECT_GE(pcl_animseg::otherProgramsCpuSince(mine), 0.0);
+  EXPECT_LT(pcl_animseg::otherProgramsCpuSince(pcl_animseg::CpuReading()), 0.0);  // unknown
+}
+
+// At least 10% of the CPUs' time and 0.2 CPU seconds get a note that says how much, with what
+// to do; less, or an unknown count, none.
+TEST(OtherPrograms, NotesANotableShareWithTheRemedy) {
+  using pcl_animseg::otherProgramsNote;
+  // 16 CPU s of 32 CPUs over 1 s: 50%.
+  const std::string note = otherProgramsNote(16.0, 1.0, 32, 32);
+  EXPECT_NE(note.find("other programs used 50% of the CPUs' time"), std::string::npos) << note;
+  EXPECT_NE(note.find("16.0 CPU seconds"), std::string::npos) << note;
+  EXPECT_NE(note.find("this run's 32 threads shared 32 CPUs"), std::string::npos) << note;
+  EXPECT_NE(note.find("--threads"), std::string::npos) << note;
+  EXPECT_NE(note.find("OMP_WAIT_POLICY=passive"), std::string::npos) << note;
+  EXPECT_TRUE(otherProgramsNote(1.5, 1.0, 16, 16).empty());   // 9%
+  EXPECT_FALSE(otherProgramsNote(1.6, 1.0, 16, 16).empty());  // 10%
+  EXPECT_TRUE(otherProgramsNote(0.19, 0.5, 2, 2).empty());    // 19%, but under 0.2 CPU s
+  EXPECT_TRUE(otherProgramsNote(-1.0, 1.0, 16, 16).empty());  // unknown
+  EXPECT_TRUE(otherProgramsNote(5.0, 0.0, 16, 16).empty());   // no time
+  EXPECT_TRUE(otherProgramsNote(5.0, 1.0, 0, 16).empty());    // no CPUs
 }

@@ -45,7 +45,8 @@ TEST(AnimsegCli, WritesEveryOutputInInputOrder) {
   const std::string summary = slurp((tmp.dir() / "out" / "summary.json").string());
   for (const char* key :
        {"\"timings_s\"", "\"load\"", "\"total\"", "\"points_per_frame\": [300, 340, 380]",
-        "\"parts_per_level\"", "\"device\"", "\"parameters\"", "\"cpu_steal_s\": "})
+        "\"parts_per_level\"", "\"device\"", "\"parameters\"",
+        "\"cpu_steal_s\": ", "\"other_programs_cpu_s\": ", "\"device_pci_bus_id\": "})
     EXPECT_NE(summary.find(key), std::string::npos) << key << " in " << summary;
   EXPECT_TRUE(fs::exists(tmp.dir() / "out" / "transforms.json"));
   // No temporary files are left behind.
