@@ -2,10 +2,14 @@
 #include <pcl/console/print.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/tool_common.h>
+#include <time.h>
+#include <unistd.h>
 
 #include <boost/property_tree/json_parser.hpp>
 #include <boost/property_tree/ptree.hpp>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <iostream>
 #include <sstream>
@@ -124,8 +128,50 @@ std::string ToolContext::optionsJson() const {
   return os.str();
 }
 
+namespace {
+
+// Seconds since this process started (its start in /proc/self/stat, in clock ticks since boot,
+// against the boot clock now); negative where the OS does not say.
+double sinceProcessStart() {
+  std::ifstream in("/proc/self/stat");
+  std::string stat;
+  if (!std::getline(in, stat)) return -1.0;
+  // Field 22 (starttime), counted after the command's name, which ends at the last ')'.
+  const auto close = stat.rfind(')');
+  if (close == std::string::npos) return -1.0;
+  std::istringstream fields(stat.substr(close + 1));
+  std::string f;
+  for (int k = 3; k <= 22; ++k)
+    if (!(fields >> f)) return -1.0;
+  const double ticks = static_cast<double>(sysconf(_SC_CLK_TCK));
+  timespec now{};
+  if (ticks <= 0.0 || clock_gettime(CLOCK_BOOTTIME, &now) != 0) return -1.0;
+  return static_cast<double>(now.tv_sec) + 1e-9 * static_cast<double>(now.tv_nsec) -
+         std::strtod(f.c_str(), nullptr) / ticks;
+}
+
+}  // namespace
+
 int runTool(int argc, char** argv, const std::string& name, const std::string& usage,
             po::options_description options, const std::function<int(const ToolContext&)>& body) {
+  // Under ANIMSEG_MS_TIMING, where a run's time goes outside its stages: before main (loading
+  // and relocating the shared libraries), and after it (the C runtime's exit handlers, the CUDA
+  // runtime's among them). Boot clock, 10 ms ticks for the start.
+  if (std::getenv("ANIMSEG_MS_TIMING")) {
+    std::fprintf(stderr, "[process] main began %.3f s after the process started\n",
+                 sinceProcessStart());
+    std::atexit([] {
+      std::fprintf(stderr, "[process] exit handlers done %.3f s after the process started\n",
+                   sinceProcessStart());
+    });
+  }
+  struct Returned {
+    ~Returned() {
+      if (std::getenv("ANIMSEG_MS_TIMING"))
+        std::fprintf(stderr, "[process] main returned %.3f s after the process started\n",
+                     sinceProcessStart());
+    }
+  } returned;
   try {
     options.add_options()("help,h", "show this help and exit")(
         "quiet,q", "no progress or timing on stderr")("verbose,v", "more detail on stderr")(

@@ -189,6 +189,11 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       else if (params.device == "gpu")
         throw Error("--device gpu: no usable GPU: " + why);
     }
+    // The stages a failed device attempt leaves open are abandoned before the CPU's run, which
+    // is then recorded under its own names (a device that turned out missing, while its check
+    // was still running when the features began, left "scale_space" open: summary.json's
+    // scale_space was null).
+    const std::size_t depth = progress.depth();
     try {
       features = computeSequenceFeatures(seq, params.multiscale, &progress, feature_device.get());
       if (feature_device) r.notes.push_back("scale space and signatures computed on the GPU");
@@ -207,6 +212,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
         progress.info(std::string("warning: the GPU failed in the features, the CPU was used: ") +
                       e.what());
       }
+      progress.abandon(depth);
       features = computeSequenceFeatures(seq, params.multiscale, &progress);
     }
 #else

@@ -1,6 +1,5 @@
 // Tracked samples + trajectory clustering (see motion_tracking.h).
 #include <omp.h>
-#include <pcl/segmentation/grabcut_segmentation.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/evaluation/metrics.h>
 #include <pcl_animseg/kdtree.h>
@@ -13,7 +12,13 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+// Boost.Graph's iterators trip GCC 12's -Wmaybe-uninitialized inside Boost's own headers (an
+// optional's storage it reads only once set): not this file's code, so silenced for them alone.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"
 #include <array>
+#include <boost/graph/adjacency_list.hpp>
+#include <boost/graph/boykov_kolmogorov_max_flow.hpp>
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
@@ -1537,6 +1542,50 @@ bool absorbRemnants(const Frame& ref_frame, std::vector<int>& label) {
   return any;
 }
 
+/** An s-t graph and its minimum cut by Boost's Boykov-Kolmogorov max-flow (the same algorithm as
+ * PCL's grabcut::BoykovKolmogorov, which this used before: that one lives in libpcl_segmentation,
+ * whose dependencies - PCL's features, filters, sample consensus, ml and search libraries - took
+ * most of a program's start, relocating their symbols before main: `animseg --help` 0.17-0.23 s
+ * on the H200 machine, docs/gpu.md, stop 52). A node is in the sink's tree when it can still
+ * reach the sink through the residual graph: the same set for every maximum flow. */
+class MinCutGraph {
+ public:
+  explicit MinCutGraph(std::size_t nodes) : g_(nodes) {}
+  /** An edge u -> v of capacity `cap`, with its reverse of capacity 0. */
+  void addEdge(int u, int v, double cap) {
+    const auto uv = boost::add_edge(u, v, g_).first;
+    const auto vu = boost::add_edge(v, u, g_).first;
+    g_[uv].capacity = cap;
+    g_[vu].capacity = 0.0;
+    g_[uv].reverse = vu;
+    g_[vu].reverse = uv;
+  }
+  void solve(int source, int sink) {
+    boost::boykov_kolmogorov_max_flow(
+        g_, boost::get(&Edge::capacity, g_), boost::get(&Edge::residual, g_),
+        boost::get(&Edge::reverse, g_), boost::get(&Node::predecessor, g_),
+        boost::get(&Node::color, g_), boost::get(&Node::distance, g_),
+        boost::get(boost::vertex_index, g_), source, sink);
+  }
+  /** After solve(): Boost colours the sink's tree white, the source's black, free nodes gray. */
+  bool inSinkTree(int u) const { return g_[u].color == boost::white_color; }
+
+ private:
+  using Traits = boost::adjacency_list_traits<boost::vecS, boost::vecS, boost::directedS>;
+  struct Node {
+    boost::default_color_type color = boost::gray_color;
+    long distance = 0;
+    Traits::edge_descriptor predecessor;
+  };
+  struct Edge {
+    double capacity = 0.0;
+    double residual = 0.0;
+    Traits::edge_descriptor reverse;
+  };
+  boost::adjacency_list<boost::vecS, boost::vecS, boost::directedS, Node, Edge> g_;
+};
+#pragma GCC diagnostic pop
+
 }  // namespace
 
 namespace detail {
@@ -1647,8 +1696,9 @@ int alphaExpansions(const std::vector<std::vector<int>>& cand,
       e0[k] = unaryOf(members[k], label[members[k]]);
       e1[k] = unaryOf(members[k], alpha);
     }
-    pcl::segmentation::grabcut::BoykovKolmogorov graph(m);
-    graph.addNodes(m);
+    // The s-t graph: nodes 0..m-1, the source m, the sink m + 1; every edge with its reverse.
+    MinCutGraph graph(static_cast<std::size_t>(m) + 2);
+    const int source = m, sink = m + 1;
     for (int i : touched)
       for (const auto& [j, w] : edges[i]) {
         const int ni = node[i], nj = node[j];
@@ -1660,7 +1710,7 @@ int alphaExpansions(const std::vector<std::vector<int>>& cand,
           const double C = w;  // label[j] != alpha
           e1[ni] += C - A;
           e1[nj] += -C;  // D - C
-          graph.addEdge(ni, nj, B + C - A, 0.0);
+          graph.addEdge(ni, nj, B + C - A);
         } else if (ni >= 0) {
           e0[ni] += label[i] != label[j] ? w : 0.0;
           e1[ni] += alpha != label[j] ? w : 0.0;
@@ -1672,10 +1722,10 @@ int alphaExpansions(const std::vector<std::vector<int>>& cand,
     for (int k = 0; k < m; ++k) {
       const double lo = std::min(e0[k], e1[k]);
       // Cut s->k when k takes alpha (sink side), k->t when it keeps its label.
-      if (e1[k] - lo > 0.0) graph.addSourceEdge(k, e1[k] - lo);
-      if (e0[k] - lo > 0.0) graph.addTargetEdge(k, e0[k] - lo);
+      if (e1[k] - lo > 0.0) graph.addEdge(source, k, e1[k] - lo);
+      if (e0[k] - lo > 0.0) graph.addEdge(k, sink, e0[k] - lo);
     }
-    graph.solve();
+    graph.solve(source, sink);
     for (int k = 0; k < m; ++k)
       if (graph.inSinkTree(k)) label[members[k]] = alpha, changed_any = true;
     for (int i : members) node[i] = -1;
