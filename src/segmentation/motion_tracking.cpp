@@ -1764,8 +1764,8 @@ namespace {
  * along it) the border takes the cheapest place, which is the concave fold where one part leaves
  * the other (the minima rule of part perception), not a seam across a smooth surface. Candidate
  * parts of a point: those within `hops` edges; a point with one candidate keeps its part. Each
- * expansion is one s-t minimum cut (PCL's Boykov-Kolmogorov max-flow); three sweeps over the
- * parts at most. Returns the points that changed part. */
+ * expansion is one s-t minimum cut (Boost.Graph's Boykov-Kolmogorov max-flow, MinCutGraph); three
+ * sweeps over the parts at most. Returns the points that changed part. */
 int reassignByGraphCut(const Cloud& rc, const std::vector<std::vector<int>>& surface,
                        const std::vector<Frame>& frames, int ref,
                        const std::vector<std::vector<Pose>>& motion, std::vector<int>& label,
