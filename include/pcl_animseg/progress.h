@@ -64,8 +64,9 @@ CpuReading readCpu();
 double otherProgramsCpuSince(const CpuReading& before);
 
 /** \brief A note for a run's summary when other programs used a notable share of the machine's
- * CPUs while it ran: `other` CPU seconds over `seconds` of `cpus` CPUs, at least 10% of their
- * time and 0.2 CPU seconds; it says what that does to a run of `threads` OpenMP threads and what
+ * CPUs while it ran and the run's `threads` OpenMP threads did not fit beside them: `other` CPU
+ * seconds over `seconds` of `cpus` CPUs, at least 10% of their time and 0.2 CPU seconds, and more
+ * CPUs busy on average than the `cpus - threads` the run left; it says what that does and what
  * to do about it. Empty otherwise, and where `other` is unknown (negative). */
 std::string otherProgramsNote(double other, double seconds, int cpus, int threads);
 

@@ -125,6 +125,9 @@ std::string otherProgramsNote(double other, double seconds, int cpus, int thread
   if (!(other >= 0.2) || !(seconds > 0.0) || cpus < 1) return std::string();
   const double share = other / (seconds * cpus);
   if (!(share >= 0.10)) return std::string();
+  // Only where the run's threads and the others' (on average) wanted more CPUs than there are:
+  // runs given their share (two of 16 threads on 32 CPUs) wait for nothing of each other's.
+  if (!(other / seconds > static_cast<double>(cpus - std::max(threads, 0)))) return std::string();
   char text[512];
   std::snprintf(text, sizeof(text),
                 "other programs used %.0f%% of the CPUs' time during the run (%.1f CPU seconds): "

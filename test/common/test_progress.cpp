@@ -146,8 +146,8 @@ TEST(OtherPrograms, CountsAnotherProcesssTimeNotThisOnes) {
   EXPECT_LT(pcl_animseg::otherProgramsCpuSince(pcl_animseg::CpuReading()), 0.0);  // unknown
 }
 
-// At least 10% of the CPUs' time and 0.2 CPU seconds get a note that says how much, with what
-// to do; less, or an unknown count, none.
+// At least 10% of the CPUs' time and 0.2 CPU seconds, where the run's threads did not fit beside
+// the others, get a note that says how much, with what to do; less, or an unknown count, none.
 TEST(OtherPrograms, NotesANotableShareWithTheRemedy) {
   using pcl_animseg::otherProgramsNote;
   // 16 CPU s of 32 CPUs over 1 s: 50%.
@@ -160,6 +160,12 @@ TEST(OtherPrograms, NotesANotableShareWithTheRemedy) {
   EXPECT_TRUE(otherProgramsNote(1.5, 1.0, 16, 16).empty());   // 9%
   EXPECT_FALSE(otherProgramsNote(1.6, 1.0, 16, 16).empty());  // 10%
   EXPECT_TRUE(otherProgramsNote(0.19, 0.5, 2, 2).empty());    // 19%, but under 0.2 CPU s
+  // Runs that fit beside the others: 10 CPUs busy on average beside 16 threads of 32 CPUs, 5
+  // beside 8 of 16; 9 beside 8 of 16 do not fit.
+  EXPECT_TRUE(otherProgramsNote(11.5, 1.15, 32, 16).empty());
+  EXPECT_TRUE(otherProgramsNote(5.0, 1.0, 16, 8).empty());
+  EXPECT_NE(otherProgramsNote(9.0, 1.0, 16, 8).find("this run's 8 threads shared 16 CPUs"),
+            std::string::npos);
   EXPECT_TRUE(otherProgramsNote(-1.0, 1.0, 16, 16).empty());  // unknown
   EXPECT_TRUE(otherProgramsNote(5.0, 0.0, 16, 16).empty());   // no time
   EXPECT_TRUE(otherProgramsNote(5.0, 1.0, 0, 16).empty());    // no CPUs
