@@ -8,6 +8,7 @@
 #include <fstream>
 #include <iostream>
 #include <sstream>
+#include <vector>
 
 namespace pcl_animseg {
 
@@ -17,33 +18,49 @@ double peakResidentMiB() {
   return static_cast<double>(usage.ru_maxrss) / 1024.0;  // ru_maxrss is in KiB on Linux
 }
 
-double parseCpuSteal(const std::string& proc_stat, double ticks_per_second) {
+namespace {
+
+// The first `count` numbers of a /proc/stat text's "cpu" line (the sum over the CPUs, not cpu0,
+// cpu1 ..): user nice system idle iowait irq softirq steal (guest guest_nice), counts of clock
+// ticks. False where the text has no such line or fewer numbers.
+bool cpuLineTicks(const std::string& proc_stat, int count, std::vector<unsigned long long>& ticks) {
   std::istringstream in(proc_stat);
   std::string line;
   while (std::getline(in, line)) {
     std::istringstream fields(line);
     std::string name;
-    if (!(fields >> name) || name != "cpu") continue;  // the sum over the CPUs, not cpu0, cpu1 ..
-    // user nice system idle iowait irq softirq steal (guest guest_nice): counts of clock ticks.
-    unsigned long long v = 0;
-    for (int k = 0; k < 8; ++k) {
+    if (!(fields >> name) || name != "cpu") continue;
+    ticks.clear();
+    for (int k = 0; k < count; ++k) {
       std::string word;
       if (!(fields >> word) || word.empty() ||
           word.find_first_not_of("0123456789") != std::string::npos)
-        return -1.0;
-      v = std::strtoull(word.c_str(), nullptr, 10);
+        return false;
+      ticks.push_back(std::strtoull(word.c_str(), nullptr, 10));
     }
-    return ticks_per_second > 0.0 ? static_cast<double>(v) / ticks_per_second : -1.0;
+    return true;
   }
-  return -1.0;
+  return false;
+}
+
+// /proc/stat's first line (the "cpu" line comes first); empty where it cannot be read.
+std::string procStatHead() {
+  std::ifstream in("/proc/stat");
+  std::string head;
+  if (!in || !std::getline(in, head)) return std::string();
+  return head;
+}
+
+}  // namespace
+
+double parseCpuSteal(const std::string& proc_stat, double ticks_per_second) {
+  std::vector<unsigned long long> t;
+  if (!cpuLineTicks(proc_stat, 8, t) || !(ticks_per_second > 0.0)) return -1.0;
+  return static_cast<double>(t[7]) / ticks_per_second;
 }
 
 double cpuStealSeconds() {
-  std::ifstream in("/proc/stat");
-  if (!in) return -1.0;
-  std::string head;
-  if (!std::getline(in, head)) return -1.0;  // the "cpu" line comes first
-  return parseCpuSteal(head, static_cast<double>(sysconf(_SC_CLK_TCK)));
+  return parseCpuSteal(procStatHead(), static_cast<double>(sysconf(_SC_CLK_TCK)));
 }
 
 double cpuStealSince(double before) {
@@ -70,32 +87,14 @@ std::string hostStealNote(double steal, double seconds, int cpus) {
 }
 
 double parseCpuBusy(const std::string& proc_stat, double ticks_per_second) {
-  std::istringstream in(proc_stat);
-  std::string line;
-  while (std::getline(in, line)) {
-    std::istringstream fields(line);
-    std::string name;
-    if (!(fields >> name) || name != "cpu") continue;
-    // user nice system idle iowait irq softirq: the busy ones are 1, 2, 3, 6 and 7.
-    unsigned long long busy = 0;
-    for (int k = 1; k <= 7; ++k) {
-      std::string word;
-      if (!(fields >> word) || word.empty() ||
-          word.find_first_not_of("0123456789") != std::string::npos)
-        return -1.0;
-      if (k != 4 && k != 5) busy += std::strtoull(word.c_str(), nullptr, 10);
-    }
-    return ticks_per_second > 0.0 ? static_cast<double>(busy) / ticks_per_second : -1.0;
-  }
-  return -1.0;
+  // The busy ones: user, nice, system, irq and softirq.
+  std::vector<unsigned long long> t;
+  if (!cpuLineTicks(proc_stat, 7, t) || !(ticks_per_second > 0.0)) return -1.0;
+  return static_cast<double>(t[0] + t[1] + t[2] + t[5] + t[6]) / ticks_per_second;
 }
 
 double cpuBusySeconds() {
-  std::ifstream in("/proc/stat");
-  if (!in) return -1.0;
-  std::string head;
-  if (!std::getline(in, head)) return -1.0;
-  return parseCpuBusy(head, static_cast<double>(sysconf(_SC_CLK_TCK)));
+  return parseCpuBusy(procStatHead(), static_cast<double>(sysconf(_SC_CLK_TCK)));
 }
 
 double processCpuSeconds() {
