@@ -115,18 +115,21 @@ TEST(OtherPrograms, ReadsTheCpuLinesBusyNumbers) {
   EXPECT_LT(pcl_animseg::parseCpuBusy("cpu  1 2 3 4 5 6 7\n", 0.0), 0.0);
 }
 
-// Another program's CPU time is counted: a child process that spins for 0.6 s, while this one
-// waits, is at least 0.3 CPU seconds of other programs' time, and this process's own spinning
-// is not (its own CPU time is taken off).
+// Another program's CPU time is counted: a child process that spins for 0.6 s of its own CPU
+// time, while this one waits, is at least 0.3 CPU seconds of other programs' time, and this
+// process's own spinning is not (its own CPU time is taken off). Each spins until its own CPU
+// time has grown by as much (at most 20 s of wall time), whatever else the machine runs.
 TEST(OtherPrograms, CountsAnotherProcesssTimeNotThisOnes) {
   const pcl_animseg::CpuReading start = pcl_animseg::readCpu();
   if (start.machine_busy < 0.0 || start.own < 0.0)
     GTEST_SKIP() << "this machine does not say its CPUs' busy time (/proc/stat, getrusage)";
-  auto spin = [](double seconds) {
+  auto spin = [](double cpu_seconds) {
+    const double own0 = pcl_animseg::processCpuSeconds();
     const auto t0 = std::chrono::steady_clock::now();
     volatile double x = 0.0;
-    while (std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < seconds)
-      x = x + 1.0;
+    while (pcl_animseg::processCpuSeconds() - own0 < cpu_seconds &&
+           std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < 20.0)
+      for (int i = 0; i < 100000; ++i) x = x + 1.0;
   };
   const pid_t child = fork();
   ASSERT_GE(child, 0);
@@ -138,7 +141,7 @@ TEST(OtherPrograms, CountsAnotherProcesssTimeNotThisOnes) {
   ASSERT_EQ(waitpid(child, &status, 0), child);
   const double other = pcl_animseg::otherProgramsCpuSince(start);
   EXPECT_GE(other, 0.3);
-  // This process spinning alone: its own time grows by about as much, and is taken off.
+  // This process spinning alone: its own time grows by as much, and is taken off.
   const pcl_animseg::CpuReading mine = pcl_animseg::readCpu();
   spin(0.6);
   EXPECT_GE(pcl_animseg::processCpuSeconds() - mine.own, 0.3);
