@@ -14,8 +14,10 @@
 //   sequences, or the same one again), whose device has started. Several iterations: their
 //   spread is the machine's, without a process's start in it.
 // Counters: each stage's seconds (mean over the iterations), host_steal_cpu_s (CPU seconds the
-// machine's host gave to other work during a run: on a virtual machine, what the run waited for)
-// and the parts of level 0; the label names the device used. Plain Google Benchmark otherwise
+// machine's host gave to other work during a run: on a virtual machine, what the run waited for),
+// other_programs_cpu_s (CPU seconds the machine's other programs used during a run: a benchmark
+// beside another program's threads is not this machine's number) and the parts of level 0; the
+// label names the device used. Plain Google Benchmark otherwise
 // (--benchmark_repetitions etc.).
 #include <benchmark/benchmark.h>
 #include <pcl_animseg/pipeline.h>
@@ -64,15 +66,18 @@ double runOnce(const pcl_animseg::PipelineParams& p, std::map<std::string, doubl
                pcl_animseg::PipelineResult& r) {
   pcl_animseg::Progress progress(/*quiet=*/true);
   const double steal0 = pcl_animseg::cpuStealSeconds();
+  const pcl_animseg::CpuReading cpu0 = pcl_animseg::readCpu();
   const auto t0 = std::chrono::steady_clock::now();
   r = pcl_animseg::runPipeline(sequence(), p, progress);
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   const double steal = pcl_animseg::cpuStealSince(steal0);
+  const double other = pcl_animseg::otherProgramsCpuSince(cpu0);
   for (const auto& [name, sec] : r.timings)
     if (name.find('/') == std::string::npos) stages[name] += sec;
   // The CPU time the machine's host took meanwhile (a virtual machine's steal), which the run
   // waited for: runs are comparable where it is small.
   if (steal >= 0.0) stages["host_steal_cpu"] += steal;
+  if (other >= 0.0) stages["other_programs_cpu"] += other;
   return s;
 }
 
