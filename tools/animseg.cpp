@@ -102,32 +102,34 @@ int main(int argc, char** argv) {
     return os.str();
   };
   po::options_description od("Options");
-  od.add_options()(
-      "input,i", po::value<std::string>()->required(),
-      "sequence: a directory of .obj/.ply/.off/.pcd/.xyz frames (natural order) or a list file")(
-      "output,o", po::value<std::string>()->required(), "output directory")(
-      "device", po::value<std::string>()->default_value("auto"),
-      "auto|cpu|gpu|gpu:N: where the stages run (auto: a GPU when one works, else the cores; "
-      "gpu:N: the machine's GPU N as nvidia-smi numbers them, or the N-th of CUDA_VISIBLE_DEVICES "
-      "where that is set)")("levels", po::value<int>()->default_value(defaults.levels),
-                            "hierarchy levels above level 0, at most (Sect. 5)")(
-      "bandwidth", po::value<double>()->default_value(msd.bandwidth),
-      "mean shift bandwidth w (Eq. 4), positions in units of the sequence size")(
-      "weights",
-      po::value<std::string>()->default_value(w(msd.w1) + "," + w(msd.w2) + "," + w(msd.w3) + "," +
-                                              w(msd.w4)),
-      "w1,w2,w3,w4: normal, position, signature between keypoints, signature otherwise (Eq. 5-6)")(
-      "method", po::value<std::string>()->default_value("motion"),
-      "motion (default: patches tracked by ICP, merged by rigid motion) | paper (joint mean shift "
-      "of Sect. 3.2 only)")(
-      "backend", po::value<std::string>()->default_value("gkdtree"),
-      "kernel sums: gkdtree (Gaussian kd-tree, Sect. 3.3) | exact (kd-tree, reference)")(
-      "parts", po::value<int>()->default_value(0),
-      "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")(
-      "patches", po::value<int>()->default_value(msd.patches),
-      ("motion method: tracked samples of the reference frame (0: one per 8 points, at most " +
-       std::to_string(pcl_animseg::segmentation::kMaxTrackedSamples) + ")")
-          .c_str());
+  // clang-format off
+  od.add_options()
+    ("input,i", po::value<std::string>()->required(),
+     "sequence: a directory of .obj/.ply/.off/.pcd/.xyz frames (natural order) or a list file")
+    ("output,o", po::value<std::string>()->required(), "output directory")
+    ("device", po::value<std::string>()->default_value("auto"),
+     "auto|cpu|gpu|gpu:N: where the stages run (auto: a GPU when one works, else the cores; "
+     "gpu:N: the machine's GPU N as nvidia-smi numbers them, or the N-th of CUDA_VISIBLE_DEVICES "
+     "where that is set)")
+    ("levels", po::value<int>()->default_value(defaults.levels),
+     "hierarchy levels above level 0, at most (Sect. 5)")
+    ("bandwidth", po::value<double>()->default_value(msd.bandwidth),
+     "mean shift bandwidth w (Eq. 4), positions in units of the sequence size")
+    ("weights", po::value<std::string>()->default_value(w(msd.w1) + "," + w(msd.w2) + "," + w(msd.w3) +
+                                                        "," + w(msd.w4)),
+     "w1,w2,w3,w4: normal, position, signature between keypoints, signature otherwise (Eq. 5-6)")
+    ("method", po::value<std::string>()->default_value("motion"),
+     "motion (default: patches tracked by ICP, merged by rigid motion) | paper (joint mean shift "
+     "of Sect. 3.2 only)")
+    ("backend", po::value<std::string>()->default_value("gkdtree"),
+     "kernel sums: gkdtree (Gaussian kd-tree, Sect. 3.3) | exact (kd-tree, reference)")
+    ("parts", po::value<int>()->default_value(0),
+     "merge to exactly this many level-0 parts (0: stop at --motion-threshold)")
+    ("patches", po::value<int>()->default_value(msd.patches),
+     ("motion method: tracked samples of the reference frame (0: one per 8 points, at most " +
+      std::to_string(pcl_animseg::segmentation::kMaxTrackedSamples) + ")")
+         .c_str());
+  // clang-format on
   tools::addMotionOptions(od, msd);
   tools::addPaperOptions(od, msd);
   tools::addScaleSpaceOptions(od, defaults.multiscale);
@@ -227,13 +229,11 @@ int main(int argc, char** argv) {
         PipelineResult r;
         try {
           r = runPipeline(seq, params, progress);
-        } catch (const Error& e) {
+        } catch (const DeviceError& e) {
           // Which GPU was asked for: a number past the machine's last GPU leaves none visible.
-          const std::string what = e.what();
-          const bool gpu_error = dynamic_cast<const DeviceError*>(&e) != nullptr ||
-                                 what.find("no usable GPU") != std::string::npos;
-          if (device.gpu_index < 0 || !gpu_error) throw;
-          throw DeviceError(what + " (--device gpu:" + std::to_string(device.gpu_index) +
+          if (device.gpu_index < 0) throw;
+          throw DeviceError(std::string(e.what()) +
+                            " (--device gpu:" + std::to_string(device.gpu_index) +
                             ", CUDA_VISIBLE_DEVICES=" + visible + ")");
         }
         const double run_s =

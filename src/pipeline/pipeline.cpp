@@ -85,6 +85,12 @@ std::string visibleDevicesFor(const char* current, int index) {
 
 namespace {
 
+// --device gpu without a GPU that works: a device's error (DeviceError), which a caller tells from
+// the input's own by its type (animseg names the GPU that --device gpu:N asked for).
+[[noreturn]] void noUsableGpu(const std::string& why) {
+  throw DeviceError("--device gpu: no usable GPU: " + why);
+}
+
 // The number of distinct labels >= 0 (a flag per label: a std::set took 0.06-0.08 s for the
 // levels of 800k points).
 int countLabels(const std::vector<std::vector<int>>& labels) {
@@ -187,7 +193,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       if (gpu::probeState() == gpu::ProbeState::Running || gpu::gpuAvailable(&why))
         feature_device = std::make_unique<gpu::FeatureDevice>();
       else if (params.device == "gpu")
-        throw Error("--device gpu: no usable GPU: " + why);
+        noUsableGpu(why);
     }
     // The stages a failed device attempt leaves open are abandoned before the CPU's run, which
     // is then recorded under its own names (a device that turned out missing, while its check
@@ -203,7 +209,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       std::string why;
       const bool missing = !gpu::gpuAvailable(&why);
       if (params.device == "gpu") {
-        if (missing) throw Error("--device gpu: no usable GPU: " + why);
+        if (missing) noUsableGpu(why);
         throw;
       }
       if (!missing) {  // a missing GPU is noted with the mean shift's device below
@@ -272,7 +278,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       why = "this build has no CUDA module (nvcc was not found when it was configured)";
 #endif
       if (!why.empty()) {
-        if (params.device == "gpu") throw Error("--device gpu: no usable GPU: " + why);
+        if (params.device == "gpu") noUsableGpu(why);
         r.notes.push_back("device auto: the CPU was used: " + why);
         progress.debug("device auto: the CPU is used: " + why);
       }
@@ -302,8 +308,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
       ms.segment(clusters);
     } catch (const Error&) {
       std::string why;
-      if (gpu_check_pending && !gpu::gpuAvailable(&why))
-        throw Error("--device gpu: no usable GPU: " + why);
+      if (gpu_check_pending && !gpu::gpuAvailable(&why)) noUsableGpu(why);
       throw;
     }
 #else
