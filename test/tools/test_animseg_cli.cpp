@@ -133,6 +133,30 @@ TEST(AnimsegCli, ProgramsAllocateThroughJemallocWithHugePages) {
 #endif
 }
 
+// animseg writes PNGs without a window: PCL's visualization library (VTK's rendering, OpenGL,
+// X11, MPI), which only the interactive viewer needs, is not among the libraries it loads.
+TEST(AnimsegCli, StartsWithoutTheViewersLibraries) {
+  TempDir tmp;
+  const auto loaded = [&](const std::string& name) {
+    // The dynamic loader lists what a program would load, and runs none of it.
+    const RunResult r = run("LD_TRACE_LOADED_OBJECTS=1 " + tool(name), tmp.dir());
+    EXPECT_EQ(r.code, 0) << r.err;
+    return r.out;
+  };
+  const std::string animseg = loaded("animseg");
+  ASSERT_NE(animseg.find("libpcl_animseg_visualization"), std::string::npos) << animseg;
+  EXPECT_EQ(animseg.find("libpcl_visualization"), std::string::npos) << animseg;
+  EXPECT_EQ(animseg.find("libvtkRenderingOpenGL2"), std::string::npos) << animseg;
+  EXPECT_EQ(animseg.find("libX11"), std::string::npos) << animseg;
+  EXPECT_EQ(animseg.find("libmpi"), std::string::npos) << animseg;
+  // The viewer does load them: the names above are the ones to look for.
+  const std::string view = loaded("animseg_view");
+  EXPECT_NE(view.find("libpcl_visualization"), std::string::npos) << view;
+  EXPECT_NE(view.find("libvtkRenderingOpenGL2"), std::string::npos) << view;
+  EXPECT_NE(view.find("libX11"), std::string::npos) << view;
+  EXPECT_NE(view.find("libmpi"), std::string::npos) << view;
+}
+
 TEST(AnimsegCli, QuietPrintsNothing) {
   TempDir tmp;
   makeSequence(tmp.dir() / "in");

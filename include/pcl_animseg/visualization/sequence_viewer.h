@@ -1,6 +1,9 @@
 #pragma once
-/** \file sequence_viewer.h Interactive viewer of a labelled sequence (pcl::visualization::PCLVisualizer).
- * PCL's headers stay in the .cpp, so including this costs nothing. */
+/** \file sequence_viewer.h Interactive viewer of a labelled sequence
+ * (pcl::visualization::PCLVisualizer). PCL's headers stay in the .cpp, so including this costs
+ * nothing. Its code is in the library `pcl_animseg::viewer` (PCL's visualization library and VTK's
+ * rendering come with it), apart from the headless contact sheets of `pcl_animseg::visualization`.
+ */
 #include <pcl_animseg/visualization/labelled_sequence.h>
 
 namespace pcl_animseg {

@@ -1,10 +1,9 @@
+#include <pcl/common/centroid.h>
+#include <pcl/visualization/pcl_visualizer.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/io/sequence_io.h>
 #include <pcl_animseg/visualization/contact_sheet.h>
 #include <pcl_animseg/visualization/sequence_viewer.h>
-
-#include <pcl/common/centroid.h>
-#include <pcl/visualization/pcl_visualizer.h>
 
 #include <chrono>
 #include <cstdlib>
@@ -31,14 +30,22 @@ class ViewerState {
     if (!e.keyDown()) return;
     const std::string key = e.getKeySym();
     const int T = static_cast<int>(seq_.size()), L = seq_.levels();
-    if (key == "n" || key == "Right") frame_ = (frame_ + 1) % T;
-    else if (key == "p" || key == "Left") frame_ = (frame_ + T - 1) % T;
-    else if (key == "space") playing_ = !playing_;
-    else if (key == "k") show_keypoints_ = !show_keypoints_;
-    else if (key == "plus" || key == "KP_Add" || key == "equal") level_ = std::min(level_ + 1, L - 1);
-    else if (key == "minus" || key == "KP_Subtract") level_ = std::max(level_ - 1, 0);
-    else if (key.size() == 1 && key[0] >= '0' && key[0] <= '9' && key[0] - '0' < L) level_ = key[0] - '0';
-    else return;
+    if (key == "n" || key == "Right")
+      frame_ = (frame_ + 1) % T;
+    else if (key == "p" || key == "Left")
+      frame_ = (frame_ + T - 1) % T;
+    else if (key == "space")
+      playing_ = !playing_;
+    else if (key == "k")
+      show_keypoints_ = !show_keypoints_;
+    else if (key == "plus" || key == "KP_Add" || key == "equal")
+      level_ = std::min(level_ + 1, L - 1);
+    else if (key == "minus" || key == "KP_Subtract")
+      level_ = std::max(level_ - 1, 0);
+    else if (key.size() == 1 && key[0] >= '0' && key[0] <= '9' && key[0] - '0' < L)
+      level_ = key[0] - '0';
+    else
+      return;
     dirty_ = true;
   }
 
@@ -73,7 +80,8 @@ class ViewerState {
     Eigen::Vector3f dir, up;
     defaultView(cloud, dir, up);
     const Eigen::Vector3f eye = c.head<3>() - 2.2f * diag * dir.normalized();
-    viewer.setCameraPosition(eye.x(), eye.y(), eye.z(), c.x(), c.y(), c.z(), up.x(), up.y(), up.z());
+    viewer.setCameraPosition(eye.x(), eye.y(), eye.z(), c.x(), c.y(), c.z(), up.x(), up.y(),
+                             up.z());
   }
 
   void draw(pcl::visualization::PCLVisualizer& viewer) {
@@ -132,16 +140,18 @@ class ViewerState {
         const std::string id = "kp" + std::to_string(keypoints_shown_++);
         pcl::PointXYZ centre(kp.position.x(), kp.position.y(), kp.position.z());
         viewer.addSphere(centre, kp.scale > 0 ? kp.scale : fallback, 1.0, 1.0, 1.0, id);
-        viewer.setShapeRenderingProperties(pcl::visualization::PCL_VISUALIZER_REPRESENTATION,
-                                           pcl::visualization::PCL_VISUALIZER_REPRESENTATION_WIREFRAME,
-                                           id);
+        viewer.setShapeRenderingProperties(
+            pcl::visualization::PCL_VISUALIZER_REPRESENTATION,
+            pcl::visualization::PCL_VISUALIZER_REPRESENTATION_WIREFRAME, id);
       }
     }
   }
 
   static void setText(pcl::visualization::PCLVisualizer& viewer, const std::string& id,
-                      const std::string& text, int x, int y, int size, double r, double g, double b) {
-    if (!viewer.updateText(text, x, y, size, r, g, b, id)) viewer.addText(text, x, y, size, r, g, b, id);
+                      const std::string& text, int x, int y, int size, double r, double g,
+                      double b) {
+    if (!viewer.updateText(text, x, y, size, r, g, b, id))
+      viewer.addText(text, x, y, size, r, g, b, id);
   }
 
   const LabelledSequence& seq_;
@@ -164,8 +174,9 @@ void runSequenceViewer(const LabelledSequence& sequence, const ViewerOptions& op
                 std::to_string(sequence.levels() - 1) + ")");
   if (!(options.fps > 0)) throw Error("--fps must be > 0");
   if (!displayAvailable())
-    throw Error("no display (DISPLAY is not set): use --png FILE to render a contact sheet "
-                "headless, or run under an X server");
+    throw Error(
+        "no display (DISPLAY is not set): use --png FILE to render a contact sheet "
+        "headless, or run under an X server");
   ViewerState(sequence, options).run();
 }
 
