@@ -46,6 +46,11 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
      << (r.device_pci_bus_id.empty() ? std::string("null")
                                      : "\"" + jsonEscape(r.device_pci_bus_id) + "\"")
      << ",\n";
+  // How long the GPU took to start (null on the CPU): an idle GPU starts slower.
+  os << "  \"device_start_s\": "
+     << (r.device_used != "cpu" && r.device_start_s >= 0.0 ? num(r.device_start_s)
+                                                           : std::string("null"))
+     << ",\n";
   os << "  \"device_peak_mib\": ";
   if (r.device_used == "cpu")
     os << "null";
@@ -276,7 +281,10 @@ int main(int argc, char** argv) {
             << "  device            " << r.device_used
             << (r.device_used == "cpu"
                     ? std::string()
-                    : " (peak " + num(static_cast<double>(r.device_peak_bytes) / 1048576.0) +
+                    : " (" +
+                          (r.device_start_s >= 0.0 ? "started in " + num(r.device_start_s) + " s, "
+                                                   : std::string()) +
+                          "peak " + num(static_cast<double>(r.device_peak_bytes) / 1048576.0) +
                           " MiB" +
                           (r.device_pci_bus_id.empty() ? "" : ", PCI " + r.device_pci_bus_id) + ")")
             << "\n"

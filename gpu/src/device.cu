@@ -107,6 +107,11 @@ std::atomic<int>& probeStage() {
   static std::atomic<int> stage{0};
   return stage;
 }
+// gpuAvailable()'s probe's duration (seconds; negative until it has ended).
+std::atomic<double>& probeSeconds() {
+  static std::atomic<double> seconds{-1.0};
+  return seconds;
+}
 }  // namespace
 
 bool gpuAvailable(std::string* why) {
@@ -122,9 +127,10 @@ bool gpuAvailable(std::string* why) {
     struct Done {
       std::chrono::steady_clock::time_point t0 = std::chrono::steady_clock::now();
       ~Done() {
+        const auto t1 = std::chrono::steady_clock::now();
+        probeSeconds().store(std::chrono::duration<double>(t1 - t0).count());
         probeStage().store(2);
         if (std::getenv("ANIMSEG_MS_TIMING")) {
-          const auto t1 = std::chrono::steady_clock::now();
           std::fprintf(stderr, "[gpu] started in %.3f s (ended at %.3f s)\n",
                        std::chrono::duration<double>(t1 - t0).count(),
                        std::chrono::duration<double>(t1.time_since_epoch()).count());
@@ -172,6 +178,8 @@ ProbeState probeState() {
       return ProbeState::Done;
   }
 }
+
+double startSeconds() { return probeSeconds().load(); }
 
 void requireGpu() {
   std::string why;

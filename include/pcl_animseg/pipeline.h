@@ -52,6 +52,10 @@ struct PipelineResult {
   /** The GPU's PCI bus id ("0000:1A:00.0", as nvidia-smi lists it; empty on the CPU): which of
    * a machine's GPUs ran. */
   std::string device_pci_bus_id;
+  /** How long the GPU took to start (the driver's start and the context's, seconds; negative on
+   * the CPU). Part of it runs beside the loading and the first CPU work (DeviceWarmUp); a GPU idle
+   * for a second or more before the run starts slower (H200: 0.27 s instead of 0.16-0.18 s). */
+  double device_start_s = -1.0;
   std::size_t keypoints = 0;
   std::vector<std::size_t> keypoints_per_frame;
   /** Points of the input whose normals the loader estimated (0 when every point came with one). */

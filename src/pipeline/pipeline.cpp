@@ -424,6 +424,7 @@ PipelineResult runPipeline(const PointCloudSequence& seq, const PipelineParams& 
 #ifdef PCL_ANIMSEG_HAVE_CUDA
   if (r.device_used != "cpu") {
     r.device_peak_bytes = gpu::peakDeviceBytes();
+    r.device_start_s = gpu::startSeconds();
     try {
       r.device_pci_bus_id = gpu::deviceInfo().pci_bus_id;
     } catch (const Error&) {

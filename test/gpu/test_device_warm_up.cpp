@@ -53,6 +53,7 @@ TEST(DeviceWarmUp, AutoGivesTheCpuLabelsAndSaysWhichDeviceRan) {
   const pcl_animseg::PipelineResult cpu = pcl_animseg::runPipeline(seq, params("cpu"), quiet);
   ASSERT_FALSE(cpu.levels.empty());
   EXPECT_TRUE(cpu.device_pci_bus_id.empty()) << cpu.device_pci_bus_id;
+  EXPECT_LT(cpu.device_start_s, 0.0);
   EXPECT_EQ(dev.levels, cpu.levels);
   EXPECT_EQ(dev.parts_per_level, cpu.parts_per_level);
   std::string why;
@@ -64,6 +65,10 @@ TEST(DeviceWarmUp, AutoGivesTheCpuLabelsAndSaysWhichDeviceRan) {
     EXPECT_EQ(dev.device_pci_bus_id, gpu::deviceInfo().pci_bus_id);
     EXPECT_EQ(dev.device_pci_bus_id.size(), 12u) << dev.device_pci_bus_id;
     EXPECT_EQ(dev.device_pci_bus_id.find(':'), 4u) << dev.device_pci_bus_id;
+    // The GPU's start, timed by its probe: the same number the library reports.
+    EXPECT_GT(dev.device_start_s, 0.0);
+    EXPECT_LT(dev.device_start_s, 60.0);
+    EXPECT_EQ(dev.device_start_s, gpu::startSeconds());
   } else {
     EXPECT_EQ(dev.device_used, "cpu");
     EXPECT_TRUE(dev.device_pci_bus_id.empty());

@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cstdlib>
 #include <map>
 
 #include "tools/cli_util.h"
@@ -45,8 +46,8 @@ TEST(AnimsegCli, WritesEveryOutputInInputOrder) {
   const std::string summary = slurp((tmp.dir() / "out" / "summary.json").string());
   for (const char* key :
        {"\"timings_s\"", "\"load\"", "\"total\"", "\"points_per_frame\": [300, 340, 380]",
-        "\"parts_per_level\"", "\"device\"", "\"parameters\"",
-        "\"cpu_steal_s\": ", "\"other_programs_cpu_s\": ", "\"device_pci_bus_id\": "})
+        "\"parts_per_level\"", "\"device\"", "\"parameters\"", "\"cpu_steal_s\": ",
+        "\"other_programs_cpu_s\": ", "\"device_pci_bus_id\": ", "\"device_start_s\": "})
     EXPECT_NE(summary.find(key), std::string::npos) << key << " in " << summary;
   EXPECT_TRUE(fs::exists(tmp.dir() / "out" / "transforms.json"));
   // No temporary files are left behind.
@@ -276,6 +277,12 @@ TEST(AnimsegCli, DeviceGpuNPicksAGpuOrSaysWhichIsMissing) {
       EXPECT_EQ(summary.find("\"device_pci_bus_id\": null"), std::string::npos) << summary;
       EXPECT_NE(summary.find("\"device_pci_bus_id\": \""), std::string::npos) << summary;
       EXPECT_NE(summary.find("\"device\": \"gpu:0\""), std::string::npos) << summary;
+      // How long the GPU took to start: a number (its driver's start alone takes a while).
+      const std::size_t at = summary.find("\"device_start_s\": ");
+      ASSERT_NE(at, std::string::npos) << summary;
+      const double start = std::atof(summary.c_str() + at + 18);
+      EXPECT_GT(start, 0.0) << summary.substr(at, 40);
+      EXPECT_LT(start, 60.0) << summary.substr(at, 40);
     } else {
       EXPECT_EQ(r.code, 1) << env;
       EXPECT_TRUE(isOneErrorLine(r.err)) << r.err;
@@ -287,9 +294,9 @@ TEST(AnimsegCli, DeviceGpuNPicksAGpuOrSaysWhichIsMissing) {
   // On the cores the field is null.
   fs::remove_all(tmp.dir() / "out");
   ASSERT_EQ(run(tool("animseg") + " --quiet --device cpu" + io, tmp.dir()).code, 0);
-  EXPECT_NE(
-      slurp((tmp.dir() / "out" / "summary.json").string()).find("\"device_pci_bus_id\": null"),
-      std::string::npos);
+  const std::string on_cpu = slurp((tmp.dir() / "out" / "summary.json").string());
+  EXPECT_NE(on_cpu.find("\"device_pci_bus_id\": null"), std::string::npos) << on_cpu;
+  EXPECT_NE(on_cpu.find("\"device_start_s\": null"), std::string::npos) << on_cpu;
 }
 
 // Same input and seed: byte-identical labels, whatever the number of threads.

@@ -17,6 +17,11 @@ bool gpuAvailable(std::string* why = nullptr);
 enum class ProbeState { NotStarted, Running, Done };
 ProbeState probeState();
 
+/** \brief How long gpuAvailable()'s probe took, in seconds: the driver's start (cuInit) and the
+ * primary context's, with one small kernel; negative until a probe has ended. A GPU that has been
+ * idle for a second or more starts slower (H200: the driver's start 0.19 s instead of 0.10 s). */
+double startSeconds();
+
 /** \brief Throws Error("no usable GPU: <why>") unless gpuAvailable() (waits for a probe under
  * way on another thread). */
 void requireGpu();
