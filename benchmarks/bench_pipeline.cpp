@@ -65,13 +65,13 @@ const pcl_animseg::PointCloudSequence& sequence() {
 double runOnce(const pcl_animseg::PipelineParams& p, std::map<std::string, double>& stages,
                pcl_animseg::PipelineResult& r) {
   pcl_animseg::Progress progress(/*quiet=*/true);
-  const double steal0 = pcl_animseg::cpuStealSeconds();
   const pcl_animseg::CpuReading cpu0 = pcl_animseg::readCpu();
   const auto t0 = std::chrono::steady_clock::now();
   r = pcl_animseg::runPipeline(sequence(), p, progress);
   const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  const double steal = pcl_animseg::cpuStealSince(steal0);
-  const double other = pcl_animseg::otherProgramsCpuSince(cpu0);
+  const pcl_animseg::CpuReading cpu1 = pcl_animseg::readCpu();
+  const double steal = pcl_animseg::cpuStealBetween(cpu0, cpu1);
+  const double other = pcl_animseg::otherProgramsCpuBetween(cpu0, cpu1);
   for (const auto& [name, sec] : r.timings)
     if (name.find('/') == std::string::npos) stages[name] += sec;
   // The CPU time the machine's host took meanwhile (a virtual machine's steal), which the run

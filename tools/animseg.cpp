@@ -227,8 +227,8 @@ int main(int argc, char** argv) {
         progress.info("loaded " + std::to_string(seq.size()) + " frames, " +
                       std::to_string(seq.totalPoints()) + " points");
 
-        // The host's steal over the stages (a virtual machine's CPUs given to other work).
-        const double steal0 = cpuStealSeconds();
+        // The host's steal over the stages (a virtual machine's CPUs given to other work) and the
+        // other programs' CPU time, from one reading before and one after.
         const CpuReading cpu0 = readCpu();
         const auto run0 = std::chrono::steady_clock::now();
         PipelineResult r;
@@ -243,10 +243,11 @@ int main(int argc, char** argv) {
         }
         const double run_s =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - run0).count();
-        const double steal = cpuStealSince(steal0);
+        const CpuReading cpu1 = readCpu();
+        const double steal = cpuStealBetween(cpu0, cpu1);
         const std::string steal_note = hostStealNote(steal, run_s, onlineCpus());
         if (!steal_note.empty()) r.notes.push_back(steal_note);
-        const double other = otherProgramsCpuSince(cpu0);
+        const double other = otherProgramsCpuBetween(cpu0, cpu1);
         const std::string other_note = otherProgramsNote(other, run_s, onlineCpus(), ctx.threads);
         if (!other_note.empty()) r.notes.push_back(other_note);
 

@@ -50,18 +50,28 @@ double parseCpuBusy(const std::string& proc_stat, double ticks_per_second);
  * negative where the OS does not say. */
 double processCpuSeconds();
 
-/** \brief Two readings at one moment: the machine's busy time and this process's CPU time. */
+/** \brief Readings at one moment: the machine's busy time, this process's CPU time and the host's
+ * steal (seconds; negative where unknown). */
 struct CpuReading {
   double machine_busy = -1.0;
   double own = -1.0;
+  double steal = -1.0;
 };
 
-/** \brief cpuBusySeconds() and processCpuSeconds() now. */
+/** \brief cpuBusySeconds(), processCpuSeconds() and cpuStealSeconds() now, from one reading of
+ * /proc/stat. */
 CpuReading readCpu();
 
-/** \brief The CPU time the machine's other programs used since `before`: its CPUs' busy time
- * less this process's own, at least 0; negative where a reading is unknown. */
+/** \brief The CPU time the machine's other programs used between two readings: its CPUs' busy
+ * time less this process's own, at least 0; negative where a reading is unknown. */
+double otherProgramsCpuBetween(const CpuReading& before, const CpuReading& after);
+
+/** \brief otherProgramsCpuBetween(before, readCpu()). */
 double otherProgramsCpuSince(const CpuReading& before);
+
+/** \brief The host's steal between two readings (cpuStealSince's), at least 0; negative where a
+ * reading is unknown. */
+double cpuStealBetween(const CpuReading& before, const CpuReading& after);
 
 /** \brief A note for a run's summary when other programs used a notable share of the machine's
  * CPUs while it ran and the run's `threads` OpenMP threads did not fit beside them: `other` CPU

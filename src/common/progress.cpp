@@ -106,18 +106,29 @@ double processCpuSeconds() {
 
 CpuReading readCpu() {
   CpuReading r;
-  r.machine_busy = cpuBusySeconds();
+  const std::string head = procStatHead();
+  const double ticks = static_cast<double>(sysconf(_SC_CLK_TCK));
+  r.machine_busy = parseCpuBusy(head, ticks);
+  r.steal = parseCpuSteal(head, ticks);
   r.own = processCpuSeconds();
   return r;
 }
 
-double otherProgramsCpuSince(const CpuReading& before) {
-  if (before.machine_busy < 0.0 || before.own < 0.0) return -1.0;
-  const CpuReading now = readCpu();
-  if (now.machine_busy < 0.0 || now.own < 0.0) return -1.0;
+double otherProgramsCpuBetween(const CpuReading& before, const CpuReading& after) {
+  if (before.machine_busy < 0.0 || before.own < 0.0 || after.machine_busy < 0.0 || after.own < 0.0)
+    return -1.0;
   // The machine's count is in clock ticks and this process's exact: a little of either's
   // rounding is left, never a negative share.
-  return std::max(0.0, (now.machine_busy - before.machine_busy) - (now.own - before.own));
+  return std::max(0.0, (after.machine_busy - before.machine_busy) - (after.own - before.own));
+}
+
+double otherProgramsCpuSince(const CpuReading& before) {
+  return otherProgramsCpuBetween(before, readCpu());
+}
+
+double cpuStealBetween(const CpuReading& before, const CpuReading& after) {
+  if (before.steal < 0.0 || after.steal < 0.0) return -1.0;
+  return std::max(0.0, after.steal - before.steal);
 }
 
 std::string otherProgramsNote(double other, double seconds, int cpus, int threads) {

@@ -81,6 +81,38 @@ TEST(HostSteal, ThisMachinesCountOnlyGrows) {
   EXPECT_GE(since, 0.0);
   EXPECT_LE(since, pcl_animseg::cpuStealSeconds() - a);
   EXPECT_LT(pcl_animseg::cpuStealSince(-1.0), 0.0);  // an unknown start: unknown
+  // readCpu() reads the same count with the busy time, one reading of /proc/stat for both.
+  const pcl_animseg::CpuReading r0 = pcl_animseg::readCpu();
+  const double c = pcl_animseg::cpuStealSeconds();
+  const pcl_animseg::CpuReading r1 = pcl_animseg::readCpu();
+  EXPECT_GE(r0.steal, b);
+  EXPECT_LE(r0.steal, c);
+  EXPECT_GE(r1.steal, c);
+  EXPECT_GE(pcl_animseg::cpuStealBetween(r0, r1), 0.0);
+  EXPECT_LE(pcl_animseg::cpuStealBetween(r0, r1), r1.steal - r0.steal + 1e-12);
+  EXPECT_LT(pcl_animseg::cpuStealBetween(pcl_animseg::CpuReading(), r1), 0.0);  // unknown
+}
+
+// Between two readings: the steal's growth and the other programs' share of the busy time's,
+// taken from the readings given (no reading of their own).
+TEST(CpuReadings, DifferencesOfTwoReadings) {
+  pcl_animseg::CpuReading a, b;
+  a.machine_busy = 100.0, a.own = 10.0, a.steal = 5.0;
+  b.machine_busy = 103.0, b.own = 11.5, b.steal = 5.25;
+  EXPECT_DOUBLE_EQ(pcl_animseg::otherProgramsCpuBetween(a, b), 1.5);
+  EXPECT_DOUBLE_EQ(pcl_animseg::cpuStealBetween(a, b), 0.25);
+  // This process's time grew by more than the machine's count (ticks against microseconds):
+  // none, never a negative share.
+  b.own = 14.0;
+  EXPECT_DOUBLE_EQ(pcl_animseg::otherProgramsCpuBetween(a, b), 0.0);
+  // Any unknown reading: unknown.
+  pcl_animseg::CpuReading unknown = b;
+  unknown.machine_busy = -1.0;
+  EXPECT_LT(pcl_animseg::otherProgramsCpuBetween(a, unknown), 0.0);
+  unknown = b;
+  unknown.steal = -1.0;
+  EXPECT_LT(pcl_animseg::cpuStealBetween(a, unknown), 0.0);
+  EXPECT_GE(pcl_animseg::otherProgramsCpuBetween(a, unknown), 0.0);  // the busy time is known
 }
 
 // A share of the CPUs' time over 2%, and at least 5 clock ticks of it, gets a note that says
