@@ -1,44 +1,21 @@
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/filters/gaussian_kdtree.h>
 
-#include <gtest/gtest.h>
-
 #include <cstdio>
-#include <random>
+
+#include "blob_data.h"
 
 using pcl_animseg::filters::bruteForceGaussTransform;
 using pcl_animseg::filters::GaussianKdTree;
 using pcl_animseg::filters::GaussianKdTreeParams;
-
-namespace {
-
-// Clustered data in d dimensions lying near a low-dimensional set (like the joint feature space
-// of a surface sequence): blobs along a random curve, in units of the kernel's sigma.
-Eigen::MatrixXf makeData(int n, int d, unsigned seed) {
-  std::mt19937 rng(seed);
-  std::normal_distribution<float> g(0.0f, 1.0f);
-  std::uniform_real_distribution<float> u(0.0f, 1.0f);
-  Eigen::MatrixXf dirs(3, d);
-  for (int i = 0; i < dirs.size(); ++i) dirs(i) = g(rng);
-  Eigen::MatrixXf p(n, d);
-  for (int i = 0; i < n; ++i) {
-    const float a = 6.0f * u(rng), b = 6.0f * u(rng), c = 6.0f * u(rng);
-    for (int k = 0; k < d; ++k)
-      p(i, k) = a * dirs(0, k) / 2.0f + b * dirs(1, k) / 2.0f + c * dirs(2, k) / 2.0f +
-                0.05f * g(rng);
-  }
-  return p;
-}
-
-double relativeError(const Eigen::MatrixXf& a, const Eigen::MatrixXf& b) {
-  return (a - b).norm() / b.norm();
-}
-
-}  // namespace
+// The data: blobs along a random 3-D set (blob_data.h, shared with the GPU tree's test).
+using animseg_test::makeBlobData;
+using animseg_test::relativeError;
 
 TEST(GaussianKdTree, MatchesBruteForceGaussTransform) {
   for (int d : {3, 8, 30}) {
-    const Eigen::MatrixXf p = makeData(4000, d, 7 + d);
+    const Eigen::MatrixXf p = makeBlobData(4000, d, 7 + d);
     Eigen::MatrixXf values(p.rows(), 2);
     values.col(0).setOnes();
     values.col(1) = p.col(0);
@@ -63,7 +40,7 @@ TEST(GaussianKdTree, MatchesBruteForceGaussTransform) {
 }
 
 TEST(GaussianKdTree, DefaultParamsAreCoarserButClose) {
-  const Eigen::MatrixXf p = makeData(20000, 30, 3);
+  const Eigen::MatrixXf p = makeBlobData(20000, 30, 3);
   Eigen::MatrixXf values = Eigen::MatrixXf::Ones(p.rows(), 1);
   const Eigen::MatrixXf q = p.topRows(200);
   Eigen::MatrixXf exact, approx;
@@ -86,7 +63,7 @@ TEST(GaussianKdTree, DeterministicAndIdenticalPoints) {
   tree.filter(values, p.topRows(3), out);
   EXPECT_NEAR(out(0, 0), 500.0f, 1e-2f);
 
-  const Eigen::MatrixXf data = makeData(3000, 10, 1);
+  const Eigen::MatrixXf data = makeBlobData(3000, 10, 1);
   GaussianKdTree a, b;
   a.build(data);
   b.build(data);
@@ -98,7 +75,7 @@ TEST(GaussianKdTree, DeterministicAndIdenticalPoints) {
 }
 
 TEST(GaussianKdTree, LeafContainingFindsTheLeafOfEveryDataPoint) {
-  const Eigen::MatrixXf p = makeData(3000, 30, 5);
+  const Eigen::MatrixXf p = makeBlobData(3000, 30, 5);
   GaussianKdTree tree;
   tree.build(p);
   ASSERT_GT(tree.numSamples(), 1u);

@@ -1,17 +1,17 @@
 // GPU device buffers and Gaussian kd-tree: against brute force and against the CPU tree.
 // Every test skips when no usable GPU is present (CI compiles the CUDA code but has no GPU).
+#include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/filters/gaussian_kdtree.h>
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/gpu/gaussian_kdtree.h>
 
-#include <gtest/gtest.h>
-
 #include <cstdio>
 #include <limits>
 #include <numeric>
-#include <random>
+
+#include "blob_data.h"
 
 namespace gpu = pcl_animseg::gpu;
 namespace filters = pcl_animseg::filters;
@@ -24,26 +24,9 @@ namespace {
     if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why; \
   } while (0)
 
-// Blobs along a random 3-D set in d dimensions (as the CPU tree's test), in units of sigma.
-Eigen::MatrixXf makeData(int n, int d, unsigned seed) {
-  std::mt19937 rng(seed);
-  std::normal_distribution<float> g(0.0f, 1.0f);
-  std::uniform_real_distribution<float> u(0.0f, 1.0f);
-  Eigen::MatrixXf dirs(3, d);
-  for (int i = 0; i < dirs.size(); ++i) dirs(i) = g(rng);
-  Eigen::MatrixXf p(n, d);
-  for (int i = 0; i < n; ++i) {
-    const float a = 6.0f * u(rng), b = 6.0f * u(rng), c = 6.0f * u(rng);
-    for (int k = 0; k < d; ++k)
-      p(i, k) = a * dirs(0, k) / 2.0f + b * dirs(1, k) / 2.0f + c * dirs(2, k) / 2.0f +
-                0.05f * g(rng);
-  }
-  return p;
-}
-
-double relativeError(const Eigen::MatrixXf& a, const Eigen::MatrixXf& b) {
-  return (a - b).norm() / b.norm();
-}
+// The data: blobs along a random 3-D set (blob_data.h, shared with the CPU tree's test).
+using animseg_test::makeBlobData;
+using animseg_test::relativeError;
 
 }  // namespace
 
@@ -104,7 +87,7 @@ TEST(GpuDevice, OutOfMemoryIsAnError) {
 TEST(GpuGaussianKdTree, SameTreeAndSamplesAsCpu) {
   REQUIRE_GPU();
   for (int d : {3, 8, 30}) {
-    const Eigen::MatrixXf p = makeData(5000, d, 11 + d);
+    const Eigen::MatrixXf p = makeBlobData(5000, d, 11 + d);
     filters::GaussianKdTreeParams params;
     params.leaf_extent = 0.5f;
     filters::GaussianKdTree cpu(params);
@@ -123,7 +106,7 @@ TEST(GpuGaussianKdTree, SameTreeAndSamplesAsCpu) {
 TEST(GpuGaussianKdTree, MatchesBruteForceAndCpu) {
   REQUIRE_GPU();
   for (int d : {3, 8, 30, 64}) {
-    const Eigen::MatrixXf p = makeData(4000, d, 7 + d);
+    const Eigen::MatrixXf p = makeBlobData(4000, d, 7 + d);
     Eigen::MatrixXf values(p.rows(), 2);
     values.col(0).setOnes();
     values.col(1) = p.col(0);
@@ -149,7 +132,7 @@ TEST(GpuGaussianKdTree, MatchesBruteForceAndCpu) {
 
 TEST(GpuGaussianKdTree, WideValuesAndBadInput) {
   REQUIRE_GPU();
-  const Eigen::MatrixXf p = makeData(2000, 5, 3);
+  const Eigen::MatrixXf p = makeBlobData(2000, 5, 3);
   const Eigen::MatrixXf values = Eigen::MatrixXf::Random(p.rows(), 100);
   gpu::GaussianKdTree g;
   g.build(p);
@@ -182,7 +165,7 @@ TEST(GpuGaussianKdTree, IdenticalPointsAndDeterminism) {
   Eigen::MatrixXf out;
   tree.filter(Eigen::MatrixXf::Ones(500, 1), Eigen::MatrixXf::Constant(3, 5, 2.0f), out);
   EXPECT_NEAR(out(0, 0), 500.0f, 1e-2f);
-  const Eigen::MatrixXf data = makeData(3000, 10, 1);
+  const Eigen::MatrixXf data = makeBlobData(3000, 10, 1);
   gpu::GaussianKdTree a, b;
   a.build(data);
   b.build(data);
