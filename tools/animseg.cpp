@@ -41,16 +41,15 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   os << "{\n  \"input\": \"" << jsonEscape(input) << "\",\n";
   os << "  \"parameters\": " << ctx.optionsJson() << ",\n";
   os << "  \"device\": \"" << r.device_used << "\",\n";
-  // Peak GPU memory of the mean-shift stage (null on the CPU).
+  // Which GPU ran, by its PCI bus id (null on the CPU).
   os << "  \"device_pci_bus_id\": "
      << (r.device_pci_bus_id.empty() ? std::string("null")
                                      : "\"" + jsonEscape(r.device_pci_bus_id) + "\"")
      << ",\n";
-  // How long the GPU took to start (null on the CPU): an idle GPU starts slower.
+  // How long the GPU took to start (negative, so null, on the CPU): an idle GPU starts slower.
   os << "  \"device_start_s\": "
-     << (r.device_used != "cpu" && r.device_start_s >= 0.0 ? num(r.device_start_s)
-                                                           : std::string("null"))
-     << ",\n";
+     << (r.device_start_s >= 0.0 ? num(r.device_start_s) : std::string("null")) << ",\n";
+  // Peak GPU memory of the run (null on the CPU).
   os << "  \"device_peak_mib\": ";
   if (r.device_used == "cpu")
     os << "null";

@@ -36,30 +36,25 @@ int onlineCpus();
  * otherwise, and where the steal is unknown (negative). */
 std::string hostStealNote(double steal, double seconds, int cpus);
 
-/** \brief The CPU time the machine's CPUs were busy, summed over them, in seconds since boot (user,
- * nice, system, irq and softirq on the "cpu" line of Linux's /proc/stat; not idle, iowait or
- * steal); negative where the OS does not say. */
-double cpuBusySeconds();
-
-/** \brief The busy time of a /proc/stat text's "cpu" line (its 1st, 2nd, 3rd, 6th and 7th
- * numbers) in seconds, at `ticks_per_second` clock ticks a second; negative where the text has
- * no such line. */
+/** \brief The busy time of a /proc/stat text's "cpu" line (user, nice, system, irq and softirq:
+ * its 1st, 2nd, 3rd, 6th and 7th numbers; not idle, iowait or steal) in seconds, at
+ * `ticks_per_second` clock ticks a second; negative where the text has no such line. */
 double parseCpuBusy(const std::string& proc_stat, double ticks_per_second);
 
 /** \brief This process's CPU time so far (all its threads, user and system), in seconds;
  * negative where the OS does not say. */
 double processCpuSeconds();
 
-/** \brief Readings at one moment: the machine's busy time, this process's CPU time and the host's
- * steal (seconds; negative where unknown). */
+/** \brief Readings at one moment: the machine's busy time (its CPUs' summed, since boot), this
+ * process's CPU time and the host's steal (seconds; negative where unknown). */
 struct CpuReading {
   double machine_busy = -1.0;
   double own = -1.0;
   double steal = -1.0;
 };
 
-/** \brief cpuBusySeconds(), processCpuSeconds() and cpuStealSeconds() now, from one reading of
- * /proc/stat. */
+/** \brief The machine's busy time and cpuStealSeconds() from one reading of /proc/stat, and
+ * processCpuSeconds(), now. */
 CpuReading readCpu();
 
 /** \brief The CPU time the machine's other programs used between two readings: its CPUs' busy

@@ -43,6 +43,12 @@ bool cpuLineTicks(const std::string& proc_stat, int count, std::vector<unsigned 
   return false;
 }
 
+// How much a count that only grows grew from `before` to `after`: at least 0; negative where either
+// is unknown (negative).
+double growth(double before, double after) {
+  return before < 0.0 || after < 0.0 ? -1.0 : std::max(0.0, after - before);
+}
+
 // /proc/stat's first line (the "cpu" line comes first); empty where it cannot be read.
 std::string procStatHead() {
   std::ifstream in("/proc/stat");
@@ -63,11 +69,7 @@ double cpuStealSeconds() {
   return parseCpuSteal(procStatHead(), static_cast<double>(sysconf(_SC_CLK_TCK)));
 }
 
-double cpuStealSince(double before) {
-  if (before < 0.0) return -1.0;
-  const double now = cpuStealSeconds();
-  return now < 0.0 ? -1.0 : std::max(0.0, now - before);
-}
+double cpuStealSince(double before) { return growth(before, cpuStealSeconds()); }
 
 int onlineCpus() {
   const long n = sysconf(_SC_NPROCESSORS_ONLN);
@@ -91,10 +93,6 @@ double parseCpuBusy(const std::string& proc_stat, double ticks_per_second) {
   std::vector<unsigned long long> t;
   if (!cpuLineTicks(proc_stat, 7, t) || !(ticks_per_second > 0.0)) return -1.0;
   return static_cast<double>(t[0] + t[1] + t[2] + t[5] + t[6]) / ticks_per_second;
-}
-
-double cpuBusySeconds() {
-  return parseCpuBusy(procStatHead(), static_cast<double>(sysconf(_SC_CLK_TCK)));
 }
 
 double processCpuSeconds() {
@@ -127,8 +125,7 @@ double otherProgramsCpuSince(const CpuReading& before) {
 }
 
 double cpuStealBetween(const CpuReading& before, const CpuReading& after) {
-  if (before.steal < 0.0 || after.steal < 0.0) return -1.0;
-  return std::max(0.0, after.steal - before.steal);
+  return growth(before.steal, after.steal);
 }
 
 std::string otherProgramsNote(double other, double seconds, int cpus, int threads) {
