@@ -415,6 +415,17 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
 }
 
 void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) {
+  fitParts(jobs, poses, nullptr);
+}
+
+void MotionTracking::partFitsWithResiduals(const segmentation::PartFitJobs& jobs,
+                                           std::vector<double>& poses,
+                                           std::vector<double>& residual) {
+  fitParts(jobs, poses, &residual);
+}
+
+void MotionTracking::fitParts(const segmentation::PartFitJobs& jobs, std::vector<double>& poses,
+                              std::vector<double>* residual) {
   const std::string what = "GPU part fits";
   if (!store()) throw DeviceError(what + ": no frames were set");
   int sources = 0, motions = 0;
@@ -428,7 +439,7 @@ void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector
   }
   const detail::CallTimer timer(*frames_, 2, list.size());
   detail::runPartFits(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, jobs.iterations,
-                      poses);
+                      poses, residual);
 }
 
 }  // namespace gpu

@@ -533,30 +533,39 @@ __global__ void residualSums(const double* __restrict__ errors,
 }
 
 // One part fit (motion_tracking.cpp's fitParts, fitFrom: icp() from the job's motion, kept when
-// its residual is at most r0) by a group of threads; the pose to `out`.
+// its residual is at most r0) by a group of threads; the pose to `out`, and where `out_res` is
+// given, the kept pose's residual to it (the fit's own score; the start's scored only where the
+// start is kept). The residual is shared by the whole group (Group::share), so every thread
+// takes the same branch.
 template <class Group>
 __device__ void partFit(const Dev& d, const double* points, const int* source_begin,
-                        const double* motions, const PartFitJob& job, double* out,
+                        const double* motions, const PartFitJob& job, double* out, double* out_res,
                         const Group& g) {
   const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
   const double* src = points + 6LL * b;
   const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
   const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
   const double r = residual(d, job.frame, src, m, cand, g);
-  if (g.rank == 0) icp_step::store(r <= job.r0 ? cand : init, out);
+  const bool kept = r <= job.r0;
+  double kept_r = r;
+  if (out_res && !kept) kept_r = residual(d, job.frame, src, m, init, g);
+  if (g.rank == 0) {
+    icp_step::store(kept ? cand : init, out);
+    if (out_res) *out_res = kept_r;
+  }
 }
 
 // One part fit per warp (partFit).
 __global__ void partFitJobs(Dev d, const double* __restrict__ points,
                             const int* __restrict__ source_begin,
                             const double* __restrict__ motions, const PartFitJob* __restrict__ jobs,
-                            int n, double* out) {
+                            int n, double* out, double* out_res) {
   __shared__ Scratch scratch[kWarpsPerBlock];
   const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
   const int lane = threadIdx.x % kWarp;
   if (w >= n) return;  // the whole warp
   partFit(d, points, source_begin, motions, jobs[w], out + static_cast<long long>(w) * kPoseDoubles,
-          WarpGroup(lane, scratch[threadIdx.x / kWarp]));
+          out_res ? out_res + w : nullptr, WarpGroup(lane, scratch[threadIdx.x / kWarp]));
 }
 
 // One part fit per block of kWideThreads threads (partFit): the fit's points searched side by
@@ -564,11 +573,12 @@ __global__ void partFitJobs(Dev d, const double* __restrict__ points,
 __global__ void partFitJobsWide(Dev d, const double* __restrict__ points,
                                 const int* __restrict__ source_begin,
                                 const double* __restrict__ motions,
-                                const PartFitJob* __restrict__ jobs, double* out) {
+                                const PartFitJob* __restrict__ jobs, double* out, double* out_res) {
   __shared__ double rows[kWideThreads][kCols];
   __shared__ double slot[kCols];
   partFit(d, points, source_begin, motions, jobs[blockIdx.x],
           out + static_cast<long long>(blockIdx.x) * kPoseDoubles,
+          out_res ? out_res + blockIdx.x : nullptr,
           GroupOfBlock<kWideThreads>{static_cast<int>(threadIdx.x), rows, slot});
 }
 
@@ -1519,24 +1529,38 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
 
 void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<int>& source_begin, const std::vector<double>& motions,
-                 const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses) {
+                 const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses,
+                 std::vector<double>* residual) {
   poses.assign(jobs.size() * kPoseDoubles, 0.0);
+  if (residual) residual->assign(jobs.size(), 0.0);
   if (jobs.empty()) return;
   const auto in = putBatch(frames, points, &source_begin, motions, jobs, 0);
   Dev d = frameView(frames);
   d.iterations = iterations;
   const long long n = static_cast<long long>(jobs.size());
-  double* out = resultsOnHost(frames, poses.size() * sizeof(double));
+  // The poses, then (where asked for) the residuals, in one mapped results buffer.
+  const std::size_t pose_bytes = poses.size() * sizeof(double);
+  const std::size_t res_bytes = residual ? residual->size() * sizeof(double) : 0;
+  double* out = resultsOnHost(frames, pose_bytes + res_bytes);
+  double* out_res = residual ? out + poses.size() : nullptr;
   // A small batch: a fit per block finishes sooner; a large one fills the GPU with a fit per
   // warp.
   if (n <= kWideFitBatch)
     partFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
-                                                            in.list, out);
+                                                           in.list, out, out_res);
   else
-    partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, in.points, in.begin, in.motions,
-                                                           in.list, static_cast<int>(n), out);
+    partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
+        d, in.points, in.begin, in.motions, in.list, static_cast<int>(n), out, out_res);
   cudaCheckLaunch();
-  takeResults(frames, poses.data(), poses.size() * sizeof(double));
+  if (!residual) {
+    takeResults(frames, poses.data(), pose_bytes);
+    return;
+  }
+  std::vector<double> both(poses.size() + residual->size());
+  takeResults(frames, both.data(), pose_bytes + res_bytes);
+  std::copy(both.begin(), both.begin() + static_cast<std::ptrdiff_t>(poses.size()), poses.begin());
+  std::copy(both.begin() + static_cast<std::ptrdiff_t>(poses.size()), both.end(),
+            residual->begin());
 }
 
 void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vector<double>& points,

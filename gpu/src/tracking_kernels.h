@@ -242,10 +242,12 @@ struct PartFitJob {
 };
 
 /** segmentation::PartFitJobs: icp() of each job (`iterations` steps) kept when its residual is at
- * most r0, else the start; one warp each; 12 doubles per job in `poses`. */
+ * most r0, else the start; one warp each; 12 doubles per job in `poses`, and where `residual` is
+ * given, each kept pose's residual (runResiduals' value) into it. */
 void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<int>& source_begin, const std::vector<double>& motions,
-                 const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses);
+                 const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses,
+                 std::vector<double>* residual = nullptr);
 
 /** A rigid motions' fit (segmentation::RigidFitJob) with its source's range: points
  * [source_begin, source_begin + source_count) of the packed sources (x, y, z doubles). */

@@ -158,8 +158,11 @@ int runTool(int argc, char** argv, const std::string& name, const std::string& u
   // and relocating the shared libraries), and after it (the C runtime's exit handlers, the CUDA
   // runtime's among them). Boot clock, 10 ms ticks for the start.
   if (std::getenv("ANIMSEG_MS_TIMING")) {
-    std::fprintf(stderr, "[process] main began %.3f s after the process started\n",
-                 sinceProcessStart());
+    timespec mono{};
+    clock_gettime(CLOCK_MONOTONIC, &mono);
+    std::fprintf(stderr, "[process] main began %.3f s after the process started (monotonic %.6f)\n",
+                 sinceProcessStart(),
+                 static_cast<double>(mono.tv_sec) + 1e-9 * static_cast<double>(mono.tv_nsec));
     std::atexit([] {
       std::fprintf(stderr, "[process] exit handlers done %.3f s after the process started\n",
                    sinceProcessStart());

@@ -1,3 +1,4 @@
+#include <omp.h>
 #include <pcl/point_types.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/kdtree.h>
@@ -9,7 +10,9 @@
 
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <limits>
 #include <map>
 #include <memory>
@@ -117,7 +120,9 @@ class NeighbourLists {
     }
   }
   /** The device's k-NN of every point of every frame (one call for all frames, the frames
-   * one after the other): rows of the frames' flat trees, k slots per query. */
+   * one after the other): k slots per query, each a point's index in its frame's cloud (the
+   * device gives rows of the frames' flat trees; everyPointLists maps them once, ahead, so
+   * that a list's reader does not). */
   struct DeviceLists {
     int k = 0;
     std::vector<int> rows, count;
@@ -127,14 +132,23 @@ class NeighbourLists {
     long long trees = 0;
   };
   /** The same lists as a view into `lists`, whose queries `first`, `first` + 1, ... are this
-   * frame's points, rows of `tree`'s flat tree. */
-  void view(std::shared_ptr<const DeviceLists> lists, std::size_t first, const Cloud& cloud,
-            const pcl_animseg::KdTree<pcl::PointNormal>& tree) {
+   * frame's points. */
+  void view(std::shared_ptr<const DeviceLists> lists, std::size_t first, const Cloud& cloud) {
     lists_ = std::move(lists);
     cloud_ = &cloud;
-    tree_ = &tree;
     k_ = lists_->k;
     first_ = first;
+  }
+  /** Point j's neighbours (cloud indices, the nearest first, point j itself among them), as
+   * get() gives them, without their distances: where `count` is returned. */
+  const int* indices(std::size_t j, int& count) const {
+    if (lists_) {
+      const std::size_t q = first_ + j;
+      count = lists_->count[q];
+      return &lists_->rows[q * k_];
+    }
+    count = count_[j];
+    return &idx_[j * k_];
   }
   bool empty() const { return count_.empty() && !lists_; }
   /** The lists of point j (a labelled point) into idx and d2, as nearestKSearch gives them. */
@@ -149,7 +163,7 @@ class NeighbourLists {
       const auto& x = (*cloud_)[j];
       const float qx[3] = {x.x, x.y, x.z};
       for (int i = 0; i < c; ++i) {
-        idx[i] = tree_->cloudIndex(r[i]);
+        idx[i] = r[i];
         const auto& y = (*cloud_)[idx[i]];
         const float py[3] = {y.x, y.y, y.z};
         d2[i] = FlatKdTree3::distance2(qx, py);
@@ -166,7 +180,6 @@ class NeighbourLists {
   std::vector<float> d2_;
   std::shared_ptr<const DeviceLists> lists_;
   const Cloud* cloud_ = nullptr;
-  const pcl_animseg::KdTree<pcl::PointNormal>* tree_ = nullptr;
   std::size_t first_ = 0;
 };
 
@@ -228,6 +241,28 @@ std::shared_ptr<const NeighbourLists::DeviceLists> everyPointLists(RigidFitDevic
   if (kept) lists->device = &device, lists->trees = kept;
   if (lists->count.size() != tree_of.size() || lists->rows.size() != tree_of.size() * k)
     throw Error("refinement: the device's k-NN lists do not match their queries");
+  // Rows of the flat trees into cloud indices, once (each reader of the lists did it per read).
+  int bad = 0;
+#pragma omp parallel for schedule(dynamic) reduction(| : bad)
+  for (int t = 0; t < static_cast<int>(frames); ++t) {
+    const int rows = static_cast<int>(trees[t].size());
+    for (std::size_t q = first[t]; q < first[t + 1]; ++q) {
+      const int c = lists->count[q];
+      if (c < 0 || c > k) {
+        bad = 1;
+        continue;
+      }
+      int* r = &lists->rows[q * k];
+      for (int i = 0; i < c; ++i) {
+        if (r[i] < 0 || r[i] >= rows) {
+          bad = 1;
+          break;
+        }
+        r[i] = trees[t].cloudIndex(r[i]);
+      }
+    }
+  }
+  if (bad) throw Error("refinement: the device's k-NN lists name points out of range");
   return lists;
 }
 
@@ -236,7 +271,10 @@ std::shared_ptr<const NeighbourLists::DeviceLists> everyPointLists(RigidFitDevic
 // surface graph (no kept library has a multi-label one), run twice: once from the border points
 // for the band, then from the parts' points just beyond the band into it.
 std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spacing,
-                     const RefinementParams& p, std::vector<int>& lab) {
+                     const RefinementParams& p, std::vector<int>& lab,
+                     double* band_seconds = nullptr) {
+  const auto t_begin =
+      band_seconds ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
   const int n = static_cast<int>(cloud.size());
   const int k = p.boundary_k;
   const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * spacing, 2));
@@ -301,6 +339,9 @@ std::size_t foldSnap(const Cloud& cloud, const NeighbourLists& knn, double spaci
     else
       far[lab[j]] = 1;
   }
+  if (band_seconds)
+    *band_seconds +=
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t_begin).count();
   // 2. Every band point's three nearest parts, reached from the points just beyond the band; a
   // path costs its length plus fold_snap_penalty per degree of inward folding, and each point
   // keeps, per part, the degrees of folding on its cheapest path.
@@ -588,7 +629,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
                            : everyPointLists(*device_, *sequence_, trees, p.boundary_k + 1);
     prep.reset();
     for (std::size_t t = 0, first = 0; lists && t < frames; first += sequence_->frame(t++)->size())
-      knn[t].view(lists, first, *sequence_->frame(t), trees[t]);
+      knn[t].view(lists, first, *sequence_->frame(t));
     timer.lap(prepared_lists ? "neighbour lists (prepared)" : "neighbour lists (device)");
   };
 
@@ -602,6 +643,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   std::vector<std::vector<std::pair<int, int>>> frame_pairs(frames);
   int num_pairs = 0;
   auto findBands = [&]() {
+    timer.lap("before the bands");
     pair_id.clear();
     pairs.clear();
     band.assign(frames, {});
@@ -618,6 +660,14 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       std::vector<float> d2;
       for (std::size_t j = 0; j < cloud.size(); ++j) {
         if (lab[j] < 0 || (!candidate[t].empty() && !candidate[t][j])) continue;
+        // Most points have no neighbour of another label: their lists' distances are not needed.
+        {
+          int c = 0;
+          const int* nb = knn[t].indices(j, c);
+          bool mixed = false;
+          for (int k = 1; k < c && !mixed; ++k) mixed = lab[nb[k]] >= 0 && lab[nb[k]] != lab[j];
+          if (!mixed) continue;
+        }
         knn[t].get(j, idx, d2);
         // The most frequent other label among the near neighbours names the pair.
         int other = -1, best = 0;
@@ -639,6 +689,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
       for (const auto& [j, a, b] : boundary[t])
         if (known.emplace(a, b).second) seen.emplace_back(a, b);
     }
+    timer.lap("bands: boundary points");
     // Pair ids in order of first appearance over the frames in order: the frames' own lists
     // joined (one map insertion per boundary point was a serial pass over all of them).
     for (std::size_t t = 0; t < frames; ++t)
@@ -1100,6 +1151,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // frame's labels (one loop over the frames instead of two, each ending on its slowest frame).
     const bool snap_here = p.fold_snap_band > 0.0 && iter + 1 == p.max_iterations;
     std::size_t snapped = 0;
+    double snap_cpu = 0.0, snap_band_cpu = 0.0;
 #pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
     for (int i = 0; i < static_cast<int>(frames); ++i) {
       const int t = snap_here ? by_size[i] : by_verdicts[i];
@@ -1111,8 +1163,26 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         changes[t].emplace_back(j, other);
       }
       for (const auto& [j, l] : changes[t]) labels[t][j] = l;
-      if (snap_here) snapped += foldSnap(*sequence_->frame(t), knn[t], spacing[t], p, labels[t]);
+      if (snap_here) {
+        const auto t0 =
+            timer.on() ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
+        double band_sec = 0.0;
+        snapped += foldSnap(*sequence_->frame(t), knn[t], spacing[t], p, labels[t],
+                            timer.on() ? &band_sec : nullptr);
+        if (timer.on()) {
+#pragma omp atomic
+          snap_band_cpu += band_sec;
+          const double sec =
+              std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+#pragma omp atomic
+          snap_cpu += sec;
+        }
+      }
     }
+    if (snap_here && timer.on())
+      std::fprintf(stderr,
+                   "[refine] fold snap: %.3f CPU s on %d threads (finding its band %.3f CPU s)\n",
+                   snap_cpu, omp_get_max_threads(), snap_band_cpu);
     if (snap_here) stats_.snapped = snapped;
     if (iter == 0) stats_.band_points = band_w;
     std::size_t changed = 0;

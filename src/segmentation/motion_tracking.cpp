@@ -771,6 +771,21 @@ void MotionDevice::startStreamed(SampleTrackingProblem kept) {
 
 void MotionDevice::beginSamples(const SampleTrackingProblem& problem) { startStreamed(problem); }
 
+void MotionDevice::partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
+                                         std::vector<double>& residual) {
+  partFits(jobs, poses);
+  if (poses.size() != 12 * jobs.jobs.size())
+    throw Error("motion method: the device returned " + std::to_string(poses.size() / 12) +
+                " part fits for " + std::to_string(jobs.jobs.size()));
+  ResidualJobs scores;
+  scores.points = jobs.points;
+  scores.source_begin = jobs.source_begin;
+  scores.motions = poses;
+  for (std::size_t j = 0; j < jobs.jobs.size(); ++j)
+    scores.jobs.push_back({jobs.jobs[j].source, static_cast<int>(j), jobs.jobs[j].frame});
+  residuals(scores, residual);
+}
+
 void MotionDevice::trackFrames(const std::vector<int>& frames,
                                const std::vector<Eigen::Isometry3d>& global,
                                const std::vector<std::vector<int>>& level) {
@@ -934,6 +949,11 @@ class SharedDevice : public MotionDevice {
   void partFits(const PartFitJobs& jobs, std::vector<double>& poses) override {
     const std::lock_guard<std::mutex> lock(mutex_);
     device_.partFits(jobs, poses);
+  }
+  void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
+                             std::vector<double>& residual) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    device_.partFitsWithResiduals(jobs, poses, residual);
   }
 
  private:
@@ -1926,7 +1946,8 @@ class DeviceSourceBatches {
     Pose start;
     double r0, max_dist;
   };
-  std::vector<Pose> fits(const std::vector<Fit>& jobs) {
+  /** The fits' poses; with `residual`, also each pose's residual (as residuals() gives it). */
+  std::vector<Pose> fits(const std::vector<Fit>& jobs, std::vector<double>* residual = nullptr) {
     fits_.motions.clear();
     fits_.jobs.clear();
     for (std::size_t j = 0; j < jobs.size(); ++j) {
@@ -1935,7 +1956,14 @@ class DeviceSourceBatches {
           {jobs[j].source, static_cast<int>(j), jobs[j].frame, jobs[j].r0, jobs[j].max_dist});
     }
     std::vector<double> poses;
-    device_.partFits(fits_, poses);
+    if (residual) {
+      device_.partFitsWithResiduals(fits_, poses, *residual);
+      if (residual->size() != jobs.size())
+        throw Error("motion method: the device returned " + std::to_string(residual->size()) +
+                    " residuals for " + std::to_string(jobs.size()) + " part fits");
+    } else {
+      device_.partFits(fits_, poses);
+    }
     if (poses.size() != 12 * jobs.size())
       throw Error("motion method: the device returned " + std::to_string(poses.size() / 12) +
                   " part fits for " + std::to_string(jobs.size()));
@@ -2140,12 +2168,15 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     return motion;
   }
   // On the device: the tasks wave after wave (each after the tasks it depends on), each wave's
-  // start scores, ICPs and refined scores as three batches, with the same arithmetic as
-  // residual() and icp() (motion_device.h): the same motions as the task graph on the cores,
-  // whose 16 threads waited on the frames' chain of small fits (0.23 s of critical path at
-  // 800k).
+  // start scores as one batch, then the ICPs with their results' scores as another, with the
+  // same arithmetic as residual() and icp() (motion_device.h): the same motions as the task
+  // graph on the cores, whose 16 threads waited on the frames' chain of small fits (0.23 s of
+  // critical path at 800k).
   DeviceSourceBatches batches(src, kIterations, *device);
+  int n_waves = 0;
+  double t_dev = 0.0;
   for (const std::vector<int>& wave_tasks : taskWaves(successors)) {
+    ++n_waves;
     std::vector<int> wave;
     for (int task : wave_tasks)
       if (!pts[task % nc].empty()) wave.push_back(task);
@@ -2157,7 +2188,9 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     std::vector<DeviceSourceBatches::Item> starts;
     for (int w = 0; w < W; ++w)
       for (const Pose& P : st[w]) starts.push_back({wave[w] % nc, frame_order[wave[w] / nc], P});
+    auto td = std::chrono::steady_clock::now();
     const std::vector<double> start_res = batches.residuals(starts);
+    t_dev += std::chrono::duration<double>(std::chrono::steady_clock::now() - td).count();
     // Each task's two best starts, refined by ICP on the device (r0 infinite: the ICP's
     // result is kept whatever its residual, as icp() returns it).
     std::vector<std::vector<std::pair<double, int>>> score(W);
@@ -2175,11 +2208,11 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
         fit_of.push_back(w);
       }
     }
-    const std::vector<Pose> refined = batches.fits(fits);
-    std::vector<DeviceSourceBatches::Item> refined_items;
-    for (std::size_t f = 0; f < fits.size(); ++f)
-      refined_items.push_back({fits[f].source, fits[f].frame, refined[f]});
-    const std::vector<double> refined_res = batches.residuals(refined_items);
+    // The refined poses with their residuals (one call: the device scores a fit's result).
+    td = std::chrono::steady_clock::now();
+    std::vector<double> refined_res;
+    const std::vector<Pose> refined = batches.fits(fits, &refined_res);
+    t_dev += std::chrono::duration<double>(std::chrono::steady_clock::now() - td).count();
     // As solve(): the best start, replaced by a refinement that scores lower, in rank order.
     for (std::size_t f = 0, w0 = 0; w0 < static_cast<std::size_t>(W); ++w0) {
       const int w = static_cast<int>(w0);
@@ -2192,6 +2225,9 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
       }
     }
   }
+  if (timer.on())
+    std::fprintf(stderr, "[mean shift] part motions: %d waves, %.3f s in device calls\n", n_waves,
+                 t_dev);
   timer.lap("part motions: fits (device)");
   return motion;
 }

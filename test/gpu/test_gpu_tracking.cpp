@@ -21,6 +21,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <memory>
 #include <thread>
 #include <vector>
@@ -320,46 +321,57 @@ TEST(GpuTracking, RigidFitsOfLargeSourcesAreTheCpus) {
 // Residual batches on the GPU both ways (a thread per point with the sums after, and a warp per
 // job: setPointParallelLimit(0)) against the CPU's residual of each job from the same frames:
 // the same bits. The sources run from none to thousands of points, as a merge's parts do.
+// A 4-frame humanoid's frames as a device takes them, and sources cut from frame 0 (0, 1, 37, 500
+// and 3000 points) under four motions (the identity and small turns and shifts): every (source,
+// motion, frame) a residual job.
+struct SourcesOnFrames {
+  SourcesOnFrames() {
+    seq = generated(synth::BodyPlan::Humanoid, 4, 6000, 5);
+    trees.resize(seq->size());
+    for (std::size_t t = 0; t < seq->size(); ++t) {
+      const auto& cloud = *seq->frame(t);
+      std::vector<float> xyz;
+      for (const auto& p : cloud) xyz.insert(xyz.end(), {p.x, p.y, p.z});
+      trees[t].build(xyz.data(), cloud.size());
+      seg::DeviceFrames::Frame f;
+      f.tree = &trees[t];
+      for (int row : trees[t].leafRows())
+        f.leaf_normals.insert(f.leaf_normals.end(),
+                              {cloud[row].normal_x, cloud[row].normal_y, cloud[row].normal_z});
+      f.spacing = pcl_animseg::meanSpacing(cloud);
+      frames.frames.push_back(f);
+    }
+    const auto& f0 = *seq->frame(0);
+    for (int n : {0, 1, 37, 500, 3000}) {
+      for (int i = 0; i < n; ++i) {
+        const auto& p = f0[(i * 7) % f0.size()];
+        b.points.insert(b.points.end(), {p.x, p.y, p.z, p.normal_x, p.normal_y, p.normal_z});
+      }
+      b.source_begin.push_back(static_cast<int>(b.points.size() / 6));
+    }
+    for (int k = 0; k < 4; ++k) {
+      const Eigen::Matrix3d r =
+          Eigen::AngleAxisd(0.05 * k, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+      for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) b.motions.push_back(r(i, j));
+      b.motions.insert(b.motions.end(), {0.01 * k, -0.005 * k, 0.0});
+    }
+    for (int src = 0; src < 5; ++src)
+      for (int m = 0; m < 4; ++m)
+        for (int t = 0; t < static_cast<int>(seq->size()); ++t) b.jobs.push_back({src, m, t});
+  }
+  pcl_animseg::PointCloudSequence::Ptr seq;
+  std::vector<pcl_animseg::FlatKdTree3> trees;
+  seg::DeviceFrames frames;
+  seg::ResidualJobs b;
+};
+
 TEST(GpuTracking, ResidualBatchesAreTheCpusBothWays) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
-  const auto seq = generated(synth::BodyPlan::Humanoid, 4, 6000, 5);
-  std::vector<pcl_animseg::FlatKdTree3> trees(seq->size());
-  seg::DeviceFrames frames;
-  for (std::size_t t = 0; t < seq->size(); ++t) {
-    const auto& cloud = *seq->frame(t);
-    std::vector<float> xyz;
-    for (const auto& p : cloud) xyz.insert(xyz.end(), {p.x, p.y, p.z});
-    trees[t].build(xyz.data(), cloud.size());
-    seg::DeviceFrames::Frame f;
-    f.tree = &trees[t];
-    for (int row : trees[t].leafRows())
-      f.leaf_normals.insert(f.leaf_normals.end(),
-                            {cloud[row].normal_x, cloud[row].normal_y, cloud[row].normal_z});
-    f.spacing = pcl_animseg::meanSpacing(cloud);
-    frames.frames.push_back(f);
-  }
-  // Sources cut from frame 0: 0, 1, 37, 500 and 3000 points; motions: the identity and small
-  // turns and shifts.
-  seg::ResidualJobs b;
-  const auto& f0 = *seq->frame(0);
-  for (int n : {0, 1, 37, 500, 3000}) {
-    for (int i = 0; i < n; ++i) {
-      const auto& p = f0[(i * 7) % f0.size()];
-      b.points.insert(b.points.end(), {p.x, p.y, p.z, p.normal_x, p.normal_y, p.normal_z});
-    }
-    b.source_begin.push_back(static_cast<int>(b.points.size() / 6));
-  }
-  for (int k = 0; k < 4; ++k) {
-    const Eigen::Matrix3d r =
-        Eigen::AngleAxisd(0.05 * k, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 3; ++j) b.motions.push_back(r(i, j));
-    b.motions.insert(b.motions.end(), {0.01 * k, -0.005 * k, 0.0});
-  }
-  for (int s = 0; s < 5; ++s)
-    for (int m = 0; m < 4; ++m)
-      for (int t = 0; t < static_cast<int>(seq->size()); ++t) b.jobs.push_back({s, m, t});
+  const SourcesOnFrames data;
+  const seg::DeviceFrames& frames = data.frames;
+  const seg::ResidualJobs& b = data.b;
   // The CPU's residual of each job from the same frames (motion_tracking.cpp's residual).
   const std::vector<double> cpu = animseg_test::cpuResiduals(frames, b);
   gpu::MotionTracking device;
@@ -401,4 +413,54 @@ TEST(GpuTracking, ResidualBatchesAreTheCpusBothWays) {
   beside.join();
   EXPECT_EQ(differ_fork, 0);
   EXPECT_EQ(differ_here, 0);
+}
+
+// A part fit's score of its own result (MotionTracking::partFitsWithResiduals, one call) is what
+// a residual batch gives for the pose kept, bit for bit: the fit's result, or the start where the
+// fit scored above r0; the poses are partFits()'.
+TEST(GpuTracking, PartFitsScoreWhatTheyKeepAsTheCpu) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const SourcesOnFrames data;
+  seg::PartFitJobs fits;
+  fits.points = data.b.points;
+  fits.source_begin = data.b.source_begin;
+  fits.motions = data.b.motions;
+  fits.iterations = 8;
+  for (std::size_t j = 0; j < data.b.jobs.size(); ++j) {
+    const auto& r = data.b.jobs[j];
+    // Every third job keeps the start unless its fit scores 0 (r0 = 0), the others the fit.
+    const double r0 = j % 3 == 0 ? 0.0 : std::numeric_limits<double>::infinity();
+    fits.jobs.push_back(
+        {r.source, r.motion, r.frame, r0, 4.0 * data.frames.frames[r.frame].spacing});
+  }
+  gpu::MotionTracking device;
+  device.setFrames(data.frames);
+  std::vector<double> poses, with_res, res;
+  device.partFits(fits, poses);
+  device.partFitsWithResiduals(fits, with_res, res);
+  ASSERT_EQ(poses.size(), 12 * fits.jobs.size());
+  EXPECT_EQ(with_res, poses);
+  ASSERT_EQ(res.size(), fits.jobs.size());
+  // The CPU's residual of each job's kept pose.
+  seg::ResidualJobs kept;
+  kept.points = fits.points;
+  kept.source_begin = fits.source_begin;
+  kept.motions = poses;
+  int starts_kept = 0;
+  for (std::size_t j = 0; j < fits.jobs.size(); ++j) {
+    kept.jobs.push_back({fits.jobs[j].source, static_cast<int>(j), fits.jobs[j].frame});
+    starts_kept += std::equal(poses.begin() + 12 * j, poses.begin() + 12 * (j + 1),
+                              fits.motions.begin() + 12 * fits.jobs[j].motion);
+  }
+  const std::vector<double> cpu = animseg_test::cpuResiduals(data.frames, kept);
+  int differ = 0;
+  for (std::size_t j = 0; j < cpu.size(); ++j) differ += res[j] != cpu[j];
+  std::printf("%zu part fits (%d kept their start): %d scores differ from the CPU's\n",
+              fits.jobs.size(), starts_kept, differ);
+  EXPECT_EQ(differ, 0);
+  // Both branches ran: starts kept (r0 = 0) and fits kept; and the scores are not all zero.
+  EXPECT_GT(starts_kept, 0);
+  EXPECT_LT(starts_kept, static_cast<int>(fits.jobs.size()));
+  EXPECT_GT(*std::max_element(cpu.begin(), cpu.end()), 0.0);
 }

@@ -185,6 +185,12 @@ class MotionDevice {
   virtual void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) = 0;
   /** \brief One pose per job (12 doubles each, in job order). */
   virtual void partFits(const PartFitJobs& jobs, std::vector<double>& poses) = 0;
+  /** \brief partFits(), and the residual of each job's pose (its source under that pose in the
+   * job's frame, residuals()' value) into `residual`, in job order. The default asks residuals()
+   * for them after the fits; a device that scores the fit's result anyway (the CUDA module's)
+   * returns that score, the same bits, without the second call. */
+  virtual void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
+                                     std::vector<double>& residual);
   /** \brief A second device on the same frames that another thread may call while this one is
    * called (its own buffers and queue; the same results), or null where the device offers none
    * (the default: the callers then take turns). It uses this device's frames: it must not

@@ -59,6 +59,10 @@ class MotionTracking : public segmentation::MotionDevice {
   void residuals(const segmentation::ResidualJobs& jobs, std::vector<double>& out) override;
   void pointCosts(const segmentation::PointCostJobs& jobs, std::vector<double>& out) override;
   void partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) override;
+  /** \brief partFits() with the score that each fit computes of its result returned (and the
+   * start's, where the start is kept): one call, the residuals() values. */
+  void partFitsWithResiduals(const segmentation::PartFitJobs& jobs, std::vector<double>& poses,
+                             std::vector<double>& residual) override;
   /** \brief A MotionTracking on this one's frames (uploaded now if pending) with its own batch
    * buffers: its calls from another thread run beside this one's on the GPU (each host thread
    * queues on a stream of its own). Throws Error where no frames were set or on a CUDA failure. */
@@ -77,6 +81,9 @@ class MotionTracking : public segmentation::MotionDevice {
  private:
   /** The frames on the device, after uploading the pending ones (null: none were set). */
   detail::FrameStore* store();
+  /** partFits(), with each kept pose's residual where `residual` is given. */
+  void fitParts(const segmentation::PartFitJobs& jobs, std::vector<double>& poses,
+                std::vector<double>* residual);
 
   std::unique_ptr<detail::FrameArrays> pending_;  ///< set, not uploaded yet
   std::unique_ptr<detail::FrameStore> frames_;
