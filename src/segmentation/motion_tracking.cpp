@@ -961,6 +961,58 @@ class SharedDevice : public MotionDevice {
   std::mutex mutex_;
 };
 
+// A device's calls counted and timed (ANIMSEG_MS_TIMING: the clustering's laps say how much of
+// each went to device calls, and how many).
+class TimedDevice : public MotionDevice {
+ public:
+  explicit TimedDevice(MotionDevice& device) : device_(device) {}
+  std::string name() const override { return device_.name(); }
+  bool starting() const override { return device_.starting(); }
+  void setFrames(const DeviceFrames& frames) override {
+    timed([&] { device_.setFrames(frames); });
+  }
+  void trackSamples(const SampleTrackingProblem& problem,
+                    std::vector<std::vector<Eigen::Isometry3d>>& poses,
+                    std::vector<std::vector<double>>& residual) override {
+    timed([&] { device_.trackSamples(problem, poses, residual); });
+  }
+  void residuals(const ResidualJobs& jobs, std::vector<double>& out) override {
+    timed([&] { device_.residuals(jobs, out); });
+  }
+  void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) override {
+    timed([&] { device_.pointCosts(jobs, out); });
+  }
+  void partFits(const PartFitJobs& jobs, std::vector<double>& poses) override {
+    timed([&] { device_.partFits(jobs, poses); });
+  }
+  void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
+                             std::vector<double>& residual) override {
+    timed([&] { device_.partFitsWithResiduals(jobs, poses, residual); });
+  }
+  std::unique_ptr<MotionDevice> fork() override { return device_.fork(); }
+  /** "N calls, S s" since the last report. */
+  std::string report() {
+    char line[64];
+    std::snprintf(line, sizeof(line), "%d device calls, %.3f s", calls_ - reported_calls_,
+                  seconds_ - reported_seconds_);
+    reported_calls_ = calls_;
+    reported_seconds_ = seconds_;
+    return line;
+  }
+
+ private:
+  template <class F>
+  void timed(F&& f) {
+    const auto t0 = std::chrono::steady_clock::now();
+    f();
+    seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    ++calls_;
+  }
+  MotionDevice& device_;
+  int calls_ = 0, reported_calls_ = 0;
+  double seconds_ = 0.0, reported_seconds_ = 0.0;
+};
+
 // While a device starts on a thread of its own (MotionDevice::starting), the OpenMP loops leave
 // it a core. With every core in the team, the start displaced one of the team's threads, and
 // each barrier of the whole-body ICPs waited for it: on the H100 machine's 16 cores the global
@@ -2259,6 +2311,16 @@ TrajectoryClusters clusterTrajectoriesOn(
   }
   std::vector<char> alive(S, 1);
   detail::StageTimer timer;
+  std::unique_ptr<TimedDevice> timed;
+  if (timer.on() && params.device) {
+    timed = std::make_unique<TimedDevice>(*params.device);
+    params.device = timed.get();
+  }
+  // A lap, with the device calls since the last one (ANIMSEG_MS_TIMING).
+  auto lapD = [&](const char* what) {
+    if (timed) std::fprintf(stderr, "[mean shift] (%s: %s)\n", what, timed->report().c_str());
+    timer.lap(what);
+  };
   // Enough points to score a pose on a part; more only costs time.
   constexpr std::size_t kSourcePoints = 32;
 
@@ -2447,7 +2509,7 @@ TrajectoryClusters clusterTrajectoriesOn(
     }
     return nbrs;
   };
-  timer.lap("clustering: sample edges");
+  lapD("clustering: sample edges");
   const int min_size = std::max(1, params.min_group_samples);
   // A merge of b into a, prepared (its edges not scored yet): reads a's and b's groups and
   // their neighbours' ids, changes nothing.
@@ -2641,7 +2703,7 @@ TrajectoryClusters clusterTrajectoriesOn(
 
   if (timer.on())
     std::fprintf(stderr, "[mean shift] phase 1: %d merges in %d batches\n", merges_made, batches);
-  timer.lap("clustering: phase 1 merges");
+  lapD("clustering: phase 1 merges");
   // Phase 2: the groups as whole parts. Each group's points are the geodesic cells of its samples
   // (disjoint), its motion per frame is refit by ICP of the whole group (far better conditioned
   // than a sample's neighbourhood), and the cost of merging A and B is the worst frame's residual
@@ -2770,7 +2832,7 @@ TrajectoryClusters clusterTrajectoriesOn(
     }
   }
 
-  timer.lap("clustering: part fits + borders");
+  lapD("clustering: part fits + borders");
   struct PartEdge {
     double cost = 0.0;
     bool joined = false;  // a surface-graph edge joins the two parts
@@ -2859,7 +2921,7 @@ TrajectoryClusters clusterTrajectoriesOn(
     const std::vector<PartEdge> c = evaluatePairs(list);
     for (std::size_t i = 0; i < list.size(); ++i) pedges[list[i]] = c[i];
   }
-  timer.lap("clustering: part edges");
+  lapD("clustering: part edges");
   std::vector<char> galive(G, 1);
   for (int g = 0; g < G; ++g) galive[g] = !gpts[g].empty();
   // Dissolving a part: a piece of phase 1 that straddles a joint has its own, compromise motion,
@@ -3292,7 +3354,7 @@ TrajectoryClusters clusterTrajectoriesOn(
                  "[mean shift] part merges: %d merges (fits %.3f s, edges %.3f s), %d dissolves "
                  "(%.3f s: point costs %.3f s, fits %.3f s), dissolve costs %.3f s\n",
                  n_merges, t_fit, t_edges, n_dissolves, t_dissolve, t_dpts, t_dfit, t_dcost);
-  timer.lap("clustering: part merges");
+  lapD("clustering: part merges");
   refresh_dissolve = false;
   // Snapshot: final ids in order of each group's first sample.
   std::vector<int> final_id(G, -1);
