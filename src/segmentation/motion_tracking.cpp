@@ -2234,9 +2234,11 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
   // same arithmetic as residual() and icp() (motion_device.h): the same motions as the task
   // graph on the cores, whose 16 threads waited on the frames' chain of small fits (0.23 s of
   // critical path at 800k).
-  DeviceSourceBatches batches(src, kIterations, *device);
+  // Under ANIMSEG_MS_TIMING the device's calls counted and timed (TimedDevice).
+  std::unique_ptr<TimedDevice> timed;
+  if (timer.on()) timed = std::make_unique<TimedDevice>(*device);
+  DeviceSourceBatches batches(src, kIterations, timed ? *timed : *device);
   int n_waves = 0;
-  double t_dev = 0.0;
   for (const std::vector<int>& wave_tasks : taskWaves(successors)) {
     ++n_waves;
     std::vector<int> wave;
@@ -2250,9 +2252,7 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
     std::vector<DeviceSourceBatches::Item> starts;
     for (int w = 0; w < W; ++w)
       for (const Pose& P : st[w]) starts.push_back({wave[w] % nc, frame_order[wave[w] / nc], P});
-    auto td = std::chrono::steady_clock::now();
     const std::vector<double> start_res = batches.residuals(starts);
-    t_dev += std::chrono::duration<double>(std::chrono::steady_clock::now() - td).count();
     // Each task's two best starts, refined by ICP on the device (r0 infinite: the ICP's
     // result is kept whatever its residual, as icp() returns it).
     std::vector<std::vector<std::pair<double, int>>> score(W);
@@ -2271,10 +2271,8 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
       }
     }
     // The refined poses with their residuals (one call: the device scores a fit's result).
-    td = std::chrono::steady_clock::now();
     std::vector<double> refined_res;
     const std::vector<Pose> refined = batches.fits(fits, &refined_res);
-    t_dev += std::chrono::duration<double>(std::chrono::steady_clock::now() - td).count();
     // As solve(): the best start, replaced by a refinement that scores lower, in rank order.
     for (std::size_t f = 0, w0 = 0; w0 < static_cast<std::size_t>(W); ++w0) {
       const int w = static_cast<int>(w0);
@@ -2287,9 +2285,9 @@ std::vector<std::vector<Pose>> trackParts(const std::vector<Frame>& frames, cons
       }
     }
   }
-  if (timer.on())
-    std::fprintf(stderr, "[mean shift] part motions: %d waves, %.3f s in device calls\n", n_waves,
-                 t_dev);
+  if (timed)
+    std::fprintf(stderr, "[mean shift] part motions: %d waves, %s\n", n_waves,
+                 timed->report().c_str());
   timer.lap("part motions: fits (device)");
   return motion;
 }
