@@ -16,7 +16,7 @@ namespace detail {
 /** \brief f(j) for every j < n: side by side where that can help (n > 1, outside a parallel
  * region; OpenMP's dynamic schedule in chunks of `chunk`), else in the caller's thread without
  * calling into the OpenMP runtime (a parallel loop whose `if` fails is still a team of one that it
- * starts: about 4000 a run at 800k on the GPU, 1 us each). Each j writes its own results, so the
+ * starts: about 5000 a run at 800k on the GPU, 1 us each). Each j writes its own results, so the
  * results are the same either way. */
 template <class F>
 void eachIndex(long n, int chunk, F&& f) {
