@@ -269,3 +269,38 @@ TEST(ChainedFit, SeveralChainsAtOnceEqualEachChainAlone) {
                   [](int, int, double, double) { return 0.0; }, [](double, double) { return true; })
                   .empty());
 }
+
+// detail::eachIndex: every index once, on several threads where it may, in the caller's thread
+// for one index or inside a parallel region (there it must not start a team of its own).
+TEST(ChainedFit, EachIndexVisitsEveryIndexOnceAndStaysInTheCallersThread) {
+  const int before = omp_get_max_threads();
+  omp_set_num_threads(std::max(2, before));
+  for (long n : {0L, 1L, 2L, 37L, 1000L}) {
+    std::vector<int> visits(static_cast<std::size_t>(n), 0),
+        thread(static_cast<std::size_t>(n), -1);
+    seg::detail::eachIndex(n, 4, [&](long j) {
+      ++visits[j];
+      thread[j] = omp_get_thread_num();
+    });
+    EXPECT_EQ(std::count(visits.begin(), visits.end(), 1), n) << "n " << n;
+    if (n == 1) {
+      EXPECT_EQ(thread[0], 0);
+      EXPECT_FALSE(omp_in_parallel());
+    }
+  }
+  // Inside a parallel region each thread's call runs its indices itself, in its own thread.
+  std::vector<int> mismatched(static_cast<std::size_t>(omp_get_max_threads()), 0);
+#pragma omp parallel
+  {
+    const int me = omp_get_thread_num();
+    std::vector<int> seen(50, 0);
+    seg::detail::eachIndex(50, 1, [&](long j) {
+      ++seen[j];
+      if (omp_get_thread_num() != me) ++mismatched[me];  // a team of one would renumber it 0
+    });
+    if (std::count(seen.begin(), seen.end(), 1) != 50) ++mismatched[me];
+  }
+  EXPECT_EQ(std::count(mismatched.begin(), mismatched.end(), 0),
+            static_cast<long>(mismatched.size()));
+  omp_set_num_threads(before);
+}
