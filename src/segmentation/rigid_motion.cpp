@@ -919,8 +919,10 @@ void fitBeside(const std::function<void()>& beside, Fits fits) {
   // awake until the fits are done. Asleep there (libgomp's threads sleep after a few
   // milliseconds of spinning), the parallel loops right after the fits ran several times slower
   // in a quarter to a third of the runs on the GPU machine's virtual CPUs: the rigid motions'
-  // merged parts 0.03-0.04 s instead of 0.01 s (docs/gpu.md, stop 55).
-  if (threads > 2) {
+  // merged parts 0.03-0.04 s instead of 0.01 s (docs/gpu.md, stop 55). Not where the threads
+  // outnumber the cores (--threads above them): there the spinning would take the fits' thread's
+  // turns.
+  if (threads > 2 && threads <= omp_get_num_procs()) {
 #pragma omp parallel
     while (!fitted.load(std::memory_order_acquire)) spinPause();
   }
