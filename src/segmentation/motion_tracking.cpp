@@ -919,76 +919,62 @@ class BesideThread {
   std::exception_ptr failed_;
 };
 
-// A device that two threads of the motion method share (the hierarchy's merges beside the part
-// motions and labels, where the device offers no fork): their calls one at a time, as a device
-// expects (MotionDevice serves one caller at a time). Each thread's calls and results are its
-// own, so the results are the same as one after the other.
-class SharedDevice : public MotionDevice {
+// A device in front of another: every call forwarded to it through around(), which the devices
+// below define (SharedDevice takes turns, TimedDevice counts and times).
+class DeviceInFront : public MotionDevice {
  public:
-  explicit SharedDevice(MotionDevice& device) : device_(device) {}
+  explicit DeviceInFront(MotionDevice& device) : device_(device) {}
   std::string name() const override { return device_.name(); }
   bool starting() const override { return device_.starting(); }
   void setFrames(const DeviceFrames& frames) override {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    device_.setFrames(frames);
+    around([&] { device_.setFrames(frames); });
   }
   void trackSamples(const SampleTrackingProblem& problem,
                     std::vector<std::vector<Eigen::Isometry3d>>& poses,
                     std::vector<std::vector<double>>& residual) override {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    device_.trackSamples(problem, poses, residual);
+    around([&] { device_.trackSamples(problem, poses, residual); });
   }
   void residuals(const ResidualJobs& jobs, std::vector<double>& out) override {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    device_.residuals(jobs, out);
+    around([&] { device_.residuals(jobs, out); });
   }
   void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) override {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    device_.pointCosts(jobs, out);
+    around([&] { device_.pointCosts(jobs, out); });
   }
   void partFits(const PartFitJobs& jobs, std::vector<double>& poses) override {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    device_.partFits(jobs, poses);
+    around([&] { device_.partFits(jobs, poses); });
   }
   void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
                              std::vector<double>& residual) override {
-    const std::lock_guard<std::mutex> lock(mutex_);
-    device_.partFitsWithResiduals(jobs, poses, residual);
+    around([&] { device_.partFitsWithResiduals(jobs, poses, residual); });
   }
 
- private:
+ protected:
+  /** Makes the call `call` (one of the device's) in this device's way. */
+  virtual void around(const std::function<void()>& call) = 0;
   MotionDevice& device_;
+};
+
+// A device that two threads of the motion method share (the hierarchy's merges beside the part
+// motions and labels, where the device offers no fork): their calls one at a time, as a device
+// expects (MotionDevice serves one caller at a time). Each thread's calls and results are its
+// own, so the results are the same as one after the other.
+class SharedDevice : public DeviceInFront {
+ public:
+  using DeviceInFront::DeviceInFront;
+
+ private:
+  void around(const std::function<void()>& call) override {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    call();
+  }
   std::mutex mutex_;
 };
 
 // A device's calls counted and timed (ANIMSEG_MS_TIMING: the clustering's laps say how much of
 // each went to device calls, and how many).
-class TimedDevice : public MotionDevice {
+class TimedDevice : public DeviceInFront {
  public:
-  explicit TimedDevice(MotionDevice& device) : device_(device) {}
-  std::string name() const override { return device_.name(); }
-  bool starting() const override { return device_.starting(); }
-  void setFrames(const DeviceFrames& frames) override {
-    timed([&] { device_.setFrames(frames); });
-  }
-  void trackSamples(const SampleTrackingProblem& problem,
-                    std::vector<std::vector<Eigen::Isometry3d>>& poses,
-                    std::vector<std::vector<double>>& residual) override {
-    timed([&] { device_.trackSamples(problem, poses, residual); });
-  }
-  void residuals(const ResidualJobs& jobs, std::vector<double>& out) override {
-    timed([&] { device_.residuals(jobs, out); });
-  }
-  void pointCosts(const PointCostJobs& jobs, std::vector<double>& out) override {
-    timed([&] { device_.pointCosts(jobs, out); });
-  }
-  void partFits(const PartFitJobs& jobs, std::vector<double>& poses) override {
-    timed([&] { device_.partFits(jobs, poses); });
-  }
-  void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
-                             std::vector<double>& residual) override {
-    timed([&] { device_.partFitsWithResiduals(jobs, poses, residual); });
-  }
+  using DeviceInFront::DeviceInFront;
   std::unique_ptr<MotionDevice> fork() override { return device_.fork(); }
   /** "N calls, S s" since the last report. */
   std::string report() {
@@ -1001,14 +987,12 @@ class TimedDevice : public MotionDevice {
   }
 
  private:
-  template <class F>
-  void timed(F&& f) {
+  void around(const std::function<void()>& call) override {
     const auto t0 = std::chrono::steady_clock::now();
-    f();
+    call();
     seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     ++calls_;
   }
-  MotionDevice& device_;
   int calls_ = 0, reported_calls_ = 0;
   double seconds_ = 0.0, reported_seconds_ = 0.0;
 };
