@@ -1086,12 +1086,10 @@ class ResidualBatch {
       device_->residuals(d_, out);
       return out;
     }
-    const long n = static_cast<long>(d_.jobs.size());
-#pragma omp parallel for schedule(dynamic, 16) if (!omp_in_parallel() && n > 1)
-    for (long j = 0; j < n; ++j) {
+    detail::eachIndex(static_cast<long>(d_.jobs.size()), 16, [&](long j) {
       const ResidualJobs::Job& job = d_.jobs[j];
       out[j] = residual(sources_[job.source], motions_[job.motion], frames_[job.frame]);
-    }
+    });
     return out;
   }
 
@@ -1480,11 +1478,10 @@ class PointCostBatch {
       device_->pointCosts(d, out);
       return out;
     }
-    const long n = static_cast<long>(jobs_.size());
-#pragma omp parallel for schedule(dynamic, 32) if (!omp_in_parallel() && n > 1)
-    for (long j = 0; j < n; ++j)
+    detail::eachIndex(static_cast<long>(jobs_.size()), 32, [&](long j) {
       out[j] = pointCost(rc_[static_cast<std::size_t>(jobs_[j].point)], frames_, ref_,
                          *motions_[jobs_[j].motion]);
+    });
     return out;
   }
 
@@ -3116,7 +3113,8 @@ TrajectoryClusters clusterTrajectoriesOn(
       std::vector<std::size_t> q0(nj + 1, 0);
       for (std::size_t j = 0; j < nj; ++j)
         q0[j + 1] = q0[j] + static_cast<std::size_t>(jobs[j].k1 - jobs[j].k0);
-#pragma omp parallel for schedule(static) if (q0[nj] * static_cast <std::size_t>(T) >= 65536)
+      const bool wide = e.size() >= 65536;  // the copy is worth a team
+#pragma omp parallel for schedule(static) if (wide)
       for (std::size_t j = 0; j < nj; ++j) {
         const Job& b = jobs[j];
         std::size_t q = q0[j];

@@ -423,16 +423,16 @@ std::vector<std::vector<Pose>> fitChains(int chains, int T, int ref, const Pose&
   if (threads > 1 && C < 4 * threads)
     return fitAlongChains(C, T, ref, identity, starts, score, fitFrom, same, -1, max_steps);
   std::vector<std::vector<Pose>> out(C);
-#pragma omp parallel for schedule(dynamic, 1) if (threads > 1)
-  for (int c = 0; c < C; ++c)
+  detail::eachIndex(C, 1, [&](long c) {
     out[c] = fitAlongChain(
         T, ref, identity,
         [&](int t, const ChainStep& step, const std::vector<Pose>* fit) {
-          return starts(c, t, step, fit);
+          return starts(static_cast<int>(c), t, step, fit);
         },
-        [&](int t, const Pose& P) { return score(c, t, P); },
-        [&](int t, const Pose& P, double r0) { return fitFrom(c, t, P, r0); }, same, false,
-        max_steps);
+        [&](int t, const Pose& P) { return score(static_cast<int>(c), t, P); },
+        [&](int t, const Pose& P, double r0) { return fitFrom(static_cast<int>(c), t, P, r0); },
+        same, false, max_steps);
+  });
   return out;
 }
 
