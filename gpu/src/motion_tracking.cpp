@@ -123,6 +123,7 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
     a.unoriented.push_back(f.unoriented ? 1 : 0);
   }
   const std::vector<int> point0 = packTrees(trees, a.nodes, a.points, a.root);
+  a.point0 = point0;
   a.normals.resize(4 * static_cast<std::size_t>(point0.back()));
 #pragma omp parallel for schedule(dynamic)
   for (int t = 0; t < a.frames; ++t) {
@@ -412,6 +413,15 @@ void MotionTracking::pointCosts(const segmentation::PointCostJobs& jobs, std::ve
   const detail::CallTimer timer(*frames_, 1, list.size());
   detail::runPointCosts(*frames_, jobs.reference_frame, jobs.per_frame, jobs.points, jobs.motions,
                         list, out);
+}
+
+bool MotionTracking::nearestMoved(const segmentation::MovedCopies& moved, std::vector<int>& pick) {
+  static_assert(detail::kMovedUndecided == segmentation::kMovedUndecided,
+                "the kernels' undecided pick is the interface's");
+  if (!store()) throw DeviceError("GPU labels: no frames were set");
+  if (!moved.fill) throw DeviceError("GPU labels: no copies to write");
+  detail::runMovedNearest(*frames_, moved.order, moved.k, moved.normal_cos, moved.fill, pick);
+  return true;
 }
 
 void MotionTracking::partFits(const segmentation::PartFitJobs& jobs, std::vector<double>& poses) {

@@ -5,6 +5,7 @@
 #include <pcl_animseg/gpu/device_array.h>
 
 #include <chrono>
+#include <functional>
 #include <memory>
 #include <utility>
 #include <vector>
@@ -59,6 +60,7 @@ struct FrameArrays {
   PackedVector<float> normals;  // 4 per point
   std::vector<double> spacing;  // per frame
   std::vector<int> unoriented;  // per frame
+  std::vector<int> point0;      // per frame: its first point (leaf order), plus the end
 };
 
 /** Page-locked host memory (cudaHostAlloc), grown as needed and kept: a batch's inputs go up
@@ -116,6 +118,7 @@ struct FrameStore {
   DeviceArray<float> points, normals;
   DeviceArray<double> spacing;
   DeviceArray<int> unoriented;
+  std::vector<int> point0;  // host copy: per frame its first point, plus the end
   /** Residual batches' buffers, grown as needed and kept: a merge loop asks for hundreds of
    * small batches, and an allocation each would cost more than the batch. A batch's inputs
    * (points, source ranges, motions, jobs) go up as one block through `staging`: one copy per
@@ -135,6 +138,8 @@ struct FrameStore {
     double seconds = 0.0;
   };
   CallStats stats[4];
+  /** The labels' copies of the reference (runMovedNearest) before they go up: kept, pageable. */
+  PackedVector<float> moved_host;
 };
 
 // Adds a call's wall time to its kind's statistics when it returns.
@@ -324,6 +329,15 @@ struct MotionCheckArrays {
   double cap;
 };
 void runMotionCheck(const KnnStore& store, const MotionCheckArrays& in, float* out);
+
+/** segmentation::kMovedUndecided (motion_device.h, which nvcc does not read). */
+constexpr int kMovedUndecided = -2;
+
+/** segmentation::MotionDevice::nearestMoved on `frames`' frames: `n` copies per frame (of the
+ * reference points `order`, n of them), written by `fill` (8 floats each, frame after frame);
+ * `pick` gets one entry per point of every frame (leaf order, frame after frame). */
+void runMovedNearest(FrameStore& frames, const std::vector<int>& order, int k, double normal_cos,
+                     const std::function<void(float*)>& fill, std::vector<int>& pick);
 
 /** The largest cluster of blocks that one rigid fit runs on (thread block clusters, sm_90). */
 constexpr int kRigidMaxCluster = 8;

@@ -27,6 +27,7 @@
 #include <vector>
 
 #include "pipeline/sequence_params.h"
+#include "segmentation/cpu_moved_nearest.h"
 #include "segmentation/cpu_residuals.h"
 #include "segmentation/synthetic_parts.h"
 
@@ -194,6 +195,42 @@ TEST(GpuTracking, MotionMethodLabelsAreTheCpus) {
                 ari);
     EXPECT_EQ(got.num_clusters, expected.num_clusters);
     EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
+  }
+}
+
+// Every frame's labels by the moved reference (MotionDevice::nearestMoved) on the GPU: the
+// contract's picks bit for bit (cpu_moved_nearest.h, whose picks are the cores' search's where it
+// decides), with ties of every kind planted (makeMovedCase), in small and large frames; and no
+// copies, no labels.
+TEST(GpuTracking, NearestMovedIsTheContractsPickForEveryPoint) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const SequenceCase cases[] = {{synth::BodyPlan::Humanoid, 4, 3000},
+                                {synth::BodyPlan::Hand, 3, 20000}};
+  for (const auto& sc : cases) {
+    const auto seq = generated(sc.plan, sc.frames, sc.points, 11);
+    animseg_test::MovedCase c;
+    animseg_test::makeMovedCase(*seq, c);
+    gpu::MotionTracking device;
+    device.setFrames(c.frames);
+    std::vector<int> pick;
+    ASSERT_TRUE(device.nearestMoved(c.copies, pick));
+    const std::vector<int> spec = animseg_test::movedNearestBySpec(c.frames, c.copies);
+    ASSERT_EQ(pick.size(), spec.size());
+    std::size_t differ = 0, undecided = 0;
+    for (std::size_t i = 0; i < spec.size(); ++i) {
+      differ += pick[i] != spec[i];
+      undecided += pick[i] == seg::kMovedUndecided;
+    }
+    std::printf("%s, %d frames x %d points: %zu picks differ, %zu undecided\n",
+                synth::toString(sc.plan).c_str(), sc.frames, sc.points, differ, undecided);
+    EXPECT_EQ(differ, 0u);
+    EXPECT_GT(undecided, 0u);
+    // No copies: no label anywhere.
+    seg::MovedCopies none;
+    none.fill = [](float*) {};
+    ASSERT_TRUE(device.nearestMoved(none, pick));
+    EXPECT_EQ(pick, std::vector<int>(spec.size(), -1));
   }
 }
 

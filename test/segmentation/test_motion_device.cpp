@@ -24,6 +24,7 @@
 #include <thread>
 #include <vector>
 
+#include "cpu_moved_nearest.h"
 #include "cpu_residuals.h"
 #include "synthetic_parts.h"
 
@@ -222,6 +223,18 @@ class RecordingDevice : public seg::MotionDevice {
       is::store(kept, &poses[poses.size() - 12]);
     }
   }
+  // Every frame's labels by the moved reference, as specified (cpu_moved_nearest.h), from the
+  // frames given; or none (offer_moved false), or every point left undecided (undecide_all).
+  bool nearestMoved(const seg::MovedCopies& m, std::vector<int>& pick) override {
+    const Call call(*this);
+    ++moved_calls;
+    if (!offer_moved) return false;
+    pick = animseg_test::movedNearestBySpec(frames, m);
+    if (undecide_all) std::fill(pick.begin(), pick.end(), seg::kMovedUndecided);
+    return true;
+  }
+  bool offer_moved = true, undecide_all = false;
+  int moved_calls = 0;
   // Which threads made the batch calls, and whether two calls were ever in the device at once.
   struct Call {
     explicit Call(RecordingDevice& d) : device(d) {
@@ -355,6 +368,7 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_GT(backend->device.error_batches, 0);  // the dissolve costs' errors per frame
   EXPECT_GT(backend->device.fit_batches, 0);   // the part fits, frame positions side by side
   EXPECT_GT(backend->device.fits, 100u);
+  EXPECT_EQ(backend->device.moved_calls, 1);  // every frame's labels
   EXPECT_EQ(dev.deviceUsed(), "recording backend");
   EXPECT_EQ(got.num_clusters, expected.num_clusters);
   EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
@@ -369,6 +383,61 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_GT(backend->device.beside_calls, 0);   // the hierarchy's merges
   EXPECT_GT(backend->device.home_calls, 0);
   EXPECT_FALSE(backend->device.overlapped);
+}
+
+// Every frame's labels by the moved reference: from a device that leaves every point undecided
+// (the cores search them all again) or one that does not offer the search, the CPU's labels.
+TEST(MotionDevice, EveryFramesLabelsFromADeviceThatLeavesThemOrDoesNotOfferThemAreTheCpus) {
+  const auto seq = chain(5, 2500, 9);
+  const seg::SegmentationResult expected = segmentOnCpu(seq);
+  seg::MotionTrackingParams mp;
+  mp.point_neighbours = motionParams().neighbours;
+  const auto answer = seg::trackSamples(*seq, mp).poses;
+  for (int offer = 0; offer < 2; ++offer) {
+    auto backend = std::make_shared<RecordingBackend>();
+    backend->device.answer = answer;
+    backend->device.offer_moved = offer == 1;
+    backend->device.undecide_all = true;
+    seg::MeanShiftSegmentation dev;
+    dev.setInputSequence(seq);
+    dev.setParams(motionParams());
+    dev.setDeviceBackend(backend);
+    seg::SegmentationResult got;
+    dev.segment(got);
+    EXPECT_EQ(backend->device.moved_calls, 1) << offer;
+    EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels)) << offer;
+  }
+}
+
+// The search as specified (the device's contract) gives the cores' picks wherever it decides,
+// with ties of every kind planted (makeMovedCase), and leaves undecided only picks that a tie at
+// the k-th nearest decides.
+TEST(MovedNearest, TheContractIsTheCoresSearchWhereItDecides) {
+  const auto seq = chain(4, 3000, 5);
+  animseg_test::MovedCase c;
+  animseg_test::makeMovedCase(*seq, c);
+  const std::vector<int> spec = animseg_test::movedNearestBySpec(c.frames, c.copies);
+  const std::vector<int> tree = animseg_test::movedNearestByTree(c.frames, c.copies);
+  ASSERT_EQ(spec.size(), tree.size());
+  ASSERT_EQ(spec.size(), seq->totalPoints());
+  std::size_t undecided = 0, differ = 0, duplicates = 0;
+  for (std::size_t i = 0; i < spec.size(); ++i) {
+    if (spec[i] == seg::kMovedUndecided) {
+      ++undecided;
+      continue;
+    }
+    differ += spec[i] != tree[i];
+    EXPECT_GE(spec[i], 0);
+    // A pick of the lower of two copies at the same place (every 97th is the next one's twin).
+    const auto at = std::find(c.copies.order.begin(), c.copies.order.end(), spec[i]);
+    duplicates += (at - c.copies.order.begin()) % 97 == 0;
+  }
+  EXPECT_EQ(differ, 0u);
+  // Around the ten copies at one place, in the frames whose normals are oriented (25 of 12 000
+  // points), and nowhere else.
+  EXPECT_GT(undecided, 0u);
+  EXPECT_LT(undecided, 100u);
+  EXPECT_GT(duplicates, 0u);
 }
 
 // A device that fails in the hierarchy's merges, which run on a thread of their own beside the

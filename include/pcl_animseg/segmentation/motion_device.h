@@ -18,6 +18,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -114,6 +115,28 @@ struct PartFitJobs {
   std::vector<Job> jobs;
 };
 
+/** \brief MotionDevice::nearestMoved's answer for a point that a tie leaves to the caller. */
+constexpr int kMovedUndecided = -2;
+
+/** \brief The reference frame's points carried into every frame by their parts' motions, for a
+ * device to label every frame's points by (the motion method's last labelling): each point of
+ * frame t takes the label of the copy nearest to it, among its `k` nearest copies in frame t the
+ * first whose normal agrees with the point's, else of the nearest one. */
+struct MovedCopies {
+  /** The reference points that move (their indices; nearby points next to each other makes a
+   * device's search faster): each frame holds a copy of each, in this order. */
+  std::vector<int> order;
+  int k = 8;  ///< the nearest copies looked through for an agreeing normal (1..8)
+  /** Agreeing normals: a cosine (its absolute value in a frame with unoriented normals, see
+   * DeviceFrames::Frame) above this, the cosine computed in float as
+   * (nx * nx' + ny * ny') + nz * nz'. */
+  double normal_cos = 0.3;
+  /** Writes every frame's copies: frame t's copy of order[i] at out + 8 * (t * n + i), n =
+   * order.size(): x, y, z, 0, then its normal, 0 (copies that are not finite are left out of
+   * the search). Called once; the caller may write the frames side by side. */
+  std::function<void(float* out)> fill;
+};
+
 /** \brief Appends a motion in the devices' layout (ResidualJobs::motions,
  * PointCostJobs::motions): 12 doubles, the rotation row by row, then the translation. */
 inline void appendMotion(const Eigen::Isometry3d& a, std::vector<double>& out) {
@@ -191,6 +214,17 @@ class MotionDevice {
    * returns that score, the same bits, without the second call. */
   virtual void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
                                      std::vector<double>& residual);
+  /** \brief MovedCopies' labelling searched on the device: for each frame t (setFrames' frames),
+   * for each point of its tree in leaf order (FlatKdTree3::leafPoints), the index (one of
+   * `moved.order`) of the copy that labels it, -1 where frame t has no copies, or
+   * kMovedUndecided where a tie decides it that only the caller's search can break. The k
+   * nearest copies are those of FlatKdTree3::knn: by squared distance ((dx^2 + dy^2) + dz^2 in
+   * float), equal distances by the lower index; but where the k-th and the (k+1)-th are at the
+   * same distance, knn keeps the one it visits first, so a pick that depends on which is
+   * undecided. `pick` holds the frames one after the other. Returns
+   * false, leaving `pick` alone, where the device does not offer it (the default): the caller
+   * then searches on the cores. Throws Error on a device failure. */
+  virtual bool nearestMoved(const MovedCopies& moved, std::vector<int>& pick);
   /** \brief A second device on the same frames that another thread may call while this one is
    * called (its own buffers and queue; the same results), or null where the device offers none
    * (the default: the callers then take turns). It uses this device's frames: it must not

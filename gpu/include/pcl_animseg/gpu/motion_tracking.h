@@ -63,6 +63,10 @@ class MotionTracking : public segmentation::MotionDevice {
    * start's, where the start is kept): one call, the residuals() values. */
   void partFitsWithResiduals(const segmentation::PartFitJobs& jobs, std::vector<double>& poses,
                              std::vector<double>& residual) override;
+  /** \brief Every frame's points against their copies of the reference, a warp per 32 points
+   * (tiles of copies whose box is too far from the points' box are skipped). Throws Error on a
+   * CUDA failure or no frames set. */
+  bool nearestMoved(const segmentation::MovedCopies& moved, std::vector<int>& pick) override;
   /** \brief A MotionTracking on this one's frames (uploaded now if pending) with its own batch
    * buffers: its calls from another thread run beside this one's on the GPU (each host thread
    * queues on a stream of its own). Throws Error where no frames were set or on a CUDA failure. */
