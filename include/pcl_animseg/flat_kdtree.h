@@ -180,6 +180,16 @@ class FlatKdTree3 {
     return static_cast<int>(rows.size());
   }
 
+  /** \brief Calls hit(d2, row) for every row at squared distance below `bound2` (strictly), in
+   * no particular order: the rows nearest() would consider within that bound, without sorting
+   * or storing them. */
+  template <class Hit>
+  void within(const float q[3], float bound2, Hit hit) const {
+    if (nodes_.empty()) return;
+    visit(
+        q, [bound2]() { return bound2; }, hit);
+  }
+
   /** \brief The squared distance as every query computes it ((dx² + dy²) + dz² in float): for
    * callers that get rows without distances (a device's k-NN) and need the same values. */
   static float distance2(const float q[3], const float* p) { return dist2(q, p); }

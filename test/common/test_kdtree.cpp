@@ -128,6 +128,58 @@ TEST(KdTree, BoundedNearestAgreesWithBruteForce) {
   EXPECT_EQ(tree.nearest(std::numeric_limits<float>::quiet_NaN(), 0.0f, 0.0f, 1.0f, unused), -1);
 }
 
+// FlatKdTree3::within: every row strictly within the bound once, with nearest()'s squared
+// distance, none beyond it; on a cloud with NaN points and on the grid with duplicates, whose
+// points lie at exactly the bound from many queries (the fold snap's band takes the least of
+// these from every border point instead of a search per point).
+TEST(KdTree, WithinVisitsEveryRowBelowTheBoundOnce) {
+  for (int c = 0; c < 2; ++c) {
+    const Cloud::Ptr cloud = c == 0 ? randomCloud(3000, 8, true) : gridWithDuplicates();
+    pcl_animseg::KdTree<pcl::PointNormal> tree;
+    tree.setInputCloud(cloud);
+    const pcl_animseg::FlatKdTree3& ft = tree.flatTree();
+    std::mt19937 rng(9);
+    std::uniform_real_distribution<float> u(-1.0f, 12.0f);
+    std::size_t hits = 0, ties = 0;
+    for (int n = 0; n < 300; ++n) {
+      const pcl::PointNormal& at = (*cloud)[static_cast<std::size_t>(n * 7) % cloud->size()];
+      float q[3] = {at.x, at.y, at.z};
+      if (c == 0 && (n % 2 || !std::isfinite(at.y))) q[0] = u(rng) / 6.0f, q[1] = 0.0f, q[2] = 0.1f;
+      if (c == 1 && n % 3 == 1) q[0] += 0.5f, q[1] += 0.5f;  // a cell's edge midpoint
+      if (!std::isfinite(q[1])) continue;
+      const float bound2 = c == 0 ? 0.04f : 2.0f;
+      std::vector<int> seen(ft.size(), 0), leaf_of(ft.size());
+      for (std::size_t i = 0; i < ft.size(); ++i) leaf_of[ft.leafRows()[i]] = static_cast<int>(i);
+      float least = std::numeric_limits<float>::infinity();
+      ft.within(q, bound2, [&](float d2, int row) {
+        ++seen[row];
+        EXPECT_LT(d2, bound2);
+        EXPECT_EQ(d2, pcl_animseg::FlatKdTree3::distance2(
+                          q, &ft.leafPoints()[3 * static_cast<std::size_t>(leaf_of[row])]));
+        least = std::min(least, d2);
+      });
+      for (std::size_t i = 0; i < ft.size(); ++i) {
+        const float d2 = pcl_animseg::FlatKdTree3::distance2(q, &ft.leafPoints()[3 * i]);
+        const int row = ft.leafRows()[i];
+        EXPECT_EQ(seen[row], d2 < bound2 ? 1 : 0) << c << " " << n << " row " << row;
+        hits += d2 < bound2;
+        ties += d2 == least;
+      }
+      // The least of them is nearest()'s distance within the bound.
+      float nd2 = -1.0f;
+      const int nearest = ft.nearest(q, bound2, nd2);
+      if (std::isfinite(least)) {
+        ASSERT_GE(nearest, 0);
+        EXPECT_EQ(nd2, least);
+      } else {
+        EXPECT_EQ(nearest, -1);
+      }
+    }
+    EXPECT_GT(hits, 300u) << c;
+    if (c == 1) EXPECT_GT(ties, 300u);  // points at one distance, many at the bound itself
+  }
+}
+
 // nearest() with a guess (an ICP's match of the iteration before): the point and distance of
 // nearest() without one, whatever the guess (the true nearest point, a near one, a far one,
 // beyond the bound, a NaN point), also among ties: the grid with duplicates, queried at its
