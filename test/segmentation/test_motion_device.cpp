@@ -318,6 +318,27 @@ seg::SegmentationResult segmentOnCpu(const pcl_animseg::PointCloudSequence::Ptr&
   return result;
 }
 
+// The CPU's samples' poses, which a RecordingDevice answers the tracking with.
+std::vector<std::vector<Eigen::Isometry3d>> cpuPoses(const pcl_animseg::PointCloudSequence& seq) {
+  seg::MotionTrackingParams mp;
+  mp.point_neighbours = motionParams().neighbours;
+  return seg::trackSamples(seq, mp).poses;
+}
+
+// The motion method with `backend`'s device; `used`, where given, gets the device it ran on.
+seg::SegmentationResult segmentWith(const pcl_animseg::PointCloudSequence::Ptr& seq,
+                                    const std::shared_ptr<RecordingBackend>& backend,
+                                    std::string* used = nullptr) {
+  seg::MeanShiftSegmentation dev;
+  dev.setInputSequence(seq);
+  dev.setParams(motionParams());
+  dev.setDeviceBackend(backend);
+  seg::SegmentationResult got;
+  dev.segment(got);
+  if (used) *used = dev.deviceUsed();
+  return got;
+}
+
 }  // namespace
 
 TEST(MotionDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
@@ -343,19 +364,12 @@ TEST(MotionDevice, WavesRunEachFitAfterTheFitsItsStartsRead) {
 
 TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   const auto seq = chain(8, 3000, 4);
-  const seg::MeanShiftParams params = motionParams();
   const seg::SegmentationResult expected = segmentOnCpu(seq);
 
   auto backend = std::make_shared<RecordingBackend>();
-  seg::MotionTrackingParams mp;
-  mp.point_neighbours = params.neighbours;
-  backend->device.answer = seg::trackSamples(*seq, mp).poses;
-  seg::MeanShiftSegmentation dev;
-  dev.setInputSequence(seq);
-  dev.setParams(params);
-  dev.setDeviceBackend(backend);
-  seg::SegmentationResult got;
-  dev.segment(got);
+  backend->device.answer = cpuPoses(*seq);
+  std::string used;
+  const seg::SegmentationResult got = segmentWith(seq, backend, &used);
   EXPECT_EQ(backend->device.calls, 1);
   EXPECT_EQ(backend->device.frame_calls, 1);
   EXPECT_GT(backend->device.batches, 1);  // the edges, then the merges' batches
@@ -369,7 +383,7 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_GT(backend->device.fit_batches, 0);   // the part fits, frame positions side by side
   EXPECT_GT(backend->device.fits, 100u);
   EXPECT_EQ(backend->device.moved_calls, 1);  // every frame's labels
-  EXPECT_EQ(dev.deviceUsed(), "recording backend");
+  EXPECT_EQ(used, "recording backend");
   EXPECT_EQ(got.num_clusters, expected.num_clusters);
   EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels));
   // The merges the device's run evaluated ahead, in batches, are the CPU's one at a time.
@@ -390,20 +404,13 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
 TEST(MotionDevice, EveryFramesLabelsFromADeviceThatLeavesThemOrDoesNotOfferThemAreTheCpus) {
   const auto seq = chain(5, 2500, 9);
   const seg::SegmentationResult expected = segmentOnCpu(seq);
-  seg::MotionTrackingParams mp;
-  mp.point_neighbours = motionParams().neighbours;
-  const auto answer = seg::trackSamples(*seq, mp).poses;
+  const auto answer = cpuPoses(*seq);
   for (int offer = 0; offer < 2; ++offer) {
     auto backend = std::make_shared<RecordingBackend>();
     backend->device.answer = answer;
     backend->device.offer_moved = offer == 1;
     backend->device.undecide_all = true;
-    seg::MeanShiftSegmentation dev;
-    dev.setInputSequence(seq);
-    dev.setParams(motionParams());
-    dev.setDeviceBackend(backend);
-    seg::SegmentationResult got;
-    dev.segment(got);
+    const seg::SegmentationResult got = segmentWith(seq, backend);
     EXPECT_EQ(backend->device.moved_calls, 1) << offer;
     EXPECT_EQ(animseg_test::pooled(got.labels), animseg_test::pooled(expected.labels)) << offer;
   }
@@ -446,9 +453,7 @@ TEST(MovedNearest, TheContractIsTheCoresSearchWhereItDecides) {
 TEST(MotionDevice, AFailureBesideThePartLabelsStopsTheStageOrFallsBack) {
   const auto seq = chain(6, 2500, 7);
   const seg::SegmentationResult expected = segmentOnCpu(seq);
-  seg::MotionTrackingParams mp;
-  mp.point_neighbours = motionParams().neighbours;
-  const auto answer = seg::trackSamples(*seq, mp).poses;
+  const auto answer = cpuPoses(*seq);
   for (const bool fallback : {false, true}) {
     auto backend = std::make_shared<RecordingBackend>();
     backend->device.answer = answer;
@@ -484,16 +489,9 @@ TEST(MotionDevice, ADeviceStillStartingIsLeftACoreUntilItsFirstCall) {
   const auto seq = chain(6, 2500, 6);
   const seg::SegmentationResult expected = segmentOnCpu(seq);
   auto backend = std::make_shared<RecordingBackend>();
-  seg::MotionTrackingParams mp;
-  mp.point_neighbours = motionParams().neighbours;
-  backend->device.answer = seg::trackSamples(*seq, mp).poses;
+  backend->device.answer = cpuPoses(*seq);
   backend->device.start = true;
-  seg::MeanShiftSegmentation dev;
-  dev.setInputSequence(seq);
-  dev.setParams(motionParams());
-  dev.setDeviceBackend(backend);
-  seg::SegmentationResult got;
-  dev.segment(got);
+  const seg::SegmentationResult got = segmentWith(seq, backend);
   // The CPU work before the first call ran on one thread fewer (as did the chain of global poses
   // beside the samples' tracking); the caller's calls after it, on every thread.
   EXPECT_EQ(backend->device.threads_at_frames, 3);
