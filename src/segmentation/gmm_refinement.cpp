@@ -323,8 +323,9 @@ std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNor
   const float near2 = static_cast<float>(1.0201 * near * near);
   const float bound2 = static_cast<float>(1.0201 * bound * bound);
   // The distances within the band from the other side: the frame's points near each border
-  // point (the border points are few, and a band around them holds a small part of the frame:
-  // each point's search of the border points' tree was 46% of the fold snap's CPU time at 800k).
+  // point (the border points are few, and a band around them holds a small part of the frame):
+  // finding the band was 46% of the fold snap's CPU time at 800k, most of it a search of the
+  // border points' tree from every point; 41% now (0.443 -> 0.349 CPU s on 16 threads).
   // The same squared distances ((b - x)^2 is (x - b)^2 in float), the same bound (inclusive, as
   // KdTree::nearest's), the same least one.
   std::vector<float> near_d2(n, std::numeric_limits<float>::infinity());
