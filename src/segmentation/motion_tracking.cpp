@@ -3522,9 +3522,10 @@ void labelByParts(const std::vector<Frame>& frames, const SampleTracks& tr,
   const int kq = std::min(8, n0);
   // Frame t's points `which` (every point where null) labelled on the cores: the tree of the
   // frame's copies, then each point's search.
-  auto labelOnCores = [&](int t, const std::vector<int>* which, std::vector<int>& idx,
-                          std::vector<float>& d2) {
+  auto labelOnCores = [&](int t, const std::vector<int>* which) {
     const Cloud& fc = *frames[t].cloud;
+    std::vector<int> idx;
+    std::vector<float> d2;
     Cloud::Ptr moved(new Cloud);
     moved->resize(n0);
     for (int i = 0; i < n0; ++i) (*moved)[i] = copyOf(i, t);
@@ -3572,9 +3573,7 @@ void labelByParts(const std::vector<Frame>& frames, const SampleTracks& tr,
     mc.k = kq;
     mc.normal_cos = kNormalCos;
     const long n = static_cast<long>(mc.order.size());
-    double fill_s = 0.0;
     mc.fill = [&](float* out) {
-      const auto t0 = std::chrono::steady_clock::now();
 #pragma omp parallel for schedule(static)
       for (long x = 0; x < static_cast<long>(T) * n; ++x) {
         const pcl::PointNormal q = copyOf(mc.order[x % n], static_cast<int>(x / n));
@@ -3582,7 +3581,6 @@ void labelByParts(const std::vector<Frame>& frames, const SampleTracks& tr,
         o[0] = q.x, o[1] = q.y, o[2] = q.z, o[3] = 0.0f;
         o[4] = q.normal_x, o[5] = q.normal_y, o[6] = q.normal_z, o[7] = 0.0f;
       }
-      fill_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     };
     std::vector<int> pick;
     if (params.device->nearestMoved(mc, pick)) {
@@ -3611,33 +3609,22 @@ void labelByParts(const std::vector<Frame>& frames, const SampleTracks& tr,
       std::size_t left = 0;
       for (int t = 0; t < T; ++t) left += undecided[t].size();
       if (left > 0) {
-#pragma omp parallel
-        {
-          std::vector<int> idx;
-          std::vector<float> d2;
-#pragma omp for schedule(dynamic, 1)
-          for (int t = 0; t < T; ++t)
-            if (!undecided[t].empty()) labelOnCores(t, &undecided[t], idx, d2);
-        }
+#pragma omp parallel for schedule(dynamic, 1)
+        for (int t = 0; t < T; ++t)
+          if (!undecided[t].empty()) labelOnCores(t, &undecided[t]);
       }
       if (timer.on())
         std::fprintf(stderr,
-                     "[mean shift] labels of every frame on %s (copies written in %.3f s), %zu "
-                     "points left to the cores\n",
-                     params.device->name().c_str(), fill_s, left);
+                     "[mean shift] labels of every frame on %s, %zu points left to the cores\n",
+                     params.device->name().c_str(), left);
       timer.lap("labels: every frame");
       return;
     }
   }
   // On the cores: the frames side by side (each built its tree of the moved reference serially
   // while 15 threads waited).
-#pragma omp parallel
-  {
-    std::vector<int> idx;
-    std::vector<float> d2;
-#pragma omp for schedule(dynamic, 1)
-    for (int t = 0; t < T; ++t) labelOnCores(t, nullptr, idx, d2);
-  }
+#pragma omp parallel for schedule(dynamic, 1)
+  for (int t = 0; t < T; ++t) labelOnCores(t, nullptr);
   timer.lap("labels: every frame");
 }
 
