@@ -355,11 +355,14 @@ void MotionTracking::trackFrames(const std::vector<int>& frames,
     levels.insert(levels.end(), level[i].begin(), level[i].end());
     segmentation::appendMotion(global[i], g);
   }
-  std::stable_sort(by_depth.begin(), by_depth.end(),
-                   [](const auto& a, const auto& b) { return a.first < b.first; });
-  std::vector<int> tasks;
-  tasks.reserve(by_depth.size());
-  for (const auto& dt : by_depth) tasks.push_back(dt.second);
+  // By depth, ties in the order above: a counting sort (depths run from 1 to the chain's length).
+  int deepest = 0;
+  for (const auto& dt : by_depth) deepest = std::max(deepest, dt.first);
+  std::vector<int> first(static_cast<std::size_t>(deepest) + 2, 0);
+  for (const auto& dt : by_depth) ++first[dt.first + 1];
+  for (int d = 0; d <= deepest; ++d) first[d + 1] += first[d];
+  std::vector<int> tasks(by_depth.size());
+  for (const auto& dt : by_depth) tasks[first[dt.first]++] = dt.second;
   stream_->frames(frames, g.data(), levels.data(), tasks.data());
   waves_ += static_cast<int>(frames.empty() ? 0 : 1);
 }

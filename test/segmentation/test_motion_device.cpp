@@ -764,6 +764,41 @@ TEST(MotionDevice, FramesGivenOutOfOrderAreAnError) {
   EXPECT_NO_THROW(device.trackFrames({3}, {I}, {flat}));
 }
 
+// frameTasks: a frame's tasks by level, ties in sample order (what the devices' kernels take in
+// turn), also where a level is out of the BFS's range (a sample left unreached: -1).
+struct TaskOrder : RecordingDevice {
+  using seg::MotionDevice::frameTasks;
+};
+TEST(MotionDevice, AFramesTasksGoByLevelThenBySample) {
+  const int S = 500;
+  seg::SampleTrackingProblem p;
+  p.samples = S;
+  p.before = {-1, 0, 1};
+  p.two_before = {-1, -1, 0};
+  const std::vector<char> given{1, 1, 0};  // the reference and frame 1: frame 2 may come
+  std::mt19937 rng(7);
+  auto byLevelThenSample = [&](const std::vector<int>& level) {
+    std::vector<int> order(S);
+    for (int s = 0; s < S; ++s) order[s] = s;
+    std::sort(order.begin(), order.end(),
+              [&](int a, int b) { return level[a] != level[b] ? level[a] < level[b] : a < b; });
+    for (int& s : order) s += 2 * S;
+    return order;
+  };
+  for (int maxlevel : {0, 6, S - 1}) {
+    std::uniform_int_distribution<int> pick(0, maxlevel);
+    std::vector<int> level(S);
+    for (int& l : level) l = pick(rng);
+    EXPECT_EQ(TaskOrder::frameTasks(p, given, 2, level), byLevelThenSample(level)) << maxlevel;
+  }
+  std::vector<int> level(S);
+  for (int s = 0; s < S; ++s) level[s] = (s * 7) % 5 - 1;  // -1 .. 3: some unreached
+  const std::vector<int> tasks = TaskOrder::frameTasks(p, given, 2, level);
+  EXPECT_EQ(tasks, byLevelThenSample(level));
+  EXPECT_EQ(level[tasks.front() - 2 * S], -1);
+  EXPECT_THROW(TaskOrder::frameTasks(p, given, 1, level), pcl_animseg::Error);  // given twice
+}
+
 // A body of 1500 points a frame has 187 tracked samples: its whole-body ICP searches in parallel
 // (from 128 points) and its sums stay in point order, so the tracks are the same bit for bit on
 // one thread (where it runs serially) and on three.
