@@ -165,7 +165,14 @@ detail::FrameStore* MotionTracking::store() {
       std::fprintf(stderr, "[gpu tracking] first call at %.3f s: waited %.3f s for the GPU\n",
                    std::chrono::duration<double>(t0.time_since_epoch()).count(),
                    std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+    const auto t1 = std::chrono::steady_clock::now();
     frames_ = detail::uploadPackedFrames(*pending_, frames_.get());
+    if (std::getenv("ANIMSEG_MS_TIMING"))
+      std::fprintf(stderr, "[gpu tracking] frames uploaded: %.1f MB in %.4f s\n",
+                   (pending_->nodes.size() * sizeof(detail::TrackNode) +
+                    (pending_->points.size() + pending_->normals.size()) * sizeof(float)) /
+                       1e6,
+                   std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count());
     pending_.reset();
   }
   return frames_.get();
