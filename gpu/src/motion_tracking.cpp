@@ -3,6 +3,7 @@
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/gpu/device.h>
 #include <pcl_animseg/gpu/motion_tracking.h>
+#include <pcl_animseg/segmentation/task_graph.h>
 
 #include <algorithm>
 #include <chrono>
@@ -341,7 +342,7 @@ void MotionTracking::trackFrames(const std::vector<int>& frames,
   // calls, against 0.05 s in one call in waves). So the tasks go by depth, the length of the
   // longest chain of fits that ends in them (trackSamples' waves), ties in frame and level order.
   const int S = streamed_.samples;
-  std::vector<std::pair<int, int>> by_depth;  // (depth, task)
+  std::vector<int> task_of, depth_of;  // the frames' tasks in the order below, and their depths
   std::vector<int> levels;
   std::vector<double> g;
   for (std::size_t i = 0; i < frames.size(); ++i) {
@@ -357,19 +358,17 @@ void MotionTracking::trackFrames(const std::vector<int>& frames,
       for (int o : streamed_.graph[s])
         if (level[i][o] < level[i][s]) d = std::max(d, depthOf(t, o));
       depth_[static_cast<std::size_t>(task)] = d + 1;
-      by_depth.emplace_back(d + 1, task);
+      task_of.push_back(task);
+      depth_of.push_back(d + 1);
     }
     levels.insert(levels.end(), level[i].begin(), level[i].end());
     segmentation::appendMotion(global[i], g);
   }
-  // By depth, ties in the order above: a counting sort (depths run from 1 to the chain's length).
-  int deepest = 0;
-  for (const auto& dt : by_depth) deepest = std::max(deepest, dt.first);
-  std::vector<int> first(static_cast<std::size_t>(deepest) + 2, 0);
-  for (const auto& dt : by_depth) ++first[dt.first + 1];
-  for (int d = 0; d <= deepest; ++d) first[d + 1] += first[d];
-  std::vector<int> tasks(by_depth.size());
-  for (const auto& dt : by_depth) tasks[first[dt.first]++] = dt.second;
+  // By depth (1 to the chain's length), ties in the order above.
+  const int deepest = depth_of.empty() ? 0 : *std::max_element(depth_of.begin(), depth_of.end());
+  std::vector<int> tasks;
+  tasks.reserve(task_of.size());
+  for (int k : segmentation::orderByKey(depth_of, deepest + 1)) tasks.push_back(task_of[k]);
   stream_->frames(frames, g.data(), levels.data(), tasks.data());
   waves_ += static_cast<int>(frames.empty() ? 0 : 1);
 }

@@ -390,12 +390,10 @@ struct HalfBlock {
   }
 };
 
-// Pose i of n the identity (kPoseDoubles each: the rotation's 9, then the translation).
+// Pose i of n the identity, as icp_step::store lays a pose out.
 __global__ void identityPoses(double* poses, long long n) {
   const long long i = blockIdx.x * static_cast<long long>(blockDim.x) + threadIdx.x;
-  if (i >= n) return;
-  double* p = poses + i * kPoseDoubles;
-  for (int k = 0; k < kPoseDoubles; ++k) p[k] = (k < 9 && k % 4 == 0) ? 1.0 : 0.0;
+  if (i < n) icp_step::store(icp_step::identity(), poses + i * kPoseDoubles);
 }
 
 // Waits (thread 0) until task i's pose is written (done[i] set after a fence by its block).

@@ -755,15 +755,11 @@ std::vector<int> MotionDevice::frameTasks(const SampleTrackingProblem& problem,
     throw Error(what + ": one level per sample expected");
   // The samples by level, in sample order within a level (a counting sort: the stable sort's
   // order; levels are BFS levels, in [0, S) when every sample was reached).
-  std::vector<int> order(S);
-  const bool small =
-      std::all_of(level.begin(), level.end(), [&](int l) { return l >= 0 && l < S; });
-  if (small) {
-    std::vector<int> first(static_cast<std::size_t>(S) + 1, 0);
-    for (int l : level) ++first[l + 1];
-    for (int l = 0; l < S; ++l) first[l + 1] += first[l];
-    for (int s = 0; s < S; ++s) order[first[level[s]]++] = s;
+  std::vector<int> order;
+  if (std::all_of(level.begin(), level.end(), [&](int l) { return l >= 0 && l < S; })) {
+    order = orderByKey(level, S);
   } else {
+    order.resize(S);
     std::iota(order.begin(), order.end(), 0);
     std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return level[a] < level[b]; });
   }

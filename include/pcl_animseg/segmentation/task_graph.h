@@ -101,6 +101,17 @@ void runTaskGraph(const std::vector<std::vector<int>>& successors,
   if (error) std::rethrow_exception(error);
 }
 
+/** \brief 0..n-1 (n = key.size()) ordered by key, ties in index order: a stable sort's order,
+ * found by counting (the keys must lie in [0, keys): levels and depths of a task graph). */
+inline std::vector<int> orderByKey(const std::vector<int>& key, int keys) {
+  std::vector<int> first(static_cast<std::size_t>(std::max(keys, 0)) + 1, 0);
+  for (int k : key) ++first[k + 1];
+  for (int k = 0; k < keys; ++k) first[k + 1] += first[k];
+  std::vector<int> order(key.size());
+  for (int i = 0; i < static_cast<int>(key.size()); ++i) order[first[key[i]]++] = i;
+  return order;
+}
+
 /** \brief The tasks of a graph (`successors` as for runTaskGraph) in waves: wave 0 holds the
  * tasks that depend on none, wave w those whose longest chain of dependencies has w tasks
  * before them; each wave in increasing task order. A device that runs a wave at once (one kernel
