@@ -239,6 +239,25 @@ bool RigidFits::motionResiduals(long long token, const segmentation::MotionCheck
   return true;
 }
 
+bool RigidFits::leastDistances(long long token, const std::vector<float>& queries,
+                               const std::vector<int>& tree_of, const std::vector<float>& bound2,
+                               std::vector<float>& out) {
+  if (token <= 0 || token != knn_token_ || !knn_) return false;
+  const std::string what = "GPU least distances: ";
+  if (queries.size() != 3 * tree_of.size())
+    throw DeviceError(what + "three coordinates per query expected");
+  if (bound2.size() != static_cast<std::size_t>(knn_->trees))
+    throw DeviceError(what + "one bound per kept tree expected");
+  for (int t : tree_of)
+    if (t < 0 || t >= knn_->trees) throw DeviceError(what + "a query's tree out of range");
+  const auto t0 = std::chrono::steady_clock::now();
+  detail::runLeastDistances(*knn_, queries, tree_of, bound2, out);
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(stderr, "[gpu k-NN] least distances, %zu queries: %.3f s\n", tree_of.size(),
+                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  return true;
+}
+
 void RigidFits::dropKnnTrees(long long token) {
   if (token <= 0 || token != knn_token_) return;
   knn_.reset();

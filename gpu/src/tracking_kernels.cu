@@ -27,6 +27,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <limits>
 #include <thread>
 
 #include "cuda_check.h"
@@ -1312,6 +1313,79 @@ void runKnn(const KnnStore& store, int k, const std::vector<float>& queries,
   cudaCheckLaunch();
   d_rows.download(rows.data());
   d_count.download(count.data());
+}
+
+// Every element +infinity (its bits: no byte pattern of cudaMemset gives them).
+__global__ void fillInfinity(unsigned* out, long long n) {
+  const long long i = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) out[i] = 0x7f800000u;
+}
+
+// FlatKdTree3::within (flat_kdtree.h) from a query per thread: its walk bounded by the tree's
+// bound2 (strictly below), each point reached keeping the least squared distance in its row's
+// slot. Non-negative floats order as their bits, so an unsigned atomicMin keeps the least; the
+// distances in the CPU's float order, without contraction.
+__global__ void leastDistancesKernel(const TrackNode* nodes, const float4* pts, const int* rows,
+                                     const int* root, const int* first, const float* queries,
+                                     const int* tree_of, const float* bound2, long long n,
+                                     unsigned* out) {
+  const long long q = static_cast<long long>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (q >= n) return;
+  const int t = tree_of[q];
+  const float qx = queries[3 * q], qy = queries[3 * q + 1], qz = queries[3 * q + 2];
+  if (root[t] < 0 || !isfinite(qx) || !isfinite(qy) || !isfinite(qz)) return;
+  const float bound = bound2[t];
+  unsigned* slot = out + first[t];
+  struct Entry {
+    int node;
+    float min_d2;
+  };
+  Entry stack[kMaxDepth];
+  int top = 0;
+  stack[top++] = {root[t], 0.0f};
+  while (top > 0) {
+    const Entry e = stack[--top];
+    if (!(e.min_d2 < bound)) continue;
+    int nidx = e.node;
+    TrackNode nd = nodes[nidx];
+    while (nd.dim >= 0) {
+      const float qv = nd.dim == 0 ? qx : (nd.dim == 1 ? qy : qz);
+      const float diff = __fsub_rn(qv, nd.split);
+      const float far_d2 = fmaxf(e.min_d2, __fmul_rn(diff, diff));
+      if (far_d2 < bound && top < kMaxDepth) stack[top++] = {diff < 0.0f ? nd.b : nd.a, far_d2};
+      nidx = diff < 0.0f ? nd.a : nd.b;
+      nd = nodes[nidx];
+    }
+    for (int i = nd.a; i < nd.b; ++i) {
+      const float d = distance2(qx, qy, qz, pts[i]);
+      if (d < bound) atomicMin(slot + rows[i], __float_as_uint(d));
+    }
+  }
+}
+
+void runLeastDistances(const KnnStore& store, const std::vector<float>& queries,
+                       const std::vector<int>& tree_of, const std::vector<float>& bound2,
+                       std::vector<float>& out) {
+  const long long rows = store.first.empty() ? 0 : store.first.back();
+  out.assign(static_cast<std::size_t>(rows), std::numeric_limits<float>::infinity());
+  const long long n = static_cast<long long>(tree_of.size());
+  if (n == 0 || rows == 0) return;
+  DeviceArray<float> d_queries(queries.data(), queries.size());
+  DeviceArray<int> d_tree_of(tree_of.data(), tree_of.size());
+  DeviceArray<float> d_bound2(bound2.data(), bound2.size());
+  DeviceArray<int> d_first(store.first.data(), store.first.size());
+  DeviceArray<unsigned> d_out(static_cast<std::size_t>(rows));
+  const int threads = 128;
+  fillInfinity<<<static_cast<unsigned>((rows + threads - 1) / threads), threads>>>(d_out.ptr(),
+                                                                                   rows);
+  cudaCheckLaunch();
+  leastDistancesKernel<<<static_cast<unsigned>((n + threads - 1) / threads), threads>>>(
+      store.nodes.ptr(), reinterpret_cast<const float4*>(store.points.ptr()), store.rows.ptr(),
+      store.root.ptr(), d_first.ptr(), d_queries.ptr(), d_tree_of.ptr(), d_bound2.ptr(), n,
+      d_out.ptr());
+  cudaCheckLaunch();
+  static_assert(sizeof(unsigned) == sizeof(float), "a float's bits in an unsigned");
+  d_out.downloadBytes(out.data(), out.size() * sizeof(float));
 }
 
 YieldingWait::~YieldingWait() {

@@ -310,6 +310,12 @@ void uploadKnnTrees(const KnnTrees& trees, KnnStore& store);
 void runKnn(const KnnStore& store, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
 
+/** RigidFitDevice::leastDistances on `store`'s trees (the caller has checked the sizes): out
+ * gets store.first.back() values, each row's least squared distance or +infinity. */
+void runLeastDistances(const KnnStore& store, const std::vector<float>& queries,
+                       const std::vector<int>& tree_of, const std::vector<float>& bound2,
+                       std::vector<float>& out);
+
 /** RigidFitDevice::motionResiduals (segmentation::MotionCheckJobs, in its arrays) on `store`'s
  * trees, one per frame (`frames` of them; the caller has checked the sizes): out[r] for each of
  * the `residuals`. */

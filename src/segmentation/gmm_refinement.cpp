@@ -266,26 +266,26 @@ std::shared_ptr<const NeighbourLists::DeviceLists> everyPointLists(RigidFitDevic
   return lists;
 }
 
-// The fold snap of one frame (RefinementParams::fold_snap_*); returns the points it moved.
-// Written by us: a Dijkstra that keeps each point's three nearest parts over the frame's k-NN
-// surface graph (no kept library has a multi-label one), run twice: once from the border points
-// for the band, then from the parts' points just beyond the band into it.
-std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree,
-                     const NeighbourLists& knn, double spacing, const RefinementParams& p,
-                     std::vector<int>& lab, double* band_seconds = nullptr) {
-  const auto t_begin =
-      band_seconds ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
+// The fold snap's surface graph of one frame: each labelled point's boundary_k nearest within
+// boundary_max_distance (adj, -1 past the last), edge lengths in spacings, and the border points
+// (a neighbour of another label).
+struct SnapGraph {
+  std::vector<int> adj;
+  std::vector<float> len;
+  std::vector<char> border;
+};
+
+SnapGraph snapGraph(const Cloud& cloud, const NeighbourLists& knn, double spacing,
+                    const RefinementParams& p, const std::vector<int>& lab) {
   const int n = static_cast<int>(cloud.size());
   const int k = p.boundary_k;
   const float max_d2 = static_cast<float>(std::pow(p.boundary_max_distance * spacing, 2));
-  // The surface graph: each point's k nearest within boundary_max_distance, edge cost in
-  // spacings (length plus the fold penalty). An edge's fold (an acos and two norms) is computed
-  // when the search first crosses it (foldOf): most edges lie outside the band and never are.
-  std::vector<int> adj(static_cast<std::size_t>(n) * k, -1);
-  std::vector<float> len(static_cast<std::size_t>(n) * k, 0.0f), fold(adj.size(), -1.0f);
+  SnapGraph g;
+  g.adj.assign(static_cast<std::size_t>(n) * k, -1);
+  g.len.assign(static_cast<std::size_t>(n) * k, 0.0f);
+  g.border.assign(n, 0);
   std::vector<int> idx;
   std::vector<float> d2;
-  std::vector<char> border(n, 0);
   for (int j = 0; j < n; ++j) {
     if (lab[j] < 0) continue;
     knn.get(j, idx, d2);
@@ -293,11 +293,73 @@ std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNor
     for (std::size_t q = 0; q < idx.size() && e < k; ++q) {
       if (idx[q] == j || d2[q] > max_d2 || lab[idx[q]] < 0) continue;
       const std::size_t slot = static_cast<std::size_t>(j) * k + e++;
-      adj[slot] = idx[q];
-      len[slot] = static_cast<float>(std::sqrt(d2[q]) / spacing);
-      if (lab[idx[q]] != lab[j]) border[j] = 1;
+      g.adj[slot] = idx[q];
+      g.len[slot] = static_cast<float>(std::sqrt(d2[q]) / spacing);
+      if (lab[idx[q]] != lab[j]) g.border[j] = 1;
     }
   }
+  return g;
+}
+
+// The bound of the fold snap's search around the border points (FlatKdTree3::within's, strictly
+// below): squared distances up to 1.0201 band^2 (a little beyond the band: the same bands as a
+// search bounded by the band itself).
+float snapNearBound(const RefinementParams& p, double spacing) {
+  const double near = p.fold_snap_band * spacing;
+  return std::nextafter(static_cast<float>(1.0201 * near * near),
+                        std::numeric_limits<float>::max());
+}
+
+// Each point's least squared distance to a border point of `g`, below snapNearBound (else
+// +infinity): the frame's points near each border point (the border points are few, and a band
+// around them holds a small part of the frame): finding the band was 46% of the fold snap's CPU
+// time at 800k, most of it a search of the border points' tree from every point; 41% now
+// (0.443 -> 0.349 CPU s on 16 threads). The same squared distances ((b - x)^2 is (x - b)^2 in
+// float), the same bound (inclusive, as KdTree::nearest's), the same least one. With a device,
+// one call for every frame instead (foldSnaps in refine(): 0.70 -> 0.59 CPU s of the snap on the
+// H200 machine at 800k, its lap 0.050 -> 0.043 s).
+std::vector<float> nearBorder(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree,
+                              const SnapGraph& g, float near_bound) {
+  const int n = static_cast<int>(cloud.size());
+  std::vector<float> near_d2(n, std::numeric_limits<float>::infinity());
+  const FlatKdTree3& ft = tree.flatTree();
+  for (int b = 0; b < n; ++b) {
+    if (!g.border[b]) continue;
+    const float q[3] = {cloud[b].x, cloud[b].y, cloud[b].z};
+    if (!std::isfinite(q[0]) || !std::isfinite(q[1]) || !std::isfinite(q[2])) continue;
+    ft.within(q, near_bound, [&](float d2, int row) {
+      float& m = near_d2[tree.cloudIndex(row)];
+      m = std::min(m, d2);
+    });
+  }
+  return near_d2;
+}
+
+// The fold snap of one frame (RefinementParams::fold_snap_*); returns the points it moved.
+// Written by us: a Dijkstra that keeps each point's three nearest parts over the frame's k-NN
+// surface graph (no kept library has a multi-label one), run twice: once from the border points
+// for the band, then from the parts' points just beyond the band into it. `graph` and
+// `near_given`, where given, are snapGraph's and nearBorder's results for these labels (the
+// latter from a device: RigidFitDevice::leastDistances); else they are found here.
+std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNormal>& tree,
+                     const NeighbourLists& knn, double spacing, const RefinementParams& p,
+                     std::vector<int>& lab, double* band_seconds = nullptr,
+                     const SnapGraph* graph = nullptr,
+                     const std::vector<float>* near_given = nullptr) {
+  const auto t_begin =
+      band_seconds ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
+  const int n = static_cast<int>(cloud.size());
+  const int k = p.boundary_k;
+  // The surface graph: each point's k nearest within boundary_max_distance, edge cost in
+  // spacings (length plus the fold penalty). An edge's fold (an acos and two norms) is computed
+  // when the search first crosses it (foldOf): most edges lie outside the band and never are.
+  SnapGraph own;
+  if (!graph) own = snapGraph(cloud, knn, spacing, p, lab);
+  const SnapGraph& g = graph ? *graph : own;
+  const std::vector<int>& adj = g.adj;
+  const std::vector<float>& len = g.len;
+  const std::vector<char>& border = g.border;
+  std::vector<float> fold(adj.size(), -1.0f);
   // 1. The band: points within fold_snap_band of a border point (straight-line distance, as W).
   const float band = static_cast<float>(p.fold_snap_band);
   std::vector<float> to_border(n, std::numeric_limits<float>::infinity());
@@ -322,24 +384,10 @@ std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNor
   const double near = p.fold_snap_band * spacing, bound = 2.0 * near;
   const float near2 = static_cast<float>(1.0201 * near * near);
   const float bound2 = static_cast<float>(1.0201 * bound * bound);
-  // The distances within the band from the other side: the frame's points near each border
-  // point (the border points are few, and a band around them holds a small part of the frame):
-  // finding the band was 46% of the fold snap's CPU time at 800k, most of it a search of the
-  // border points' tree from every point; 41% now (0.443 -> 0.349 CPU s on 16 threads).
-  // The same squared distances ((b - x)^2 is (x - b)^2 in float), the same bound (inclusive, as
-  // KdTree::nearest's), the same least one.
-  std::vector<float> near_d2(n, std::numeric_limits<float>::infinity());
-  const FlatKdTree3& ft = tree.flatTree();
-  const float near_bound = std::nextafter(near2, std::numeric_limits<float>::max());
-  for (int b = 0; b < n; ++b) {
-    if (!border[b]) continue;
-    const float q[3] = {cloud[b].x, cloud[b].y, cloud[b].z};
-    if (!std::isfinite(q[0]) || !std::isfinite(q[1]) || !std::isfinite(q[2])) continue;
-    ft.within(q, near_bound, [&](float d2, int row) {
-      float& m = near_d2[tree.cloudIndex(row)];
-      m = std::min(m, d2);
-    });
-  }
+  // The distances within the band from the other side (nearBorder, or the caller's).
+  std::vector<float> near_own;
+  if (!near_given) near_own = nearBorder(cloud, tree, g, snapNearBound(p, spacing));
+  const std::vector<float>& near_d2 = near_given ? *near_given : near_own;
   std::vector<int> beyond;
   for (int j = 0; j < n; ++j) {
     if (lab[j] < 0) continue;
@@ -810,6 +858,102 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   timer.lap("motions");
   motions_ = parts;
 
+  // The fold snap of every frame (foldSnap), each frame's task starting with before(t) (the last
+  // pass's changes: the snap reads only its own frame's labels, so one loop over the frames
+  // instead of two, each ending on its slowest frame); returns the points moved. With the
+  // frames' trees kept on the device (the neighbour lists' search), the distances around the
+  // border points (nearBorder, 41% of the snap's CPU time at 800k) are one device call for all
+  // frames between the frames' graphs and the rest of their snaps: the same distances.
+  auto foldSnaps = [&](const auto& before) {
+    std::size_t snapped = 0;
+    double snap_cpu = 0.0, snap_band_cpu = 0.0;
+    auto timed = [&](auto&& f) {
+      const auto t0 =
+          timer.on() ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
+      f();
+      if (timer.on()) {
+        const double sec =
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+#pragma omp atomic
+        snap_cpu += sec;
+      }
+    };
+    auto snapOne = [&](int t, const SnapGraph* graph, const std::vector<float>* near) {
+      double band_sec = 0.0;
+      const std::size_t moved = foldSnap(*sequence_->frame(t), trees[t], knn[t], spacing[t], p,
+                                         labels[t], timer.on() ? &band_sec : nullptr, graph, near);
+      if (timer.on()) {
+#pragma omp atomic
+        snap_band_cpu += band_sec;
+      }
+      return moved;
+    };
+    const bool on_device = device_ && lists && lists->device == device_ && lists->trees > 0;
+    double device_sec = -1.0;
+    if (!on_device) {
+#pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
+      for (int i = 0; i < static_cast<int>(frames); ++i) {
+        const int t = by_size[i];
+        before(t);
+        timed([&] { snapped += snapOne(t, nullptr, nullptr); });
+      }
+    } else {
+      // Each frame's graph and its border points, the queries against its kept tree (tree t is
+      // frame t's; rows one tree after the other).
+      std::vector<SnapGraph> graph(frames);
+      std::vector<std::vector<float>> border_xyz(frames);
+#pragma omp parallel for schedule(dynamic)
+      for (int i = 0; i < static_cast<int>(frames); ++i) {
+        const int t = by_size[i];
+        before(t);
+        timed([&] {
+          const Cloud& cloud = *sequence_->frame(t);
+          graph[t] = snapGraph(cloud, knn[t], spacing[t], p, labels[t]);
+          for (std::size_t j = 0; j < cloud.size(); ++j)
+            if (graph[t].border[j])
+              border_xyz[t].insert(border_xyz[t].end(), {cloud[j].x, cloud[j].y, cloud[j].z});
+        });
+      }
+      const auto t0 = std::chrono::steady_clock::now();
+      std::vector<float> queries, bound2(frames);
+      std::vector<int> tree_of;
+      for (std::size_t t = 0; t < frames; ++t) {
+        bound2[t] = snapNearBound(p, spacing[t]);
+        queries.insert(queries.end(), border_xyz[t].begin(), border_xyz[t].end());
+        tree_of.insert(tree_of.end(), border_xyz[t].size() / 3, static_cast<int>(t));
+      }
+      std::vector<float> least;
+      const bool got = device_->leastDistances(lists->trees, queries, tree_of, bound2, least);
+      std::vector<std::size_t> row0(frames + 1, 0);
+      for (std::size_t t = 0; t < frames; ++t) row0[t + 1] = row0[t] + trees[t].size();
+      if (got && least.size() != row0[frames])
+        throw Error("refinement: the device's border distances do not match the frames");
+      std::vector<std::vector<float>> near(got ? frames : 0);
+      device_sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+#pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
+      for (int i = 0; i < static_cast<int>(frames); ++i) {
+        const int t = by_size[i];
+        timed([&] {
+          if (got) {  // rows to the frame's points (unreached and unlabelled: +infinity)
+            near[t].assign(sequence_->frame(t)->size(), std::numeric_limits<float>::infinity());
+            for (std::size_t r = 0; r < trees[t].size(); ++r)
+              near[t][trees[t].cloudIndex(static_cast<int>(r))] = least[row0[t] + r];
+          }
+          snapped += snapOne(t, &graph[t], got ? &near[t] : nullptr);
+          graph[t] = SnapGraph();  // the frame's graph, no longer needed
+        });
+      }
+    }
+    if (timer.on()) {
+      std::fprintf(stderr,
+                   "[refine] fold snap: %.3f CPU s on %d threads (finding its band %.3f CPU s)\n",
+                   snap_cpu, omp_get_max_threads(), snap_band_cpu);
+      if (device_sec >= 0.0)
+        std::fprintf(stderr, "[refine] fold snap: the border points' distances (device) %.3f s\n",
+                     device_sec);
+    }
+    return snapped;
+  };
   bool snapped_all = false;  // the fold snap ran in the last iteration's loop over the frames
   for (int iter = 0; iter < p.max_iterations; ++iter) {
     if (iter > 0 || !first_bands) have_pairs = findBands();
@@ -1167,11 +1311,7 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     // each frame's fold snap (below) follows at once in the same loop: it reads only its own
     // frame's labels (one loop over the frames instead of two, each ending on its slowest frame).
     const bool snap_here = p.fold_snap_band > 0.0 && iter + 1 == p.max_iterations;
-    std::size_t snapped = 0;
-    double snap_cpu = 0.0, snap_band_cpu = 0.0;
-#pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
-    for (int i = 0; i < static_cast<int>(frames); ++i) {
-      const int t = snap_here ? by_size[i] : by_verdicts[i];
+    auto applyChanges = [&](int t) {
       for (std::size_t v = 0; v < verdict[t].size(); ++v) {
         const auto [j, own, other] = verdict[t][v];
         if (check_motion && motion_res[t][v][1] > (1.0 + p.motion_tolerance) * motion_res[t][v][0])
@@ -1180,26 +1320,14 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         changes[t].emplace_back(j, other);
       }
       for (const auto& [j, l] : changes[t]) labels[t][j] = l;
-      if (snap_here) {
-        const auto t0 =
-            timer.on() ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
-        double band_sec = 0.0;
-        snapped += foldSnap(*sequence_->frame(t), trees[t], knn[t], spacing[t], p, labels[t],
-                            timer.on() ? &band_sec : nullptr);
-        if (timer.on()) {
-#pragma omp atomic
-          snap_band_cpu += band_sec;
-          const double sec =
-              std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-#pragma omp atomic
-          snap_cpu += sec;
-        }
-      }
+    };
+    std::size_t snapped = 0;
+    if (snap_here) {
+      snapped = foldSnaps(applyChanges);
+    } else {
+#pragma omp parallel for schedule(dynamic)
+      for (int i = 0; i < static_cast<int>(frames); ++i) applyChanges(by_verdicts[i]);
     }
-    if (snap_here && timer.on())
-      std::fprintf(stderr,
-                   "[refine] fold snap: %.3f CPU s on %d threads (finding its band %.3f CPU s)\n",
-                   snap_cpu, omp_get_max_threads(), snap_band_cpu);
     if (snap_here) stats_.snapped = snapped;
     if (iter == 0) stats_.band_points = band_w;
     std::size_t changed = 0;
@@ -1216,14 +1344,8 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
   // The trees the lists' search kept on the device are not searched again.
   if (lists && lists->device) lists->device->dropKnnTrees(lists->trees);
   if (p.fold_snap_band > 0.0 && !snapped_all) {  // the iterations stopped early, or none ran
-    std::size_t snapped = 0;
     timer.lap("reassignment");
-#pragma omp parallel for schedule(dynamic) reduction(+ : snapped)
-    for (int i = 0; i < static_cast<int>(frames); ++i) {
-      const int t = by_size[i];
-      snapped += foldSnap(*sequence_->frame(t), trees[t], knn[t], spacing[t], p, labels[t]);
-    }
-    stats_.snapped = snapped;
+    stats_.snapped = foldSnaps([](int) {});
     timer.lap("fold snap");
   }
 }

@@ -2,7 +2,8 @@
 // every query (k = 1 too, FlatKdTree3's nearest point without a bound), on a grid (many points at
 // exactly equal distances: the ties decide the order and which points make the last slots) and on
 // scattered points, with trees smaller than k. And RigidFits::motionResiduals against the CPU's
-// motion check on the same kept trees. Skips when no usable GPU is present.
+// motion check on the same kept trees, and RigidFits::leastDistances (the fold snap's distances
+// around the border points) against FlatKdTree3::within. Skips when no usable GPU is present.
 #include <gtest/gtest.h>
 #include <pcl_animseg/error.h>
 #include <pcl_animseg/flat_kdtree.h>
@@ -10,6 +11,7 @@
 #include <pcl_animseg/gpu/rigid_fits.h>
 
 #include <cmath>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -149,4 +151,69 @@ TEST(GpuKnn, MotionCheckIsTheCpus) {
   // Trees no longer kept: declined (the caller scores on the CPU).
   device.dropKnnTrees(token);
   EXPECT_FALSE(device.motionResiduals(token, jobs, got));
+}
+
+// The fold snap's distances around the border points on the GPU (a query per thread, each row's
+// least squared distance kept by an atomic minimum) against FlatKdTree3::within on the CPU
+// (CpuRigidDevice::cpuLeastDistances, what the refinement's nearBorder computes): the same floats
+// for every row of every tree, on a grid (many equal distances, rows exactly at the bound) and on
+// scattered points, with non-finite queries (they reach nothing) and a tree no query reaches;
+// a token no longer kept is declined, bounds or trees that do not match are an error.
+TEST(GpuKnn, LeastDistancesAreTheCpus) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  std::mt19937 rng(13);
+  std::uniform_real_distribution<float> u(-1.0f, 1.0f);
+  std::vector<float> grid, scattered, lonely{5.f, 5.f, 5.f, 6.f, 5.f, 5.f};
+  for (int x = 0; x < 40; ++x)
+    for (int y = 0; y < 40; ++y)
+      for (int z = 0; z < 3; ++z) grid.insert(grid.end(), {0.05f * x, 0.05f * y, 0.05f * z});
+  for (int i = 0; i < 30000; ++i) scattered.insert(scattered.end(), {u(rng), u(rng), u(rng)});
+  const std::vector<pcl_animseg::FlatKdTree3> trees{treeOf(grid), treeOf(scattered),
+                                                    treeOf(lonely)};
+  const std::vector<const pcl_animseg::FlatKdTree3*> ptrs{&trees[0], &trees[1], &trees[2]};
+  // Queries: every 7th grid point (a border line's worth), random points, two non-finite ones.
+  std::vector<float> queries;
+  std::vector<int> tree_of;
+  for (std::size_t i = 0; i < grid.size(); i += 3 * 7) {
+    queries.insert(queries.end(), {grid[i], grid[i + 1], grid[i + 2]});
+    tree_of.push_back(0);
+  }
+  for (int i = 0; i < 3000; ++i) {
+    queries.insert(queries.end(), {u(rng), u(rng), u(rng)});
+    tree_of.push_back(i % 3 ? 1 : 0);
+  }
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  queries.insert(queries.end(), {nan, 0.f, 0.f, 0.f, std::numeric_limits<float>::infinity(), 0.f});
+  tree_of.insert(tree_of.end(), {1, 0});
+  // The grid's bound a little above 0.1^2 (squared distances of 0.1 exactly reached: strictly
+  // below the bound), the scattered points' 0.02, the lonely tree's any (no query there).
+  const std::vector<float> bound2{std::nextafter(0.01f, 1.0f), 0.02f, 1.0f};
+  const std::vector<float> expected =
+      animseg_test::CpuRigidDevice::cpuLeastDistances(trees, queries, tree_of, bound2);
+  gpu::RigidFits device;
+  const long long token = device.keepKnnTrees(ptrs);
+  ASSERT_GT(token, 0);
+  std::vector<float> got;
+  ASSERT_TRUE(device.leastDistances(token, queries, tree_of, bound2, got));
+  ASSERT_EQ(got.size(), expected.size());
+  int differ = 0, reached = 0, zero = 0;
+  for (std::size_t r = 0; r < got.size(); ++r) {
+    differ += !(got[r] == expected[r]);
+    reached += std::isfinite(expected[r]);
+    zero += expected[r] == 0.0f;
+  }
+  EXPECT_EQ(differ, 0) << differ << " of " << got.size() << " rows differ";
+  EXPECT_GT(reached, static_cast<int>(got.size()) / 4);  // the bounds reach many rows
+  EXPECT_LT(reached, static_cast<int>(got.size()));      // and not all (the lonely tree)
+  EXPECT_GT(zero, 0);                                    // the grid's queries are rows too
+  // Bounds or trees that do not match the kept trees: an error, not a wrong answer.
+  EXPECT_THROW(device.leastDistances(token, queries, tree_of, {0.01f, 0.02f}, got),
+               pcl_animseg::Error);
+  std::vector<int> bad = tree_of;
+  bad[3] = 3;
+  EXPECT_THROW(device.leastDistances(token, queries, bad, bound2, got), pcl_animseg::Error);
+  // Trees no longer kept: declined (the caller searches on the CPU).
+  device.dropKnnTrees(token);
+  EXPECT_FALSE(device.leastDistances(token, queries, tree_of, bound2, got));
 }

@@ -9,6 +9,7 @@
 #include <pcl_animseg/segmentation/rigid_motion.h>
 
 #include <Eigen/Geometry>
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <random>
@@ -102,6 +103,34 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
     ++motion_calls;
     return true;
   }
+  // FlatKdTree3::within from each query against the kept copies (offer_least), each row's least
+  // squared distance, as a GPU keeps it.
+  bool leastDistances(long long tok, const std::vector<float>& queries,
+                      const std::vector<int>& tree_of, const std::vector<float>& bound2,
+                      std::vector<float>& out) override {
+    if (!offer_knn || !offer_keep || !offer_least || tok <= 0 || tok != token) return false;
+    out = cpuLeastDistances(kept, queries, tree_of, bound2);
+    ++least_calls;
+    return true;
+  }
+  static std::vector<float> cpuLeastDistances(const std::vector<pcl_animseg::FlatKdTree3>& trees,
+                                              const std::vector<float>& queries,
+                                              const std::vector<int>& tree_of,
+                                              const std::vector<float>& bound2) {
+    std::vector<std::size_t> first(trees.size() + 1, 0);
+    for (std::size_t t = 0; t < trees.size(); ++t) first[t + 1] = first[t] + trees[t].size();
+    std::vector<float> out(first.back(), std::numeric_limits<float>::infinity());
+    for (std::size_t q = 0; q < tree_of.size(); ++q) {
+      const float* x = &queries[3 * q];
+      if (!std::isfinite(x[0]) || !std::isfinite(x[1]) || !std::isfinite(x[2])) continue;
+      const std::size_t t = static_cast<std::size_t>(tree_of.at(q));
+      trees.at(t).within(x, bound2.at(t), [&](float d2, int row) {
+        float& m = out[first[t] + static_cast<std::size_t>(row)];
+        m = std::min(m, d2);
+      });
+    }
+    return out;
+  }
   static std::vector<float> cpuMotionResiduals(
       const std::vector<pcl_animseg::FlatKdTree3>& trees,
       const pcl_animseg::segmentation::MotionCheckJobs& jobs) {
@@ -147,7 +176,8 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
   }
   bool offer_keep = true;    // keepKnnTrees / knnOn offered (with offer_knn)
   bool offer_motion = true;  // motionResiduals offered (with offer_keep)
-  int keeps = 0, knn_on_calls = 0, motion_calls = 0;
+  bool offer_least = true;   // leastDistances offered (with offer_keep)
+  int keeps = 0, knn_on_calls = 0, motion_calls = 0, least_calls = 0;
   long long token = 0;
   std::vector<pcl_animseg::FlatKdTree3> kept;
   bool offer_knn = true, fail_knn = false;

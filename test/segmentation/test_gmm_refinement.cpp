@@ -284,10 +284,14 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   // Every frame's neighbour lists in one call, then the motion check's residuals in one, against
   // the same trees.
   EXPECT_EQ(dev.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
-  // The trees were uploaded once, for both, and freed after the second.
+  // The trees were uploaded once, for all three (the fold snap's distances around the border
+  // points in one call after the motion check), and freed after the last.
   EXPECT_EQ(dev.keeps, 1);
   EXPECT_EQ(dev.knn_on_calls, 1);
   EXPECT_EQ(dev.motion_calls, 1);
+  EXPECT_EQ(dev.least_calls, 1);
+  EXPECT_GT(on_device.getStats().snapped, 0u);  // the snap moved points: its distances mattered
+  EXPECT_EQ(on_device.getStats().snapped, cpu.getStats().snapped);
   EXPECT_TRUE(dev.kept.empty());
   // The motions' fits ran on a thread of their own (beside the first bands); the lists, on this
   // one.
@@ -317,6 +321,14 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   refinedOn(no_check);
   EXPECT_EQ(no_check.knn_on_calls, 1);
   EXPECT_EQ(no_check.motion_calls, 0);
+  EXPECT_EQ(no_check.least_calls, 1);
+  // Keeping trees but offering no distances around the border points: the cores find them.
+  animseg_test::CpuRigidDevice no_least;
+  no_least.offer_least = false;
+  refinedOn(no_least);
+  EXPECT_EQ(no_least.motion_calls, 1);
+  EXPECT_EQ(no_least.least_calls, 0);
+  EXPECT_EQ(no_keep.least_calls, 0);
 }
 
 // The motion check as a device computes it (CpuRigidDevice::cpuMotionResiduals, the arithmetic

@@ -178,6 +178,19 @@ class RigidFitDevice {
     (void)token, (void)jobs, (void)out;
     return false;
   }
+  /** \brief FlatKdTree3::within from many queries against the trees kept under `token`
+   * (keepKnnTrees): query q (x, y, z at queries[3q]) walks tree tree_of[q] with the bound
+   * bound2[tree_of[q]] (strictly below, as within), and every row of every kept tree gets the
+   * least squared distance (FlatKdTree3::distance2's value) of the queries that reach it, or
+   * +infinity, in out[first + row] (the kept trees' rows one tree after the other). A non-finite
+   * query reaches nothing. Returns false where the trees are no longer kept or the device does
+   * not offer it (the default): the caller searches on the CPU, with the same values. */
+  virtual bool leastDistances(long long token, const std::vector<float>& queries,
+                              const std::vector<int>& tree_of, const std::vector<float>& bound2,
+                              std::vector<float>& out) {
+    (void)token, (void)queries, (void)tree_of, (void)bound2, (void)out;
+    return false;
+  }
   /** \brief rigidScore of each job (RigidScoreJob) into out[j], against the surfaces and
    * sources of the last setSurfaces and setSources. Returns false where the device does not
    * offer it (the default): the caller scores on the CPU, with the same bits. */

@@ -65,6 +65,14 @@ class RigidFits : public segmentation::RigidFitDevice {
    * throws Error on a CUDA failure or jobs that do not match the trees. */
   bool motionResiduals(long long token, const segmentation::MotionCheckJobs& jobs,
                        std::vector<float>& out) override;
+  /** \brief FlatKdTree3::within from every query against the kept trees, a query per thread,
+   * each row's least distance kept by an atomic minimum (the same values as the CPU's: a
+   * minimum does not depend on the order); false where `token` is not the last
+   * keepKnnTrees()'s; throws Error on a CUDA failure or a query's tree or the bounds out of
+   * range. */
+  bool leastDistances(long long token, const std::vector<float>& queries,
+                      const std::vector<int>& tree_of, const std::vector<float>& bound2,
+                      std::vector<float>& out) override;
   /** \brief Every job's rigidScore (segmentation/rigid_motion.h), a block per job, against the
    * surfaces and sources set; false (the caller scores on the CPU) where a job has more than 512
    * probes; throws Error on a CUDA failure, nothing set, or a job out of range. */
