@@ -185,13 +185,36 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     const std::vector<float>& queries, const std::vector<int>& tree_of,
                     std::vector<int>& rows, std::vector<int>& count) {
   if (k < 1 || k > detail::kMaxKnn) return false;
-  // Uploaded for this search alone: dropped after it, also where it throws.
-  struct Drop {
-    RigidFits& fits;
-    long long token;
-    ~Drop() { fits.dropKnnTrees(token); }
-  } drop{*this, keepKnnTrees(trees)};
-  return knnOn(drop.token, k, queries, tree_of, rows, count);
+  const int n_trees = static_cast<int>(trees.size());
+  for (int t = 0; t < n_trees; ++t)
+    if (!trees[t]) throw DeviceError("GPU k-NN: a tree is missing");
+  for (int t : tree_of)
+    if (t < 0 || t >= n_trees) throw DeviceError("GPU k-NN: a query's tree out of range");
+  if (queries.size() != 3 * tree_of.size())
+    throw DeviceError("GPU k-NN: three coordinates per query expected");
+  // Uploaded for this search alone, beside the trees kept for knnOn() (a caller between two
+  // searches of its kept trees, the refinement's verdicts between its lists and its motion
+  // check, keeps them there).
+  const auto t0 = std::chrono::steady_clock::now();
+  detail::KnnTrees packed;
+  const std::vector<int> point0 =
+      detail::packTrees(trees, packed.nodes, packed.points, packed.root);
+  packed.size.resize(n_trees);
+  packed.rows.resize(point0.back());
+  for (int t = 0; t < n_trees; ++t) {
+    packed.size[t] = static_cast<int>(trees[t]->size());
+    std::copy(trees[t]->leafRows().begin(), trees[t]->leafRows().end(),
+              packed.rows.begin() + point0[t]);
+  }
+  requireGpu();
+  detail::KnnStore store;
+  detail::uploadKnnTrees(packed, store);
+  detail::runKnn(store, k, queries, tree_of, rows, count);
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(stderr, "[gpu k-NN] %d trees for one search, k %d, %zu queries: %.3f s\n", n_trees,
+                 k, tree_of.size(),
+                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  return true;
 }
 
 bool RigidFits::motionResiduals(long long token, const segmentation::MotionCheckJobs& jobs,

@@ -87,14 +87,16 @@ TEST(GpuKnn, SameListsAsTheCpuTree) {
   std::vector<int> bad = tree_of;
   bad[0] = 3;
   EXPECT_THROW(device.knn(ptrs, 9, queries, bad, rows, count), pcl_animseg::Error);
-  // Trees kept on the device (keepKnnTrees): the same lists from knnOn, call after call; a token
-  // whose trees were replaced is refused (the caller calls knn()).
+  // Trees kept on the device (keepKnnTrees): the same lists from knnOn, call after call, and
+  // after a knn() of other trees; a token whose trees were replaced is refused (the caller calls
+  // knn()).
   const long long token = device.keepKnnTrees(ptrs);
   ASSERT_GT(token, 0);
   std::vector<int> again, again_count;
   for (int k : {9, 1}) {
-    ASSERT_TRUE(device.knn(ptrs, k, queries, tree_of, rows, count));
     const long long kept = device.keepKnnTrees(ptrs);
+    // A search of trees of its own (knn) leaves the kept ones kept.
+    ASSERT_TRUE(device.knn(ptrs, k, queries, tree_of, rows, count));
     ASSERT_TRUE(device.knnOn(kept, k, queries, tree_of, again, again_count));
     EXPECT_EQ(again, rows);
     EXPECT_EQ(again_count, count);

@@ -281,9 +281,10 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
     }
   EXPECT_GE(dev.fits, 3 * 4);  // every part in every frame but the first
   EXPECT_LE(dev.batches, 4);   // one batch per frame position
-  // Every frame's neighbour lists in one call, then the motion check's residuals in one, against
-  // the same trees.
-  EXPECT_EQ(dev.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
+  // Every frame's neighbour lists in one call, then the verdicts' nearest patch seeds and training
+  // points in one (k = 1, against the models' trees), then the motion check's residuals in one,
+  // against the frames' trees.
+  EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
   // The trees were uploaded once, for all three (the fold snap's distances around the border
   // points in one call after the motion check), and freed after the last.
   EXPECT_EQ(dev.keeps, 1);
@@ -312,7 +313,7 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   animseg_test::CpuRigidDevice no_keep;
   no_keep.offer_keep = false;
   refinedOn(no_keep);
-  EXPECT_EQ(no_keep.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
+  EXPECT_EQ(no_keep.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
   EXPECT_EQ(no_keep.knn_on_calls, 0);
   EXPECT_EQ(no_keep.motion_calls, 0);
   // Keeping trees but offering no motion check: the cores score it.
@@ -404,7 +405,8 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   EXPECT_EQ(c.refinedBy(prepared).labels, expected.labels);
   // refine() only scored the motion check, in the trees the preparation kept on the device,
   // and released the rest.
-  EXPECT_EQ(dev.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
+  EXPECT_EQ(dev.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1,
+                                         1}));  // and the verdicts' searches
   EXPECT_EQ(dev.keeps, 1);
   EXPECT_EQ(dev.knn_on_calls, 1);
   EXPECT_EQ(dev.motion_calls, 1);
@@ -425,7 +427,7 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   EXPECT_EQ(shared.keeps, 2);
   EXPECT_EQ(shared.knn_on_calls, 2);  // the two preparations' lists
   EXPECT_EQ(shared.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1,
-                                            RefinementParams().boundary_k + 1}));
+                                            RefinementParams().boundary_k + 1, 1}));
   EXPECT_EQ(shared.motion_calls, 0);
 
   // Prepared for another sequence: refine() searches its own lists.
@@ -437,7 +439,7 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   moved_on.prepareFrames();
   EXPECT_EQ(c.refinedBy(moved_on).labels, expected.labels);
   EXPECT_EQ(dev2.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1,
-                                          RefinementParams().boundary_k + 1}));
+                                          RefinementParams().boundary_k + 1, 1}));
   EXPECT_EQ(dev2.motion_calls, 1);
 
   // A device whose k-NN fails while preparing: no error there; refine() searches on its own.
@@ -450,7 +452,7 @@ TEST(GMMRefinement, FramesPreparedAheadGiveTheSameResult) {
   EXPECT_FALSE(after_failure.preparedSpacings().empty());
   failing.fail_knn = false;
   EXPECT_EQ(c.refinedBy(after_failure).labels, expected.labels);
-  EXPECT_EQ(failing.knn_k, std::vector<int>{RefinementParams().boundary_k + 1});
+  EXPECT_EQ(failing.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
   EXPECT_EQ(failing.motion_calls, 1);
 }
 

@@ -44,9 +44,9 @@ class RigidFits : public segmentation::RigidFitDevice {
            std::vector<double>& rms) override;
   /** \brief FlatKdTree3::knn of every query on the device, a query per thread (the same rows
    * in the same order; k = 1: FlatKdTree3::nearest without a bound), the trees uploaded for this
-   * call alone (trees kept before are dropped). Returns false for k < 1 or k > 32 (the caller
-   * searches on the CPU);
-   * throws Error on a CUDA failure or a query's tree out of range. */
+   * call alone (trees kept before stay kept). Returns false for k < 1 or k > 32 (the caller
+   * searches on the CPU); throws Error on a CUDA failure, a missing tree or a query's tree out
+   * of range. */
   bool knn(const std::vector<const FlatKdTree3*>& trees, int k, const std::vector<float>& queries,
            const std::vector<int>& tree_of, std::vector<int>& rows,
            std::vector<int>& count) override;
