@@ -281,6 +281,58 @@ bool RigidFits::leastDistances(long long token, const std::vector<float>& querie
   return true;
 }
 
+bool RigidFits::fitMixtures(const std::vector<segmentation::MixtureFitJob>& jobs,
+                            const math::GMMOptions& options) {
+  namespace gmm_em = math::gmm_em;
+  for (const segmentation::MixtureFitJob& j : jobs) {
+    if (!j.points || !j.gmm || j.points->rows() == 0)
+      throw DeviceError("GPU mixtures: a job without points or a start");
+    if (j.gmm->size() < 1 || j.gmm->size() > gmm_em::kMaxDeviceComponents) return false;
+  }
+  if (jobs.empty()) return true;
+  const auto t0 = std::chrono::steady_clock::now();
+  std::vector<detail::MixtureJob> list(jobs.size());
+  long long total = 0;
+  for (std::size_t j = 0; j < jobs.size(); ++j) {
+    list[j] = {total, static_cast<int>(jobs[j].points->rows())};
+    total += list[j].n;
+  }
+  std::vector<double> points(3 * static_cast<std::size_t>(total));
+  std::vector<detail::MixtureResult> results(jobs.size());
+#pragma omp parallel for schedule(dynamic, 16)
+  for (long j = 0; j < static_cast<long>(jobs.size()); ++j) {
+    const Eigen::MatrixX3d& x = *jobs[j].points;
+    double* out = &points[3 * static_cast<std::size_t>(list[j].first)];
+    for (Eigen::Index i = 0; i < x.rows(); ++i)
+      for (int d = 0; d < 3; ++d) out[3 * i + d] = x(i, d);
+    math::toDeviceMixture(*jobs[j].gmm, results[j].m);
+  }
+  requireGpu();
+  const auto t1 = std::chrono::steady_clock::now();
+  detail::runMixtureFits(points, list, options.max_iterations, options.tolerance,
+                         options.regularization, results);
+  const double device_sec =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t1).count();
+  for (std::size_t j = 0; j < jobs.size(); ++j) {
+    const detail::MixtureResult& r = results[j];
+    if (r.bad >= 0)
+      throw DeviceError("GMM component " + std::to_string(r.bad) +
+                        " has a covariance that is not positive definite; increase the "
+                        "regularization");
+    math::GaussianMixture& g = *jobs[j].gmm;
+    math::fromDeviceMixture(r.m, g);
+    g.log_likelihood = r.log_likelihood;
+    g.iterations = r.iterations;
+    g.converged = r.converged != 0;
+  }
+  if (std::getenv("ANIMSEG_MS_TIMING"))
+    std::fprintf(
+        stderr, "[gpu mixtures] %zu fits, %lld points: %.3f s (the device's part %.3f s)\n",
+        jobs.size(), total,
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), device_sec);
+  return true;
+}
+
 void RigidFits::dropKnnTrees(long long token) {
   if (token <= 0 || token != knn_token_) return;
   knn_.reset();

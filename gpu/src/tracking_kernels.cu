@@ -1388,6 +1388,143 @@ void runLeastDistances(const KnnStore& store, const std::vector<float>& queries,
   d_out.downloadBytes(out.data(), out.size() * sizeof(float));
 }
 
+namespace gmm_em = math::gmm_em;
+constexpr int kMixtureThreads = 128;
+
+// values[0 .. n) added in index order to `sum` (gmm_em's sums are in point order), eight values
+// read before they are added (as addRows).
+__device__ double orderedSum(const double* values, long long stride, int n, double sum) {
+  int i = 0;
+  for (; i + 8 <= n; i += 8) {
+    double a[8];
+#pragma unroll
+    for (int k = 0; k < 8; ++k) a[k] = values[(i + k) * stride];
+#pragma unroll
+    for (int k = 0; k < 8; ++k) sum += a[k];
+  }
+  for (; i < n; ++i) sum += values[i * stride];
+  return sum;
+}
+
+// math::gmmEM of one job by a block: the E step a point per thread, then each sum of the M step
+// by a thread of its own over the points in order (the CPU adds each of them in that order), and
+// the steps between by thread 0, with gmm_em's arithmetic throughout.
+__global__ void __launch_bounds__(kMixtureThreads)
+    mixtureFits(const double* __restrict__ points, const MixtureJob* __restrict__ jobs,
+                MixtureResult* results, double* resp, double* lse, int max_iterations,
+                double tolerance, double reg) {
+  const MixtureJob job = jobs[blockIdx.x];
+  __shared__ gmm_em::Mixture<gmm_em::kMaxDeviceComponents> m;
+  __shared__ double nk[gmm_em::kMaxDeviceComponents], sx[gmm_em::kMaxDeviceComponents][3];
+  __shared__ double sc[gmm_em::kMaxDeviceComponents][6];
+  __shared__ int stop;
+  MixtureResult& out = results[blockIdx.x];
+  if (threadIdx.x == 0) {
+    m = out.m;
+    out.log_likelihood = 0.0;
+    out.iterations = 0;
+    out.converged = 0;
+    out.bad = -1;
+    stop = 0;
+  }
+  __syncthreads();
+  const int k = m.k, n = job.n;
+  const double* p = points + 3 * job.first;
+  double* r = resp + job.first * gmm_em::kMaxDeviceComponents;  // k per point, point-major
+  double* l = lse + job.first;
+  double prev = -CUDART_INF;
+  for (int it = 0; it < max_iterations; ++it) {
+    for (int i = threadIdx.x; i < n; i += blockDim.x)
+      l[i] = gmm_em::responsibilities(m, p + 3LL * i, r + static_cast<long long>(i) * k);
+    __syncthreads();
+    if (threadIdx.x == 0) {
+      const double ll = orderedSum(l, 1, n, 0.0) / static_cast<double>(n);
+      out.log_likelihood = ll;
+      out.iterations = it + 1;
+      if (ll - prev < tolerance && it > 0) {
+        out.converged = 1;
+        stop = 1;
+      }
+      prev = ll;
+    }
+    __syncthreads();
+    if (stop) break;
+    // nk[c] (thread 4c) and sx[c][d] (thread 4c + 1 + d), each over the points in order, eight
+    // points' terms computed before they are added.
+    if (threadIdx.x < 4 * k) {
+      const int c = threadIdx.x / 4, d = threadIdx.x % 4 - 1;
+      double sum = 0.0;
+      if (d < 0) {
+        sum = orderedSum(r + c, k, n, 0.0);
+      } else {
+        int i = 0;
+        for (; i + 8 <= n; i += 8) {
+          double a[8];
+#pragma unroll
+          for (int q = 0; q < 8; ++q)
+            a[q] = r[static_cast<long long>(i + q) * k + c] * p[3LL * (i + q) + d];
+#pragma unroll
+          for (int q = 0; q < 8; ++q) sum += a[q];
+        }
+        for (; i < n; ++i) sum += r[static_cast<long long>(i) * k + c] * p[3LL * i + d];
+      }
+      if (d < 0)
+        nk[c] = sum;
+      else
+        sx[c][d] = sum;
+    }
+    __syncthreads();
+    if (threadIdx.x == 0) gmm_em::newMeans(m, nk, sx);
+    __syncthreads();
+    // sc[c][e] (thread 6c + e), addScatter's entry e over the points in order.
+    if (threadIdx.x < 6 * k) {
+      const int c = threadIdx.x / 6, e = threadIdx.x % 6;
+      const int a = e < 3 ? e : (e == 5 ? 1 : 0), b = e < 3 ? e : (e == 3 ? 1 : 2);
+      const double ma = m.mu[c][a], mb = m.mu[c][b];
+      auto term = [&](int i) {
+        const double w = r[static_cast<long long>(i) * k + c];
+        const double da = p[3LL * i + a] - ma, db = p[3LL * i + b] - mb;
+        return w * da * db;
+      };
+      double sum = 0.0;
+      int i = 0;
+      for (; i + 8 <= n; i += 8) {
+        double t8[8];
+#pragma unroll
+        for (int q = 0; q < 8; ++q) t8[q] = term(i + q);
+#pragma unroll
+        for (int q = 0; q < 8; ++q) sum += t8[q];
+      }
+      for (; i < n; ++i) sum += term(i);
+      sc[c][e] = sum;
+    }
+    __syncthreads();
+    if (threadIdx.x == 0) {
+      const int bad = gmm_em::newCovariances(m, nk, sc, static_cast<double>(n), reg);
+      if (bad >= 0) out.bad = bad, stop = 1;
+    }
+    __syncthreads();
+    if (stop) break;
+  }
+  if (threadIdx.x == 0) out.m = m;
+}
+
+void runMixtureFits(const std::vector<double>& points, const std::vector<MixtureJob>& jobs,
+                    int max_iterations, double tolerance, double regularization,
+                    std::vector<MixtureResult>& results) {
+  if (jobs.empty()) return;
+  const std::size_t n_points = points.size() / 3;
+  DeviceArray<double> d_points(points.data(), points.size());
+  DeviceArray<MixtureJob> d_jobs(jobs.data(), jobs.size());
+  DeviceArray<MixtureResult> d_results(results.data(), results.size());
+  DeviceArray<double> d_resp(n_points * gmm_em::kMaxDeviceComponents), d_lse(n_points);
+  mixtureFits<<<static_cast<unsigned>(jobs.size()), kMixtureThreads>>>(
+      d_points.ptr(), d_jobs.ptr(), d_results.ptr(), d_resp.ptr(), d_lse.ptr(), max_iterations,
+      tolerance, regularization);
+  cudaCheckLaunch();
+  d_results.download(results.data());
+}
+
 YieldingWait::~YieldingWait() {
   if (event_) cudaEventDestroy(static_cast<cudaEvent_t>(event_));
 }

@@ -3,6 +3,7 @@
 // packs the segmentation structures into these plain arrays; tracking_kernels.cu runs them). No
 // Eigen or PCL here: this header is read by nvcc.
 #include <pcl_animseg/gpu/device_array.h>
+#include <pcl_animseg/math/gmm_em.h>
 
 #include <chrono>
 #include <functional>
@@ -309,6 +310,29 @@ void uploadKnnTrees(const KnnTrees& trees, KnnStore& store);
  * FlatKdTree3::knn). */
 void runKnn(const KnnStore& store, int k, const std::vector<float>& queries,
             const std::vector<int>& tree_of, std::vector<int>& rows, std::vector<int>& count);
+
+/** One mixture's EM for runMixtureFits: its points' first index and count (x, y, z each). */
+struct MixtureJob {
+  long long first;
+  int n;
+};
+/** What runMixtureFits returns per job: gmm_em's mixture, the mean log-likelihood, the
+ * iterations, whether it converged, and the first component that was not positive definite (or
+ * -1). */
+struct MixtureResult {
+  math::gmm_em::Mixture<math::gmm_em::kMaxDeviceComponents> m;
+  double log_likelihood;
+  int iterations;
+  int converged;
+  int bad;
+};
+
+/** math::gmmEM of every job on the device, a block each (gmm_em.h's arithmetic, every sum in
+ * point order: the same bits): `points` holds x, y, z per point, `results` the jobs' starts on the
+ * way in (their m) and their fits on the way out. */
+void runMixtureFits(const std::vector<double>& points, const std::vector<MixtureJob>& jobs,
+                    int max_iterations, double tolerance, double regularization,
+                    std::vector<MixtureResult>& results);
 
 /** RigidFitDevice::leastDistances on `store`'s trees (the caller has checked the sizes): out
  * gets store.first.back() values, each row's least squared distance or +infinity. */

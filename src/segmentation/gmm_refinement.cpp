@@ -1046,11 +1046,12 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     gopt.max_iterations = p.gmm_max_iterations;
     gopt.regularization = p.gmm_regularization;
     gopt.seed = p.seed;
-    auto fit = [&](const SideModel& m, const std::vector<int>& idx, math::GaussianMixture& out) {
+    // The normals a fit trains on: those of `idx`, at most max_training_points of them.
+    auto trainingOf = [&](const SideModel& m, const std::vector<int>& idx) {
       const std::vector<int> use = subsample(idx, p.max_training_points);
       Eigen::MatrixX3d x(use.size(), 3);
       for (std::size_t k = 0; k < use.size(); ++k) x.row(k) = m.train_nrm[use[k]].transpose();
-      out = math::fitGMM(x, gopt);
+      return x;
     };
     // First each model's seeds and training points of its patches, then every fit (a model's
     // whole one and its patches') in one parallel loop: a few large models with many patches
@@ -1111,19 +1112,37 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     };
     std::stable_sort(fits.begin(), fits.end(),
                      [&](const auto& a, const auto& b) { return fitPoints(a) > fitPoints(b); });
+    // Each fit's points and start (math::gmmStart), then their EMs: with a device that offers
+    // it, all in one call (the same bits as fitGMM on the cores; there they were 0.5 CPU s at
+    // 800k, 0.031 s of the refinement).
+    std::vector<Eigen::MatrixX3d> fit_x(fits.size());
+    std::vector<math::GaussianMixture*> fit_out(fits.size());
 #pragma omp parallel for schedule(dynamic)
     for (int f = 0; f < static_cast<int>(fits.size()); ++f) {
       const auto [mi, k] = fits[f];
       SideModel& m = models[mi];
-      if (k >= 0) {
-        fit(m, patch_points[mi][k], m.patch[k]);
-      } else {
-        std::vector<int> all(m.train_nrm.size());
+      std::vector<int> all;
+      if (k < 0) {
+        all.resize(m.train_nrm.size());
         for (std::size_t q = 0; q < all.size(); ++q) all[q] = static_cast<int>(q);
-        fit(m, all, m.whole);
-        m.whole_ok = true;
       }
+      fit_x[f] = trainingOf(m, k >= 0 ? patch_points[mi][k] : all);
+      fit_out[f] = k >= 0 ? &m.patch[k] : &m.whole;
+      *fit_out[f] = math::gmmStart(fit_x[f], gopt);
     }
+    bool fitted_on_device = false;
+    if (device_) {
+      std::vector<MixtureFitJob> jobs(fits.size());
+      for (std::size_t f = 0; f < fits.size(); ++f) jobs[f] = {&fit_x[f], fit_out[f]};
+      fitted_on_device = device_->fitMixtures(jobs, gopt);
+    }
+    if (!fitted_on_device) {
+#pragma omp parallel for schedule(dynamic)
+      for (int f = 0; f < static_cast<int>(fits.size()); ++f)
+        math::gmmEM(fit_x[f], gopt, *fit_out[f]);
+    }
+    for (const auto& [mi, k] : fits)
+      if (k < 0) models[mi].whole_ok = true;
     const int fitted = static_cast<int>(fits.size());
     if (iter == 0) stats_.models = fitted;
 

@@ -113,6 +113,14 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
     ++least_calls;
     return true;
   }
+  // The mixtures' EM on the cores (offer_mixtures), as a GPU computes it (math::gmmEM).
+  bool fitMixtures(const std::vector<pcl_animseg::segmentation::MixtureFitJob>& jobs,
+                   const pcl_animseg::math::GMMOptions& options) override {
+    if (!offer_mixtures) return false;
+    for (const auto& j : jobs) pcl_animseg::math::gmmEM(*j.points, options, *j.gmm);
+    ++mixture_calls;
+    return true;
+  }
   static std::vector<float> cpuLeastDistances(const std::vector<pcl_animseg::FlatKdTree3>& trees,
                                               const std::vector<float>& queries,
                                               const std::vector<int>& tree_of,
@@ -177,7 +185,8 @@ class CpuRigidDevice : public pcl_animseg::segmentation::RigidFitDevice {
   bool offer_keep = true;    // keepKnnTrees / knnOn offered (with offer_knn)
   bool offer_motion = true;  // motionResiduals offered (with offer_keep)
   bool offer_least = true;   // leastDistances offered (with offer_keep)
-  int keeps = 0, knn_on_calls = 0, motion_calls = 0, least_calls = 0;
+  bool offer_mixtures = true;  // fitMixtures offered
+  int keeps = 0, knn_on_calls = 0, motion_calls = 0, least_calls = 0, mixture_calls = 0;
   long long token = 0;
   std::vector<pcl_animseg::FlatKdTree3> kept;
   bool offer_knn = true, fail_knn = false;

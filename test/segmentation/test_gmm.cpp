@@ -3,6 +3,7 @@
 #include <pcl_animseg/math/gmm.h>
 
 #include <algorithm>
+#include <cmath>
 #include <random>
 
 using pcl_animseg::math::fitGMM;
@@ -102,4 +103,37 @@ TEST(GMM, DegenerateInputs) {
   GMMOptions bad;
   bad.regularization = 0.0;
   EXPECT_THROW(fitGMM(two, bad), pcl_animseg::Error);
+}
+
+// gmm_em's own exp and log (the same bits on the CPU and a GPU) against the C++ library's: within
+// 2 ulp over EM's range (exp of -700..0, log of 1e-300..1e300, subnormals too), exact where
+// the result is (exp(0) = 1, log(1) = 0), and the edges: exp(-inf) = 0, exp(nan) is nan,
+// log(0) = -inf, log of a negative number is nan.
+TEST(GMM, OwnExpAndLogAreWithinTwoUlp) {
+  namespace em = pcl_animseg::math::gmm_em;
+  auto ulps = [](double a, double b) {
+    if (a == b) return 0.0;
+    return std::fabs(a - b) / (std::nextafter(std::fabs(b), INFINITY) - std::fabs(b));
+  };
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> ex(-700.0, 0.0), ex_pos(0.0, 709.0), lg(-690.0, 690.0);
+  double worst_exp = 0.0, worst_log = 0.0;
+  for (int i = 0; i < 200000; ++i) {
+    const double x = i % 8 == 7 ? ex_pos(rng) : ex(rng);
+    worst_exp = std::max(worst_exp, ulps(em::exp(x), std::exp(x)));
+    const double y = std::exp(lg(rng));
+    worst_log = std::max(worst_log, ulps(em::log(y), std::log(y)));
+  }
+  for (double y : {4.9e-324, 1e-310, 2.2e-308, 0.5, 0.7071067811865476, 1.4142135623730951, 2.0})
+    worst_log = std::max(worst_log, ulps(em::log(y), std::log(y)));
+  EXPECT_LE(worst_exp, 2.0);
+  EXPECT_LE(worst_log, 2.0);
+  EXPECT_GT(worst_exp + worst_log, 0.0);  // not the library's own (else the point is moot)
+  EXPECT_EQ(em::exp(0.0), 1.0);
+  EXPECT_EQ(em::log(1.0), 0.0);
+  EXPECT_EQ(em::exp(-INFINITY), 0.0);
+  EXPECT_TRUE(std::isnan(em::exp(NAN)));
+  EXPECT_EQ(em::log(0.0), -INFINITY);
+  EXPECT_TRUE(std::isnan(em::log(-1.0)));
+  EXPECT_EQ(em::exp(710.0), INFINITY);
 }

@@ -291,6 +291,7 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   EXPECT_EQ(dev.knn_on_calls, 1);
   EXPECT_EQ(dev.motion_calls, 1);
   EXPECT_EQ(dev.least_calls, 1);
+  EXPECT_EQ(dev.mixture_calls, 1);              // every model's fits in one call
   EXPECT_GT(on_device.getStats().snapped, 0u);  // the snap moved points: its distances mattered
   EXPECT_EQ(on_device.getStats().snapped, cpu.getStats().snapped);
   EXPECT_TRUE(dev.kept.empty());
@@ -329,6 +330,11 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   refinedOn(no_least);
   EXPECT_EQ(no_least.motion_calls, 1);
   EXPECT_EQ(no_least.least_calls, 0);
+  // Not fitting mixtures: the cores fit them.
+  animseg_test::CpuRigidDevice no_mixtures;
+  no_mixtures.offer_mixtures = false;
+  refinedOn(no_mixtures);
+  EXPECT_EQ(no_mixtures.mixture_calls, 0);
   EXPECT_EQ(no_keep.least_calls, 0);
 }
 

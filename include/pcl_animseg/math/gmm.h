@@ -7,6 +7,8 @@
  * so a small EM written out by hand (Eigen types in and out) is both the simplest and the
  * fastest option.
  */
+#include <pcl_animseg/math/gmm_em.h>
+
 #include <Eigen/Core>
 #include <vector>
 
@@ -53,8 +55,25 @@ GaussianMixture fitGMM(const Eigen::MatrixX3d& points, const GMMOptions& options
 GaussianMixture fitGMM(const Eigen::MatrixX3d& points, int components, int max_iterations = 100,
                        unsigned seed = 0);
 
-/** \brief Recomputes the cached precisions and log normalisers after editing a mixture. */
+/** \brief Recomputes the cached precisions and log normalisers after editing a mixture (gmm_em's
+ * arithmetic: a 3x3 Cholesky factor, our own log); throws pcl_animseg::Error where a covariance
+ * is not positive definite or there are more than 64 components. */
 void updateGMMCache(GaussianMixture& gmm);
+
+/** \brief fitGMM's start: the k-means++ seeds, the weights, means and covariances of the nearest
+ * seed's points, and their cache. fitGMM is gmmStart, then gmmEM. */
+GaussianMixture gmmStart(const Eigen::MatrixX3d& points, const GMMOptions& options);
+
+/** \brief fitGMM's EM from `gmm` (gmmStart's) on the points, on the cores (gmm_em.h's arithmetic,
+ * the sums in point order: a device's fits give the same bits). */
+void gmmEM(const Eigen::MatrixX3d& points, const GMMOptions& options, GaussianMixture& gmm);
+
+/** \brief A mixture of at most gmm_em::kMaxDeviceComponents components in gmm_em's layout (its
+ * cache included), for a device's fits; throws pcl_animseg::Error for more components. */
+void toDeviceMixture(const GaussianMixture& g, gmm_em::Mixture<gmm_em::kMaxDeviceComponents>& out);
+/** \brief The mixture back from gmm_em's layout (weights, means, covariances and cache; the
+ * log-likelihood, iterations and convergence are the caller's). */
+void fromDeviceMixture(const gmm_em::Mixture<gmm_em::kMaxDeviceComponents>& in, GaussianMixture& g);
 
 }  // namespace math
 }  // namespace pcl_animseg

@@ -13,6 +13,7 @@
  * The RMS residual (nearest-neighbour distance after alignment) is a quality measure that needs no
  * ground truth: a part that is not rigid, or not one part, shows a large residual.
  */
+#include <pcl_animseg/math/gmm.h>
 #include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/sequence.h>
@@ -123,6 +124,13 @@ struct MotionCheckJobs {
   double cap = 0.0;
 };
 
+/** \brief A mixture to fit on a device (RigidFitDevice::fitMixtures): its points (N x 3) and
+ * its start, math::gmmStart's, which the fit replaces. */
+struct MixtureFitJob {
+  const Eigen::MatrixX3d* points = nullptr;
+  math::GaussianMixture* gmm = nullptr;
+};
+
 /** \brief Where RigidMotionEstimation's ICP fits run when not on the CPU (the CUDA module's
  * gpu::RigidFits). A device must give the CPU's results bit for bit: the same passes in the same
  * arithmetic (segmentation/icp_step.h) and order, and the same nearest points (a copy of each
@@ -189,6 +197,15 @@ class RigidFitDevice {
                               const std::vector<int>& tree_of, const std::vector<float>& bound2,
                               std::vector<float>& out) {
     (void)token, (void)queries, (void)tree_of, (void)bound2, (void)out;
+    return false;
+  }
+  /** \brief math::gmmEM of each job's points from its start (*gmm, math::gmmStart's), the fit
+   * into *gmm, with the same bits as on the cores. Returns false where the device does not offer
+   * it or a job has more components than it takes (the default: the caller fits on the cores);
+   * throws pcl_animseg::Error where a covariance is not positive definite, as gmmEM does. */
+  virtual bool fitMixtures(const std::vector<MixtureFitJob>& jobs,
+                           const math::GMMOptions& options) {
+    (void)jobs, (void)options;
     return false;
   }
   /** \brief rigidScore of each job (RigidScoreJob) into out[j], against the surfaces and

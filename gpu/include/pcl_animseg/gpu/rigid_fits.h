@@ -73,6 +73,11 @@ class RigidFits : public segmentation::RigidFitDevice {
   bool leastDistances(long long token, const std::vector<float>& queries,
                       const std::vector<int>& tree_of, const std::vector<float>& bound2,
                       std::vector<float>& out) override;
+  /** \brief math::gmmEM of every job on the device, a block each, the same bits as on the
+   * cores; false for a job of more than 8 components (the caller fits on the cores); throws Error
+   * on a CUDA failure, a job without points, or a covariance that is not positive definite. */
+  bool fitMixtures(const std::vector<segmentation::MixtureFitJob>& jobs,
+                   const math::GMMOptions& options) override;
   /** \brief Every job's rigidScore (segmentation/rigid_motion.h), a block per job, against the
    * surfaces and sources set; false (the caller scores on the CPU) where a job has more than 512
    * probes; throws Error on a CUDA failure, nothing set, or a job out of range. */
