@@ -1411,7 +1411,7 @@ __device__ double orderedSum(const double* values, long long stride, int n, doub
 // the steps between by thread 0, with gmm_em's arithmetic throughout.
 __global__ void __launch_bounds__(kMixtureThreads)
     mixtureFits(const double* __restrict__ points, const MixtureJob* __restrict__ jobs,
-                MixtureResult* results, double* resp, double* lse, int max_iterations,
+                MixtureResult* results, double* resp, double* lse, int stride, int max_iterations,
                 double tolerance, double reg) {
   const MixtureJob job = jobs[blockIdx.x];
   __shared__ gmm_em::Mixture<gmm_em::kMaxDeviceComponents> m;
@@ -1430,7 +1430,7 @@ __global__ void __launch_bounds__(kMixtureThreads)
   __syncthreads();
   const int k = m.k, n = job.n;
   const double* p = points + 3 * job.first;
-  double* r = resp + job.first * gmm_em::kMaxDeviceComponents;  // k per point, point-major
+  double* r = resp + job.first * stride;  // k per point, point-major (stride >= k)
   double* l = lse + job.first;
   double prev = -CUDART_INF;
   for (int it = 0; it < max_iterations; ++it) {
@@ -1509,17 +1509,18 @@ __global__ void __launch_bounds__(kMixtureThreads)
   if (threadIdx.x == 0) out.m = m;
 }
 
-void runMixtureFits(const std::vector<double>& points, const std::vector<MixtureJob>& jobs,
+void runMixtureFits(const double* points, std::size_t n_points, const std::vector<MixtureJob>& jobs,
                     int max_iterations, double tolerance, double regularization,
                     std::vector<MixtureResult>& results) {
   if (jobs.empty()) return;
-  const std::size_t n_points = points.size() / 3;
-  DeviceArray<double> d_points(points.data(), points.size());
+  int k = 1;  // the responsibilities' stride: the most components of any job
+  for (const MixtureResult& r : results) k = std::max(k, r.m.k);
+  DeviceArray<double> d_points(points, 3 * n_points);
   DeviceArray<MixtureJob> d_jobs(jobs.data(), jobs.size());
   DeviceArray<MixtureResult> d_results(results.data(), results.size());
-  DeviceArray<double> d_resp(n_points * gmm_em::kMaxDeviceComponents), d_lse(n_points);
+  DeviceArray<double> d_resp(n_points * k), d_lse(n_points);
   mixtureFits<<<static_cast<unsigned>(jobs.size()), kMixtureThreads>>>(
-      d_points.ptr(), d_jobs.ptr(), d_results.ptr(), d_resp.ptr(), d_lse.ptr(), max_iterations,
+      d_points.ptr(), d_jobs.ptr(), d_results.ptr(), d_resp.ptr(), d_lse.ptr(), k, max_iterations,
       tolerance, regularization);
   cudaCheckLaunch();
   d_results.download(results.data());

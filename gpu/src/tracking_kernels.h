@@ -328,9 +328,9 @@ struct MixtureResult {
 };
 
 /** math::gmmEM of every job on the device, a block each (gmm_em.h's arithmetic, every sum in
- * point order: the same bits): `points` holds x, y, z per point, `results` the jobs' starts on the
- * way in (their m) and their fits on the way out. */
-void runMixtureFits(const std::vector<double>& points, const std::vector<MixtureJob>& jobs,
+ * point order: the same bits): `points` holds x, y, z of n_points points, `results` the jobs'
+ * starts on the way in (their m) and their fits on the way out. */
+void runMixtureFits(const double* points, std::size_t n_points, const std::vector<MixtureJob>& jobs,
                     int max_iterations, double tolerance, double regularization,
                     std::vector<MixtureResult>& results);
 
