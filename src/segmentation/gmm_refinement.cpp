@@ -1041,6 +1041,10 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
     timer.lap("models: training points");
     const double patch = p.patch_size * mean_spacing;
     const float radius = static_cast<float>(p.patch_radius * mean_spacing);
+    // radiusSearch's bound for `radius`: its square (in double, then float), inclusive.
+    const float patch_bound =
+        std::nextafter(static_cast<float>(static_cast<double>(radius) * radius),
+                       std::numeric_limits<float>::infinity());
     math::GMMOptions gopt;
     gopt.components = p.components;
     gopt.max_iterations = p.gmm_max_iterations;
@@ -1082,11 +1086,17 @@ void GMMBoundaryRefinement::refine(const SegmentationResult& input, Segmentation
         ++c.second;
       }
       std::vector<int> idx;
-      std::vector<float> d2;
       for (const auto& [key, c] : cells) {
         const Eigen::Vector3d seed = c.first / static_cast<double>(c.second);
         m.seeds->push_back(toXYZ(seed));
-        m.train_tree.radiusSearch(toXYZ(seed), radius, idx, d2);
+        // The training points within `radius` (inclusive, as radiusSearch), in index order:
+        // radiusSearch's set without its sort by distance (a third of the patches' time).
+        idx.clear();
+        const pcl::PointXYZ sp = toXYZ(seed);
+        const float q[3] = {sp.x, sp.y, sp.z};
+        if (std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]) && radius >= 0.0f)
+          m.train_tree.flatTree().within(
+              q, patch_bound, [&](float, int row) { idx.push_back(m.train_tree.cloudIndex(row)); });
         std::sort(idx.begin(), idx.end());
         const bool ok = static_cast<int>(idx.size()) >= p.min_training_points;
         patch_points[mi].push_back(ok ? idx : std::vector<int>());
