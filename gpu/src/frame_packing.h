@@ -27,6 +27,11 @@ std::vector<int> packTrees(const std::vector<const FlatKdTree3*>& trees,
 /** Packs `frames` for upload (host work only, no CUDA call); throws Error (naming items as
  * `what` + index) on a frame without a tree or with a normal count that does not match. */
 FrameArrays packDeviceFrames(const segmentation::DeviceFrames& frames, const std::string& what);
+/** The same into `out`, whose buffers are reused (resized without zeroing: a caller that packs
+ * again and again keeps their pages, which the rigid motions' surfaces faulted in anew each
+ * time, 30-40 MB at 800k). */
+void packDeviceFrames(const segmentation::DeviceFrames& frames, const std::string& what,
+                      FrameArrays& out);
 
 /** Uploads packed frames; throws Error on a CUDA failure. The new store goes on with the call
  * statistics of `previous` (the store it replaces; null: none). */

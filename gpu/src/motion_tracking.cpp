@@ -110,6 +110,14 @@ std::vector<int> packTrees(const std::vector<const FlatKdTree3*>& trees,
 
 FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::string& what) {
   FrameArrays a;
+  packDeviceFrames(in, what, a);
+  return a;
+}
+
+void packDeviceFrames(const segmentation::DeviceFrames& in, const std::string& what,
+                      FrameArrays& a) {
+  a.spacing.clear();
+  a.unoriented.clear();
   a.frames = static_cast<int>(in.frames.size());
   a.normal_cos = in.normal_cos;
   a.clip = in.clip;
@@ -123,6 +131,19 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
     a.spacing.push_back(f.spacing);
     a.unoriented.push_back(f.unoriented ? 1 : 0);
   }
+  // Room for these and a quarter more, where the buffers are short (the next packing, of about
+  // as many points, then finds its pages; their old contents are not kept).
+  std::size_t n_nodes = 0, n_points = 0;
+  for (const FlatKdTree3* t : trees) n_nodes += t->nodes().size(), n_points += t->size();
+  auto room = [](auto& v, std::size_t n) {
+    if (v.capacity() >= n) return;
+    v.clear();
+    v.shrink_to_fit();
+    v.reserve(n + n / 4);
+  };
+  room(a.nodes, n_nodes);
+  room(a.points, 4 * n_points);
+  room(a.normals, 4 * n_points);
   const std::vector<int> point0 = packTrees(trees, a.nodes, a.points, a.root);
   a.point0 = point0;
   a.normals.resize(4 * static_cast<std::size_t>(point0.back()));
@@ -135,7 +156,6 @@ FrameArrays packDeviceFrames(const segmentation::DeviceFrames& in, const std::st
       out[4 * i + 3] = 0.0f;
     }
   }
-  return a;
 }
 
 std::unique_ptr<FrameStore> uploadPackedFrames(const FrameArrays& packed,

@@ -94,9 +94,11 @@ void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
   // Into the store of the surfaces before: its device buffers where they hold the new surfaces,
   // its batch buffers and what it measured of the device are kept (a new store for each of the
   // rigid motions' computations cost 0.004-0.009 s of cudaFree and cudaMalloc at 800k).
-  const detail::FrameArrays packed = detail::packDeviceFrames(surfaces, "GPU rigid fits: surface");
+  // Packed into the buffers of the packing before (their pages kept).
+  if (!packed_) packed_ = std::make_unique<detail::FrameArrays>();
+  detail::packDeviceFrames(surfaces, "GPU rigid fits: surface", *packed_);
   if (!surfaces_) surfaces_ = std::make_unique<detail::FrameStore>();
-  detail::uploadFrames(packed, *surfaces_);
+  detail::uploadFrames(*packed_, *surfaces_);
 }
 
 void RigidFits::setSources(const std::vector<const std::vector<double>*>& sources) {

@@ -25,6 +25,7 @@ namespace gpu {
 
 namespace detail {
 struct FrameStore;
+struct FrameArrays;
 struct KnnStore;
 struct RigidSources;
 }  // namespace detail
@@ -99,6 +100,7 @@ class RigidFits : public segmentation::RigidFitDevice {
 
  private:
   std::unique_ptr<detail::FrameStore> surfaces_;
+  std::unique_ptr<detail::FrameArrays> packed_;  // the surfaces' host buffers, reused
   std::unique_ptr<detail::RigidSources> sources_;
   std::unique_ptr<detail::KnnStore> knn_;  // the kept trees
   long long knn_token_ = 0;                // the kept trees' token (0: none kept)
