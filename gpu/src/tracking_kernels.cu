@@ -1137,8 +1137,41 @@ void runRigidFits(FrameStore& surfaces, const DeviceArray<double>& sources,
   rms.assign(r + n * kPoseDoubles, r + n * (kPoseDoubles + 1));
 }
 
-// FlatKdTree3::knn (flat_kdtree.h): its walk (visit) with its sorted heap of (d2, row) pairs,
-// a query per thread; distances in the CPU's float order, without contraction.
+// FlatKdTree3::visit (flat_kdtree.h) on the device: every point of the tree at `root` whose
+// squared distance to (qx, qy, qz) is below worst() (read again after each hit) goes to
+// hit(d2, leaf index); the same walk, distances in the CPU's float order, without contraction.
+template <class Worst, class Hit>
+__device__ void visitTree(const TrackNode* nodes, const float4* pts, int root, float qx, float qy,
+                          float qz, Worst worst, Hit hit) {
+  struct Entry {
+    int node;
+    float min_d2;
+  };
+  Entry stack[kMaxDepth];
+  int top = 0;
+  stack[top++] = {root, 0.0f};
+  while (top > 0) {
+    const Entry e = stack[--top];
+    if (!(e.min_d2 < worst())) continue;
+    int nidx = e.node;
+    TrackNode nd = nodes[nidx];
+    while (nd.dim >= 0) {
+      const float qv = nd.dim == 0 ? qx : (nd.dim == 1 ? qy : qz);
+      const float diff = __fsub_rn(qv, nd.split);
+      const float far_d2 = fmaxf(e.min_d2, __fmul_rn(diff, diff));
+      if (far_d2 < worst() && top < kMaxDepth) stack[top++] = {diff < 0.0f ? nd.b : nd.a, far_d2};
+      nidx = diff < 0.0f ? nd.a : nd.b;
+      nd = nodes[nidx];
+    }
+    for (int i = nd.a; i < nd.b; ++i) {
+      const float d = distance2(qx, qy, qz, pts[i]);
+      if (d < worst()) hit(d, i);
+    }
+  }
+}
+
+// FlatKdTree3::knn (flat_kdtree.h): its walk (visitTree) with its sorted heap of (d2, row) pairs,
+// a query per thread.
 __global__ void knnKernel(const TrackNode* nodes, const float4* pts, const int* rows,
                           const int* root, const int* size, const float* queries,
                           const int* tree_of, long long n, int k, int* out_rows, int* out_count) {
@@ -1151,47 +1184,24 @@ __global__ void knnKernel(const TrackNode* nodes, const float4* pts, const int* 
   int filled = 0;
   const float qx = queries[3 * q], qy = queries[3 * q + 1], qz = queries[3 * q + 2];
   if (root[t] >= 0 && kk > 0 && isfinite(qx) && isfinite(qy) && isfinite(qz)) {
-    struct Entry {
-      int node;
-      float min_d2;
-    };
-    Entry stack[kMaxDepth];
-    int top = 0;
-    stack[top++] = {root[t], 0.0f};
     auto worst = [&]() { return filled < kk ? CUDART_INF_F : hd[kk - 1]; };
-    while (top > 0) {
-      const Entry e = stack[--top];
-      if (!(e.min_d2 < worst())) continue;
-      int nidx = e.node;
-      TrackNode nd = nodes[nidx];
-      while (nd.dim >= 0) {
-        const float qv = nd.dim == 0 ? qx : (nd.dim == 1 ? qy : qz);
-        const float diff = __fsub_rn(qv, nd.split);
-        const float far_d2 = fmaxf(e.min_d2, __fmul_rn(diff, diff));
-        if (far_d2 < worst() && top < kMaxDepth) stack[top++] = {diff < 0.0f ? nd.b : nd.a, far_d2};
-        nidx = diff < 0.0f ? nd.a : nd.b;
-        nd = nodes[nidx];
+    visitTree(nodes, pts, root[t], qx, qy, qz, worst, [&](float d, int i) {
+      const int row = rows[i];
+      // heap.insert(upper_bound(...)) after dropping the last when full, as on the CPU.
+      if (filled == kk) {
+        if (!(d < hd[kk - 1] || (d == hd[kk - 1] && row < hr[kk - 1]))) return;
+        --filled;
       }
-      for (int i = nd.a; i < nd.b; ++i) {
-        const float d = distance2(qx, qy, qz, pts[i]);
-        if (!(d < worst())) continue;
-        const int row = rows[i];
-        // heap.insert(upper_bound(...)) after dropping the last when full, as on the CPU.
-        if (filled == kk) {
-          if (!(d < hd[kk - 1] || (d == hd[kk - 1] && row < hr[kk - 1]))) continue;
-          --filled;
-        }
-        int at = filled;
-        while (at > 0 && (d < hd[at - 1] || (d == hd[at - 1] && row < hr[at - 1]))) {
-          hd[at] = hd[at - 1];
-          hr[at] = hr[at - 1];
-          --at;
-        }
-        hd[at] = d;
-        hr[at] = row;
-        ++filled;
+      int at = filled;
+      while (at > 0 && (d < hd[at - 1] || (d == hd[at - 1] && row < hr[at - 1]))) {
+        hd[at] = hd[at - 1];
+        hr[at] = hr[at - 1];
+        --at;
       }
-    }
+      hd[at] = d;
+      hr[at] = row;
+      ++filled;
+    });
   }
   for (int i = 0; i < k; ++i) out_rows[q * k + i] = i < filled ? hr[i] : -1;
   out_count[q] = filled;
@@ -1336,31 +1346,9 @@ __global__ void leastDistancesKernel(const TrackNode* nodes, const float4* pts, 
   if (root[t] < 0 || !isfinite(qx) || !isfinite(qy) || !isfinite(qz)) return;
   const float bound = bound2[t];
   unsigned* slot = out + first[t];
-  struct Entry {
-    int node;
-    float min_d2;
-  };
-  Entry stack[kMaxDepth];
-  int top = 0;
-  stack[top++] = {root[t], 0.0f};
-  while (top > 0) {
-    const Entry e = stack[--top];
-    if (!(e.min_d2 < bound)) continue;
-    int nidx = e.node;
-    TrackNode nd = nodes[nidx];
-    while (nd.dim >= 0) {
-      const float qv = nd.dim == 0 ? qx : (nd.dim == 1 ? qy : qz);
-      const float diff = __fsub_rn(qv, nd.split);
-      const float far_d2 = fmaxf(e.min_d2, __fmul_rn(diff, diff));
-      if (far_d2 < bound && top < kMaxDepth) stack[top++] = {diff < 0.0f ? nd.b : nd.a, far_d2};
-      nidx = diff < 0.0f ? nd.a : nd.b;
-      nd = nodes[nidx];
-    }
-    for (int i = nd.a; i < nd.b; ++i) {
-      const float d = distance2(qx, qy, qz, pts[i]);
-      if (d < bound) atomicMin(slot + rows[i], __float_as_uint(d));
-    }
-  }
+  visitTree(
+      nodes, pts, root[t], qx, qy, qz, [bound]() { return bound; },
+      [&](float d, int i) { atomicMin(slot + rows[i], __float_as_uint(d)); });
 }
 
 void runLeastDistances(const KnnStore& store, const std::vector<float>& queries,

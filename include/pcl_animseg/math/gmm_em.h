@@ -46,6 +46,13 @@ PCL_ANIMSEG_GMM_HD inline std::uint64_t toBits(double d) {
 #endif
 }
 
+/** \brief c[0] x^(n-1) + ... + c[n-1] by Horner's rule, one multiply and one add a step. */
+PCL_ANIMSEG_GMM_HD inline double horner(const double* c, int n, double x) {
+  double p = c[0];
+  for (int k = 1; k < n; ++k) p = p * x + c[k];
+  return p;
+}
+
 /** \brief e^x: x = k ln 2 + r (|r| <= ln 2 / 2, Cody-Waite), e^r by its Taylor series to r^13
  * (Horner), times 2^k built from its bits. 0 below -700 and for -inf (EM's far terms: their
  * share of a sum is nothing anyway), +inf above 709.7, NaN for NaN. */
@@ -59,20 +66,21 @@ PCL_ANIMSEG_GMM_HD inline double exp(double x) {
   const double fk =
       static_cast<double>(static_cast<long long>(x * kInvLn2 + (x < 0.0 ? -0.5 : 0.5)));
   const double r = (x - fk * kLn2Hi) - fk * kLn2Lo;
-  double p = 1.0 / 6227020800.0;  // 1/13!
-  p = p * r + 1.0 / 479001600.0;
-  p = p * r + 1.0 / 39916800.0;
-  p = p * r + 1.0 / 3628800.0;
-  p = p * r + 1.0 / 362880.0;
-  p = p * r + 1.0 / 40320.0;
-  p = p * r + 1.0 / 5040.0;
-  p = p * r + 1.0 / 720.0;
-  p = p * r + 1.0 / 120.0;
-  p = p * r + 1.0 / 24.0;
-  p = p * r + 1.0 / 6.0;
-  p = p * r + 0.5;
-  p = p * r + 1.0;
-  p = p * r + 1.0;
+  const double c[] = {1.0 / 6227020800.0,
+                      1.0 / 479001600.0,
+                      1.0 / 39916800.0,  // 1/13!, ...
+                      1.0 / 3628800.0,
+                      1.0 / 362880.0,
+                      1.0 / 40320.0,
+                      1.0 / 5040.0,
+                      1.0 / 720.0,
+                      1.0 / 120.0,
+                      1.0 / 24.0,
+                      1.0 / 6.0,
+                      0.5,
+                      1.0,
+                      1.0};
+  const double p = horner(c, 14, r);
   // 2^k for k in [-1010, 1024]: a normal number, k + 1023 in its exponent bits; 2^1024 as
   // 2^1023 * 2.
   const long long k = static_cast<long long>(fk);
@@ -101,17 +109,9 @@ PCL_ANIMSEG_GMM_HD inline double log(double x) {
     ++e;
   }
   const double s = (m - 1.0) / (m + 1.0), s2 = s * s;
-  double p = 1.0 / 21.0;
-  p = p * s2 + 1.0 / 19.0;
-  p = p * s2 + 1.0 / 17.0;
-  p = p * s2 + 1.0 / 15.0;
-  p = p * s2 + 1.0 / 13.0;
-  p = p * s2 + 1.0 / 11.0;
-  p = p * s2 + 1.0 / 9.0;
-  p = p * s2 + 1.0 / 7.0;
-  p = p * s2 + 1.0 / 5.0;
-  p = p * s2 + 1.0 / 3.0;
-  p = p * s2 + 1.0;
+  const double c[] = {1.0 / 21.0, 1.0 / 19.0, 1.0 / 17.0, 1.0 / 15.0, 1.0 / 13.0, 1.0 / 11.0,
+                      1.0 / 9.0,  1.0 / 7.0,  1.0 / 5.0,  1.0 / 3.0,  1.0};
+  const double p = horner(c, 11, s2);
   const double lm = 2.0 * s * p;
   constexpr double kLn2Hi = 6.93147180369123816490e-01, kLn2Lo = 1.90821492927058770002e-10;
   const double fe = static_cast<double>(e);
