@@ -81,6 +81,35 @@ std::pair<int, int> jobSource(const RigidSources& sources, const FrameStore& sur
   return {sources.begin[source], sources.count[source]};
 }
 
+// `trees` packed for a KnnStore: their nodes, points and roots, each tree's size and leaf rows;
+// throws Error on a missing tree.
+KnnTrees packKnnTrees(const std::vector<const FlatKdTree3*>& trees) {
+  const int n_trees = static_cast<int>(trees.size());
+  for (int t = 0; t < n_trees; ++t)
+    if (!trees[t]) throw DeviceError("GPU k-NN: a tree is missing");
+  KnnTrees packed;
+  const std::vector<int> point0 = packTrees(trees, packed.nodes, packed.points, packed.root);
+  packed.size.resize(n_trees);
+  packed.rows.resize(point0.back());
+#pragma omp parallel for schedule(dynamic)
+  for (int t = 0; t < n_trees; ++t) {
+    packed.size[t] = static_cast<int>(trees[t]->size());
+    std::copy(trees[t]->leafRows().begin(), trees[t]->leafRows().end(),
+              packed.rows.begin() + point0[t]);
+  }
+  return packed;
+}
+
+// Queries against `trees` trees: three coordinates each, each one's tree in range; throws Error
+// (`what` names the call) where not.
+void checkQueries(const std::vector<float>& queries, const std::vector<int>& tree_of, int trees,
+                  const std::string& what) {
+  if (queries.size() != 3 * tree_of.size())
+    throw DeviceError(what + "three coordinates per query expected");
+  for (int t : tree_of)
+    if (t < 0 || t >= trees) throw DeviceError(what + "a query's tree out of range");
+}
+
 }  // namespace detail
 
 RigidFits::RigidFits() = default;
@@ -189,26 +218,12 @@ bool RigidFits::knn(const std::vector<const FlatKdTree3*>& trees, int k,
                     std::vector<int>& rows, std::vector<int>& count) {
   if (k < 1 || k > detail::kMaxKnn) return false;
   const int n_trees = static_cast<int>(trees.size());
-  for (int t = 0; t < n_trees; ++t)
-    if (!trees[t]) throw DeviceError("GPU k-NN: a tree is missing");
-  for (int t : tree_of)
-    if (t < 0 || t >= n_trees) throw DeviceError("GPU k-NN: a query's tree out of range");
-  if (queries.size() != 3 * tree_of.size())
-    throw DeviceError("GPU k-NN: three coordinates per query expected");
   // Uploaded for this search alone, beside the trees kept for knnOn() (a caller between two
   // searches of its kept trees, the refinement's verdicts between its lists and its motion
   // check, keeps them there).
   const auto t0 = std::chrono::steady_clock::now();
-  detail::KnnTrees packed;
-  const std::vector<int> point0 =
-      detail::packTrees(trees, packed.nodes, packed.points, packed.root);
-  packed.size.resize(n_trees);
-  packed.rows.resize(point0.back());
-  for (int t = 0; t < n_trees; ++t) {
-    packed.size[t] = static_cast<int>(trees[t]->size());
-    std::copy(trees[t]->leafRows().begin(), trees[t]->leafRows().end(),
-              packed.rows.begin() + point0[t]);
-  }
+  const detail::KnnTrees packed = detail::packKnnTrees(trees);
+  detail::checkQueries(queries, tree_of, n_trees, "GPU k-NN: ");
   requireGpu();
   detail::KnnStore store;
   detail::uploadKnnTrees(packed, store);
@@ -270,12 +285,9 @@ bool RigidFits::leastDistances(long long token, const std::vector<float>& querie
                                std::vector<float>& out) {
   if (token <= 0 || token != knn_token_ || !knn_) return false;
   const std::string what = "GPU least distances: ";
-  if (queries.size() != 3 * tree_of.size())
-    throw DeviceError(what + "three coordinates per query expected");
+  detail::checkQueries(queries, tree_of, knn_->trees, what);
   if (bound2.size() != static_cast<std::size_t>(knn_->trees))
     throw DeviceError(what + "one bound per kept tree expected");
-  for (int t : tree_of)
-    if (t < 0 || t >= knn_->trees) throw DeviceError(what + "a query's tree out of range");
   const auto t0 = std::chrono::steady_clock::now();
   detail::runLeastDistances(*knn_, queries, tree_of, bound2, out);
   if (std::getenv("ANIMSEG_MS_TIMING"))
@@ -347,20 +359,8 @@ void RigidFits::dropKnnTrees(long long token) {
 long long RigidFits::keepKnnTrees(const std::vector<const FlatKdTree3*>& trees) {
   const auto t0 = std::chrono::steady_clock::now();
   const int n_trees = static_cast<int>(trees.size());
-  for (int t = 0; t < n_trees; ++t)
-    if (!trees[t]) throw DeviceError("GPU k-NN: a tree is missing");
   knn_token_ = 0;  // none kept until the upload succeeds
-  detail::KnnTrees packed;
-  const std::vector<int> point0 =
-      detail::packTrees(trees, packed.nodes, packed.points, packed.root);
-  packed.size.resize(n_trees);
-  packed.rows.resize(point0.back());
-#pragma omp parallel for schedule(dynamic)
-  for (int t = 0; t < n_trees; ++t) {
-    packed.size[t] = static_cast<int>(trees[t]->size());
-    std::copy(trees[t]->leafRows().begin(), trees[t]->leafRows().end(),
-              packed.rows.begin() + point0[t]);
-  }
+  const detail::KnnTrees packed = detail::packKnnTrees(trees);
   requireGpu();
   if (!knn_) knn_ = std::make_unique<detail::KnnStore>();
   detail::uploadKnnTrees(packed, *knn_);
@@ -375,10 +375,7 @@ bool RigidFits::knnOn(long long token, int k, const std::vector<float>& queries,
                       const std::vector<int>& tree_of, std::vector<int>& rows,
                       std::vector<int>& count) {
   if (token <= 0 || token != knn_token_ || !knn_ || k < 1 || k > detail::kMaxKnn) return false;
-  if (queries.size() != 3 * tree_of.size())
-    throw DeviceError("GPU k-NN: three coordinates per query expected");
-  for (int t : tree_of)
-    if (t < 0 || t >= knn_->trees) throw DeviceError("GPU k-NN: a query's tree out of range");
+  detail::checkQueries(queries, tree_of, knn_->trees, "GPU k-NN: ");
   const auto t0 = std::chrono::steady_clock::now();
   detail::runKnn(*knn_, k, queries, tree_of, rows, count);
   if (std::getenv("ANIMSEG_MS_TIMING"))

@@ -1379,18 +1379,20 @@ void runLeastDistances(const KnnStore& store, const std::vector<float>& queries,
 namespace gmm_em = math::gmm_em;
 constexpr int kMixtureThreads = 128;
 
-// values[0 .. n) added in index order to `sum` (gmm_em's sums are in point order), eight values
-// read before they are added (as addRows).
-__device__ double orderedSum(const double* values, long long stride, int n, double sum) {
+// term(0) + term(1) + ... + term(n - 1), added in index order from 0.0 (gmm_em's sums are in
+// point order), eight terms computed before they are added (as addRows).
+template <class Term>
+__device__ double orderedSum(int n, Term term) {
+  double sum = 0.0;
   int i = 0;
   for (; i + 8 <= n; i += 8) {
     double a[8];
 #pragma unroll
-    for (int k = 0; k < 8; ++k) a[k] = values[(i + k) * stride];
+    for (int q = 0; q < 8; ++q) a[q] = term(i + q);
 #pragma unroll
-    for (int k = 0; k < 8; ++k) sum += a[k];
+    for (int q = 0; q < 8; ++q) sum += a[q];
   }
-  for (; i < n; ++i) sum += values[i * stride];
+  for (; i < n; ++i) sum += term(i);
   return sum;
 }
 
@@ -1426,7 +1428,7 @@ __global__ void __launch_bounds__(kMixtureThreads)
       l[i] = gmm_em::responsibilities(m, p + 3LL * i, r + static_cast<long long>(i) * k);
     __syncthreads();
     if (threadIdx.x == 0) {
-      const double ll = orderedSum(l, 1, n, 0.0) / static_cast<double>(n);
+      const double ll = orderedSum(n, [&](int i) { return l[i]; }) / static_cast<double>(n);
       out.log_likelihood = ll;
       out.iterations = it + 1;
       if (ll - prev < tolerance && it > 0) {
@@ -1437,29 +1439,14 @@ __global__ void __launch_bounds__(kMixtureThreads)
     }
     __syncthreads();
     if (stop) break;
-    // nk[c] (thread 4c) and sx[c][d] (thread 4c + 1 + d), each over the points in order, eight
-    // points' terms computed before they are added.
+    // nk[c] (thread 4c) and sx[c][d] (thread 4c + 1 + d), each over the points in order.
     if (threadIdx.x < 4 * k) {
       const int c = threadIdx.x / 4, d = threadIdx.x % 4 - 1;
-      double sum = 0.0;
-      if (d < 0) {
-        sum = orderedSum(r + c, k, n, 0.0);
-      } else {
-        int i = 0;
-        for (; i + 8 <= n; i += 8) {
-          double a[8];
-#pragma unroll
-          for (int q = 0; q < 8; ++q)
-            a[q] = r[static_cast<long long>(i + q) * k + c] * p[3LL * (i + q) + d];
-#pragma unroll
-          for (int q = 0; q < 8; ++q) sum += a[q];
-        }
-        for (; i < n; ++i) sum += r[static_cast<long long>(i) * k + c] * p[3LL * i + d];
-      }
+      auto w = [&](int i) { return r[static_cast<long long>(i) * k + c]; };
       if (d < 0)
-        nk[c] = sum;
+        nk[c] = orderedSum(n, w);
       else
-        sx[c][d] = sum;
+        sx[c][d] = orderedSum(n, [&](int i) { return w(i) * p[3LL * i + d]; });
     }
     __syncthreads();
     if (threadIdx.x == 0) gmm_em::newMeans(m, nk, sx);
@@ -1469,22 +1456,11 @@ __global__ void __launch_bounds__(kMixtureThreads)
       const int c = threadIdx.x / 6, e = threadIdx.x % 6;
       const int a = e < 3 ? e : (e == 5 ? 1 : 0), b = e < 3 ? e : (e == 3 ? 1 : 2);
       const double ma = m.mu[c][a], mb = m.mu[c][b];
-      auto term = [&](int i) {
+      sc[c][e] = orderedSum(n, [&](int i) {
         const double w = r[static_cast<long long>(i) * k + c];
         const double da = p[3LL * i + a] - ma, db = p[3LL * i + b] - mb;
         return w * da * db;
-      };
-      double sum = 0.0;
-      int i = 0;
-      for (; i + 8 <= n; i += 8) {
-        double t8[8];
-#pragma unroll
-        for (int q = 0; q < 8; ++q) t8[q] = term(i + q);
-#pragma unroll
-        for (int q = 0; q < 8; ++q) sum += t8[q];
-      }
-      for (; i < n; ++i) sum += term(i);
-      sc[c][e] = sum;
+      });
     }
     __syncthreads();
     if (threadIdx.x == 0) {

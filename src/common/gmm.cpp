@@ -2,12 +2,11 @@
 #include <pcl_animseg/math/gmm.h>
 #include <pcl_animseg/math/gmm_em.h>
 
-#include <Eigen/Cholesky>
-#include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
 #include <limits>
 #include <random>
+#include <string>
 
 namespace pcl_animseg {
 namespace math {
@@ -15,19 +14,13 @@ namespace math {
 namespace {
 
 // log(sum_i exp(v[i])) as m + log(s), m the largest v[i] and s the sum of exp(v[i] - m); m
-// itself where it is not finite. Where `terms` is given, exp(v[i] - m) into it and s into *sum
-// (untouched where m is not finite): EM's responsibilities are those terms over s.
-double logSumExp(const double* v, int n, double* terms = nullptr, double* sum = nullptr) {
+// itself where it is not finite. (The EM's own is gmm_em::responsibilities.)
+double logSumExp(const double* v, int n) {
   double m = -std::numeric_limits<double>::infinity();
   for (int i = 0; i < n; ++i) m = std::max(m, v[i]);
   if (!std::isfinite(m)) return m;
   double s = 0.0;
-  for (int i = 0; i < n; ++i) {
-    const double e = std::exp(v[i] - m);
-    s += e;
-    if (terms) terms[i] = e;
-  }
-  if (sum) *sum = s;
+  for (int i = 0; i < n; ++i) s += std::exp(v[i] - m);
   return m + std::log(s);
 }
 
@@ -59,10 +52,6 @@ std::vector<Eigen::Vector3d> kmeansPlusPlus(const Eigen::MatrixX3d& x, int k, st
   }
   return centers;
 }
-
-}  // namespace
-
-namespace {
 
 // A mixture's numbers into gmm_em's layout and back (the cache included).
 template <int K>

@@ -301,13 +301,17 @@ SnapGraph snapGraph(const Cloud& cloud, const NeighbourLists& knn, double spacin
   return g;
 }
 
-// The bound of the fold snap's search around the border points (FlatKdTree3::within's, strictly
-// below): squared distances up to 1.0201 band^2 (a little beyond the band: the same bands as a
-// search bounded by the band itself).
-float snapNearBound(const RefinementParams& p, double spacing) {
+// The squared distance that puts a point in the fold snap's band: 1.0201 band^2 (a little beyond
+// the band: the same bands as a search bounded by the band itself).
+float snapNear2(const RefinementParams& p, double spacing) {
   const double near = p.fold_snap_band * spacing;
-  return std::nextafter(static_cast<float>(1.0201 * near * near),
-                        std::numeric_limits<float>::max());
+  return static_cast<float>(1.0201 * near * near);
+}
+
+// The bound of the search around the border points (FlatKdTree3::within's, strictly below):
+// snapNear2 inclusive.
+float snapNearBound(const RefinementParams& p, double spacing) {
+  return std::nextafter(snapNear2(p, spacing), std::numeric_limits<float>::max());
 }
 
 // Each point's least squared distance to a border point of `g`, below snapNearBound (else
@@ -381,8 +385,8 @@ std::size_t foldSnap(const Cloud& cloud, const pcl_animseg::KdTree<pcl::PointNor
   int labels_here = 0;
   for (int j = 0; j < n; ++j) labels_here = std::max(labels_here, lab[j] + 1);
   std::vector<char> far(labels_here, 0);
-  const double near = p.fold_snap_band * spacing, bound = 2.0 * near;
-  const float near2 = static_cast<float>(1.0201 * near * near);
+  const double bound = 2.0 * (p.fold_snap_band * spacing);
+  const float near2 = snapNear2(p, spacing);
   const float bound2 = static_cast<float>(1.0201 * bound * bound);
   // The distances within the band from the other side (nearBorder, or the caller's).
   std::vector<float> near_own;

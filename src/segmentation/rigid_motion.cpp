@@ -73,11 +73,17 @@ std::vector<int> partIndices(const std::vector<int>& labels, int part, std::size
   return out;
 }
 
+// The points `idx` of `frame`, in that order.
+Cloud::Ptr cloudOf(const Cloud& frame, const std::vector<int>& idx) {
+  Cloud::Ptr out(new Cloud);
+  out->reserve(idx.size());
+  for (int j : idx) out->push_back(frame[j]);
+  return out;
+}
+
 Cloud::Ptr partCloud(const Cloud& frame, const std::vector<int>& labels, int part,
                      std::size_t max_points) {
-  Cloud::Ptr out(new Cloud);
-  for (int j : partIndices(labels, part, max_points)) out->push_back(frame[j]);
-  return out;
+  return cloudOf(frame, partIndices(labels, part, max_points));
 }
 
 // Dominant axis of a part (unit, sign arbitrary) and how dominant it is (λ1 / λ2).
@@ -346,14 +352,8 @@ class ChainedPart {
   // found by the caller.
   void buildTarget(std::size_t t, const std::vector<int>* points = nullptr) {
     Target& g = targets_[t];
-    if (points) {
-      Cloud::Ptr c(new Cloud);
-      c->reserve(points->size());
-      for (int j : *points) c->push_back((*seq_.frame(t))[j]);
-      g.surface.build(c);
-    } else {
-      g.surface.build(partCloud(*seq_.frame(t), labels_[t], part_, 0));
-    }
+    g.surface.build(points ? cloudOf(*seq_.frame(t), *points)
+                           : partCloud(*seq_.frame(t), labels_[t], part_, 0));
     const Cloud& cloud = *g.surface.cloud;
     g.usable = static_cast<int>(cloud.size()) >= p_.min_points;
     if (!g.usable) return;

@@ -299,43 +299,37 @@ TEST(GMMRefinement, DeviceFitsGiveTheSameResult) {
   // one.
   EXPECT_NE(dev.fit_thread, std::this_thread::get_id());
   EXPECT_EQ(dev.knn_thread, std::this_thread::get_id());
-  // Devices that offer less: the cores do the rest, the same result.
-  auto refinedOn = [&](animseg_test::CpuRigidDevice& device) {
+  // Devices that offer less (`offer` switched off): the cores do the rest, the same result.
+  auto refinedWithout = [&](bool animseg_test::CpuRigidDevice::*offer) {
+    animseg_test::CpuRigidDevice device;
+    device.*offer = false;
     on_device.setRigidFitDevice(&device);
     EXPECT_EQ(c.refinedBy(on_device).labels, expected.labels);
+    on_device.setRigidFitDevice(nullptr);
+    return device;
   };
   // Without the k-NN: the lists on the CPU.
-  animseg_test::CpuRigidDevice fits_only;
-  fits_only.offer_knn = false;
-  refinedOn(fits_only);
+  const auto fits_only = refinedWithout(&animseg_test::CpuRigidDevice::offer_knn);
   EXPECT_EQ(fits_only.knn_calls, 0);
-  // Searching but keeping no trees: the lists' search uploads them, the motion check runs on the
-  // cores.
-  animseg_test::CpuRigidDevice no_keep;
-  no_keep.offer_keep = false;
-  refinedOn(no_keep);
+  // Searching but keeping no trees: the lists' search uploads them, the motion check and the
+  // fold snap's distances run on the cores.
+  const auto no_keep = refinedWithout(&animseg_test::CpuRigidDevice::offer_keep);
   EXPECT_EQ(no_keep.knn_k, (std::vector<int>{RefinementParams().boundary_k + 1, 1}));
   EXPECT_EQ(no_keep.knn_on_calls, 0);
   EXPECT_EQ(no_keep.motion_calls, 0);
+  EXPECT_EQ(no_keep.least_calls, 0);
   // Keeping trees but offering no motion check: the cores score it.
-  animseg_test::CpuRigidDevice no_check;
-  no_check.offer_motion = false;
-  refinedOn(no_check);
+  const auto no_check = refinedWithout(&animseg_test::CpuRigidDevice::offer_motion);
   EXPECT_EQ(no_check.knn_on_calls, 1);
   EXPECT_EQ(no_check.motion_calls, 0);
   EXPECT_EQ(no_check.least_calls, 1);
   // Keeping trees but offering no distances around the border points: the cores find them.
-  animseg_test::CpuRigidDevice no_least;
-  no_least.offer_least = false;
-  refinedOn(no_least);
+  const auto no_least = refinedWithout(&animseg_test::CpuRigidDevice::offer_least);
   EXPECT_EQ(no_least.motion_calls, 1);
   EXPECT_EQ(no_least.least_calls, 0);
   // Not fitting mixtures: the cores fit them.
-  animseg_test::CpuRigidDevice no_mixtures;
-  no_mixtures.offer_mixtures = false;
-  refinedOn(no_mixtures);
+  const auto no_mixtures = refinedWithout(&animseg_test::CpuRigidDevice::offer_mixtures);
   EXPECT_EQ(no_mixtures.mixture_calls, 0);
-  EXPECT_EQ(no_keep.least_calls, 0);
 }
 
 // The motion check as a device computes it (CpuRigidDevice::cpuMotionResiduals, the arithmetic
