@@ -135,15 +135,16 @@ void packDeviceFrames(const segmentation::DeviceFrames& in, const std::string& w
   // as many points, then finds its pages; their old contents are not kept).
   std::size_t n_nodes = 0, n_points = 0;
   for (const FlatKdTree3* t : trees) n_nodes += t->nodes().size(), n_points += t->size();
-  auto room = [](auto& v, std::size_t n) {
+  auto room = [](auto& v, std::size_t n, HostLock& lock) {
     if (v.capacity() >= n) return;
+    lock.unlock();  // before the buffer is freed
     v.clear();
     v.shrink_to_fit();
     v.reserve(n + n / 4);
   };
-  room(a.nodes, n_nodes);
-  room(a.points, 4 * n_points);
-  room(a.normals, 4 * n_points);
+  room(a.nodes, n_nodes, a.nodes_lock);
+  room(a.points, 4 * n_points, a.points_lock);
+  room(a.normals, 4 * n_points, a.normals_lock);
   const std::vector<int> point0 = packTrees(trees, a.nodes, a.points, a.root);
   a.point0 = point0;
   a.normals.resize(4 * static_cast<std::size_t>(point0.back()));

@@ -1281,13 +1281,69 @@ void runMotionCheck(const KnnStore& store, const MotionCheckArrays& in, float* o
   d_out.download(out);
 }
 
+HostLock& HostLock::operator=(HostLock&& o) noexcept {
+  if (this != &o) {
+    unlock();
+    p_ = std::exchange(o.p_, nullptr);
+    bytes_ = std::exchange(o.bytes_, 0);
+  }
+  return *this;
+}
+
+bool HostLock::lock(const void* p, std::size_t bytes) {
+  if (p_ && p_ == p && bytes_ == bytes) return true;
+  unlock();
+  if (!p || bytes == 0) return false;
+  void* q = const_cast<void*>(p);
+  if (cudaHostRegister(q, bytes, cudaHostRegisterDefault) != cudaSuccess) {
+    cudaGetLastError();  // not a sticky error: the copy goes pageable
+    return false;
+  }
+  p_ = q;
+  bytes_ = bytes;
+  return true;
+}
+
+void HostLock::unlock() {
+  if (!p_) return;
+  if (cudaHostUnregister(p_) != cudaSuccess) cudaGetLastError();  // nothing left to undo
+  p_ = nullptr;
+  bytes_ = 0;
+}
+
+namespace {
+// `n` elements from `host` into `a`, whose buffer is kept where it holds them (a store's frames
+// replaced by others of no more points: no cudaFree, which waits for the device, and no
+// cudaMalloc).
+template <class T>
+void uploadInto(DeviceArray<T>& a, const T* host, std::size_t n) {
+  if (a.sizeBytes() < n * sizeof(T)) a.create(n);
+  a.uploadBytes(host, n * sizeof(T));
+}
+
+// Copies of at least this many bytes go from page-locked memory (HostLock); below it the locking
+// would cost more than it saves.
+constexpr std::size_t kLockedCopyBytes = std::size_t(1) << 20;
+
+// uploadInto from `v`'s buffer, page-locked through `lock` where the copy is large: the whole
+// buffer (its capacity), so that a later copy from the same buffer finds it locked.
+template <class Vector>
+void uploadLocked(DeviceArray<typename Vector::value_type>& a, const Vector& v, HostLock& lock) {
+  using T = typename Vector::value_type;
+  if (v.size() * sizeof(T) >= kLockedCopyBytes) lock.lock(v.data(), v.capacity() * sizeof(T));
+  uploadInto(a, v.data(), v.size());
+}
+}  // namespace
+
 void uploadKnnTrees(const KnnTrees& trees, KnnStore& store) {
   store.trees = 0;
   store.first.assign(trees.size.size() + 1, 0);
   for (std::size_t t = 0; t < trees.size.size(); ++t)
     store.first[t + 1] = store.first[t] + trees.size[t];
-  store.nodes.upload(trees.nodes.data(), trees.nodes.size());
-  store.points.upload(trees.points.data(), trees.points.size());
+  // Locked for these copies only: the packing is not kept.
+  HostLock nodes_lock, points_lock;
+  uploadLocked(store.nodes, trees.nodes, nodes_lock);
+  uploadLocked(store.points, trees.points, points_lock);
   store.rows.upload(trees.rows);
   store.root.upload(trees.root);
   store.size.upload(trees.size);
@@ -1525,25 +1581,14 @@ unsigned char* PinnedHost::reserve(std::size_t bytes) {
   return static_cast<unsigned char*>(ptr_);
 }
 
-namespace {
-// `n` elements from `host` into `a`, whose buffer is kept where it holds them (a store's frames
-// replaced by others of no more points: no cudaFree, which waits for the device, and no
-// cudaMalloc).
-template <class T>
-void uploadInto(DeviceArray<T>& a, const T* host, std::size_t n) {
-  if (a.sizeBytes() < n * sizeof(T)) a.create(n);
-  a.uploadBytes(host, n * sizeof(T));
-}
-}  // namespace
-
 void uploadFrames(const FrameArrays& in, FrameStore& store) {
   store.frames = 0;  // no frames while they are replaced: a failed upload leaves none
   store.normal_cos = in.normal_cos;
   store.clip = in.clip;
-  uploadInto(store.nodes, in.nodes.data(), in.nodes.size());
+  uploadLocked(store.nodes, in.nodes, in.nodes_lock);
   uploadInto(store.root, in.root.data(), in.root.size());
-  uploadInto(store.points, in.points.data(), in.points.size());
-  uploadInto(store.normals, in.normals.data(), in.normals.size());
+  uploadLocked(store.points, in.points, in.points_lock);
+  uploadLocked(store.normals, in.normals, in.normals_lock);
   uploadInto(store.spacing, in.spacing.data(), in.spacing.size());
   uploadInto(store.unoriented, in.unoriented.data(), in.unoriented.size());
   store.point0 = in.point0;

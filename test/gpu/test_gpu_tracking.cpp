@@ -355,6 +355,48 @@ TEST(GpuTracking, RigidFitsOfLargeSourcesAreTheCpus) {
   }
 }
 
+// One device's surfaces set again and again: from 80 000 points (their arrays go up from
+// page-locked memory, 1.3 MB of points alone), to twice as many (the packing's buffers grow, so
+// they are unlocked first and locked anew), back to the first (the larger buffers, still locked,
+// hold them). Every labelling's motions are the CPU's bit for bit.
+TEST(GpuTracking, SurfacesSetAgainOnOneDeviceGiveTheCpusMotions) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  gpu::RigidFits device;
+  seg::RigidMotionParams p;
+  p.max_points = 300;
+  for (int frames : {8, 16, 8}) {
+    const auto generated_frames =
+        synth::generate(animseg_test::sequenceParams(synth::BodyPlan::Humanoid, frames, 10000, 4));
+    const pcl_animseg::PointCloudSequence seq = synth::toSequence(generated_frames);
+    ASSERT_GE(seq.totalPoints(), 80000u);
+    std::vector<std::vector<int>> labels;
+    for (const auto& f : generated_frames) labels.push_back(f.labels);
+    seg::RigidMotionEstimation est;
+    est.setInputSequence(&seq);
+    est.setParams(p);
+    const auto cpu = est.compute(labels);
+    const long long fits_before = device.fits();
+    est.setDevice(&device);
+    const auto dev = est.compute(labels);
+    ASSERT_EQ(dev.size(), cpu.size());
+    int transforms = 0, differ = 0;
+    for (std::size_t part = 0; part < cpu.size(); ++part) {
+      ASSERT_EQ(dev[part].frames.size(), cpu[part].frames.size());
+      for (std::size_t t = 0; t < cpu[part].frames.size(); ++t) {
+        const auto &x = dev[part].frames[t], &y = cpu[part].frames[t];
+        ++transforms;
+        differ += !(x.valid == y.valid && x.rotation == y.rotation &&
+                    x.translation == y.translation && (x.rms == y.rms || !x.valid));
+      }
+    }
+    std::printf("%d frames x 10000 points: %d transforms, %d differ from the CPU's\n", frames,
+                transforms, differ);
+    EXPECT_EQ(differ, 0) << frames << " frames";
+    EXPECT_GT(device.fits(), fits_before);  // fitted on this device, not left to the cores
+  }
+}
+
 // Residual batches on the GPU both ways (a thread per point with the sums after, and a warp per
 // job: setPointParallelLimit(0)) against the CPU's residual of each job from the same frames:
 // the same bits. The sources run from none to thousands of points, as a merge's parts do.
