@@ -80,16 +80,16 @@ struct Scratch {
 
 // The threads that compute one fit together, each with its row of the scratch per round of
 // points: a warp (the many fits of the tracking, the residuals and large batches of part fits)
-// or a whole block (small batches of part fits, GroupOfBlock). share() hands thread q's `mine`
-// (q < count) to every thread's out[q].
+// or a whole block (small batches of part fits, GroupOfBlock). share() hands thread first + q's
+// `mine` (q < count) to every thread's out[q].
 struct WarpGroup {
   static constexpr int kSize = kWarp;
   int rank;
   double (*v)[kCols];
   __device__ WarpGroup(int lane, Scratch& sc) : rank(lane), v(sc.v) {}
   __device__ void sync() const { __syncwarp(); }
-  __device__ void share(double mine, int count, double* out) const {
-    for (int q = 0; q < count; ++q) out[q] = __shfl_sync(0xffffffffu, mine, q);
+  __device__ void share(double mine, int count, double* out, int first = 0) const {
+    for (int q = 0; q < count; ++q) out[q] = __shfl_sync(0xffffffffu, mine, first + q);
   }
 };
 // Half of a warp (16 lanes) as one group, with 16 scratch rows of its own. The two halves of a
@@ -100,8 +100,8 @@ struct HalfWarp {
   int rank;
   double (*v)[kCols];
   __device__ void sync() const { __syncwarp(); }
-  __device__ void share(double mine, int count, double* out) const {
-    for (int q = 0; q < count; ++q) out[q] = __shfl_sync(0xffffffffu, mine, q, kSize);
+  __device__ void share(double mine, int count, double* out, int first = 0) const {
+    for (int q = 0; q < count; ++q) out[q] = __shfl_sync(0xffffffffu, mine, first + q, kSize);
   }
 };
 template <int N>
@@ -111,8 +111,8 @@ struct GroupOfBlock {
   double (*v)[kCols];  // N rows, shared
   double* slot;        // kCols, shared
   __device__ void sync() const { __syncthreads(); }
-  __device__ void share(double mine, int count, double* out) const {
-    if (rank < count) slot[rank] = mine;
+  __device__ void share(double mine, int count, double* out, int first = 0) const {
+    if (rank >= first && rank < first + count) slot[rank - first] = mine;
     __syncthreads();
     for (int q = 0; q < count; ++q) out[q] = slot[q];
     __syncthreads();
@@ -261,55 +261,94 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
   constexpr int kIcpHints = 8;
   int hint[kIcpHints];
   for (int r = 0; r < kIcpHints; ++r) hint[r] = -1;
+  // Thread me's point i (of round `round`): its nearest point from yw (the point under T; k, d2),
+  // the search bounded by its match of the iteration before.
+  auto search = [&](int i, int round, double* yw, float& d2) {
+    icp_step::apply(T, src + 6 * i, yw);
+    const bool hinted = round < kIcpHints;
+    const int k = nearestWithin(d, frame, yw, max_d2, d2, hinted ? hint[round] : -1);
+    if (hinted) hint[round] = k;
+    return k;
+  };
+  // Its terms about the centroid c into its scratch row, flagged where they count.
+  auto terms = [&](int i, const double* yw, int k, const double* c) {
+    g.v[me][kCols - 1] = 0.0;
+    if (k < 0) return;
+    const float4 p = d.pts[k], q = d.nrm[k];
+    const double tp[3] = {p.x, p.y, p.z}, tn[3] = {q.x, q.y, q.z};
+    double n[3];
+    icp_step::rotate(T, src + 6 * i + 3, n);
+    const double cs = icp_step::dot3(n, tn);
+    if (!((unoriented ? fabs(cs) : cs) < d.normal_cos)) {  // the CPU's test, NaN too
+      icp_step::pointTerms(yw, c, tp, tn, g.v[me]);
+      g.v[me][kCols - 1] = 1.0;
+    }
+  };
+  // A source of one round with three threads to spare (the samples' 60 points on 64 threads, the
+  // part fits' 96 on 128): the spare threads add the centroid while the point threads search (a
+  // search does not read the centroid, only the terms do). The same sums in the same order and
+  // the same searches as the rounds below, so the same bits; the centroid's sums no longer
+  // precede the searches.
+  const bool spare = m + 3 <= Group::kSize;
+  const int first_spare = Group::kSize - 3;
   for (int it = 0; it < d.iterations; ++it) {
-    // The moved source's centroid, summed in point order by threads 0-2.
     double c[3] = {0.0, 0.0, 0.0};
-    double mine = 0.0;
-    for (int base = 0; base < m; base += Group::kSize) {
-      const int i = base + me;
-      if (i < m) {
-        icp_step::apply(T, src + 6 * i, g.v[me]);
+    double sum = 0.0;
+    int used = 0;
+    const double count = static_cast<double>(m > 1 ? m : 1);
+    if (spare) {
+      if (me < m) {
+        icp_step::apply(T, src + 6 * me, g.v[me]);
         g.v[me][kCols - 1] = 1.0;
       }
       g.sync();
-      if (me < 3) addRows(g.v, min(Group::kSize, m - base), me, mine);
+      double mine = 0.0, yw[3];
+      float d2;
+      int k = -1;
+      if (me >= first_spare)
+        addRows(g.v, m, me - first_spare, mine);
+      else if (me < m)
+        k = search(me, 0, yw, d2);
+      g.share(mine, 3, c, first_spare);  // its barriers end the reads of the moved points
+      for (int q = 0; q < 3; ++q) c[q] /= count;
+      if (me < m) terms(me, yw, k, c);
       g.sync();
-    }
-    const double count = static_cast<double>(m > 1 ? m : 1);
-    g.share(mine, 3, c);
-    for (int k = 0; k < 3; ++k) c[k] /= count;
-    // The matched points' terms, summed in point order: term q by thread q, the count by thread
-    // 27.
-    double sum = 0.0;
-    int used = 0;
-    for (int base = 0, round = 0; base < m; base += Group::kSize, ++round) {
-      const int i = base + me;
-      if (i < m) {
-        g.v[me][kCols - 1] = 0.0;
-        double yw[3];
-        icp_step::apply(T, src + 6 * i, yw);
-        float d2;
-        const bool hinted = round < kIcpHints;
-        const int k = nearestWithin(d, frame, yw, max_d2, d2, hinted ? hint[round] : -1);
-        if (hinted) hint[round] = k;
-        if (k >= 0) {
-          const float4 p = d.pts[k], q = d.nrm[k];
-          const double tp[3] = {p.x, p.y, p.z}, tn[3] = {q.x, q.y, q.z};
-          double n[3];
-          icp_step::rotate(T, src + 6 * i + 3, n);
-          const double cs = icp_step::dot3(n, tn);
-          if (!((unoriented ? fabs(cs) : cs) < d.normal_cos)) {  // the CPU's test, NaN too
-            icp_step::pointTerms(yw, c, tp, tn, g.v[me]);
-            g.v[me][kCols - 1] = 1.0;
-          }
-        }
-      }
-      g.sync();
-      const int rows = min(Group::kSize, m - base);
-      if (me < icp_step::kTerms) addRows(g.v, rows, me, sum);
+      if (me < icp_step::kTerms) addRows(g.v, m, me, sum);
       if (me == icp_step::kTerms)
-        for (int j = 0; j < rows; ++j) used += g.v[j][kCols - 1] != 0.0;
+        for (int j = 0; j < m; ++j) used += g.v[j][kCols - 1] != 0.0;
       g.sync();
+    } else {
+      // The moved source's centroid, summed in point order by threads 0-2.
+      double mine = 0.0;
+      for (int base = 0; base < m; base += Group::kSize) {
+        const int i = base + me;
+        if (i < m) {
+          icp_step::apply(T, src + 6 * i, g.v[me]);
+          g.v[me][kCols - 1] = 1.0;
+        }
+        g.sync();
+        if (me < 3) addRows(g.v, min(Group::kSize, m - base), me, mine);
+        g.sync();
+      }
+      g.share(mine, 3, c);
+      for (int k = 0; k < 3; ++k) c[k] /= count;
+      // The matched points' terms, summed in point order: term q by thread q, the count by thread
+      // 27.
+      for (int base = 0, round = 0; base < m; base += Group::kSize, ++round) {
+        const int i = base + me;
+        if (i < m) {
+          double yw[3];
+          float d2;
+          const int k = search(i, round, yw, d2);
+          terms(i, yw, k, c);
+        }
+        g.sync();
+        const int rows = min(Group::kSize, m - base);
+        if (me < icp_step::kTerms) addRows(g.v, rows, me, sum);
+        if (me == icp_step::kTerms)
+          for (int j = 0; j < rows; ++j) used += g.v[j][kCols - 1] != 0.0;
+        g.sync();
+      }
     }
     // sums[q] from thread q, the count from thread 27.
     double sums[icp_step::kTerms + 1];
@@ -383,8 +422,8 @@ struct HalfBlock {
   __device__ void sync() const {
     asm volatile("bar.sync %0, %1;" ::"r"(1 + half), "r"(kSize) : "memory");
   }
-  __device__ void share(double mine, int count, double* out) const {
-    if (rank < count) slot[rank] = mine;
+  __device__ void share(double mine, int count, double* out, int first = 0) const {
+    if (rank >= first && rank < first + count) slot[rank - first] = mine;
     sync();
     for (int q = 0; q < count; ++q) out[q] = slot[q];
     sync();
