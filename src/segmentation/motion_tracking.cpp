@@ -354,7 +354,6 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
   std::vector<icp_step::Rigid> T(n);
   for (std::size_t c = 0; c < n; ++c) T[c] = toRigid(inits[c]);
   std::vector<char> running(n, 1);
-  std::vector<Eigen::Matrix3Xd> moved(n, Eigen::Matrix3Xd(3, m));
   std::vector<std::array<double, 3>> centroid(n);
   std::vector<char> usable(n * static_cast<std::size_t>(m));
   std::vector<double> point_terms(usable.size() * icp_step::kTerms);
@@ -373,24 +372,23 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
     const Eigen::Index items = static_cast<Eigen::Index>(act.size()) * m;
     const int na = static_cast<int>(act.size());
     const double count = static_cast<double>(std::max<Eigen::Index>(1, m));
-    // One team per iteration: the moves, each start's centroid, the matches and terms, then each
-    // start's sums. A sum is one column (a start's coordinate or term) added in point order, the
-    // columns side by side: the same sums as one thread's, which the team waited for (the
-    // tracking's whole-body ICP: 54 000 additions per iteration, 0.01 s of its 0.34 s on 2 cores).
+    // One team per iteration: each start's centroid, the matches and terms, then each start's
+    // sums. A sum is one column (a start's coordinate or term) added in point order, the columns
+    // side by side: the same sums as one thread's, which the team waited for (the tracking's
+    // whole-body ICP: 54 000 additions per iteration, 0.01 s of its 0.34 s on 2 cores). A
+    // centroid column moves its own coordinate of every point, and a match its own point (the
+    // coordinates apply() gives: row k of R times the point, plus t_k): a loop of moves before
+    // them cost the team a barrier per iteration (1 100 iterations a run at 800k).
     constexpr int kCols = icp_step::kTerms + 1;  // the terms, then the count of usable points
 #pragma omp parallel
     {
 #pragma omp for schedule(static)
-      for (Eigen::Index q = 0; q < items; ++q) {
-        const int c = act[q / m];
-        const Eigen::Index i = q % m;
-        icp_step::apply(T[c], src.p.col(i).data(), moved[c].col(i).data());
-      }
-#pragma omp for schedule(static)
       for (int x = 0; x < na * 3; ++x) {
         const int c = act[x / 3], k = x % 3;
+        const double* row = T[c].r + 3 * k;
         double ct = 0.0;
-        for (Eigen::Index i = 0; i < m; ++i) ct += moved[c](k, i);
+        for (Eigen::Index i = 0; i < m; ++i)
+          ct += icp_step::dot3(row, src.p.col(i).data()) + T[c].t[k];
         centroid[c][k] = ct / count;
       }
 #pragma omp for schedule(static)
@@ -398,8 +396,10 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
         const int c = act[q / m];
         const Eigen::Index i = q % m;
         const std::size_t slot = static_cast<std::size_t>(c) * m + i;
-        usable[slot] = matchTerms(src, i, moved[c].col(i).data(), T[c], centroid[c].data(), f,
-                                  max_d2, &point_terms[slot * icp_step::kTerms], &match[slot])
+        double y[3];
+        icp_step::apply(T[c], src.p.col(i).data(), y);
+        usable[slot] = matchTerms(src, i, y, T[c], centroid[c].data(), f, max_d2,
+                                  &point_terms[slot * icp_step::kTerms], &match[slot])
                            ? 1
                            : 0;
       }
