@@ -353,54 +353,43 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
   const float max_d2 = static_cast<float>(max_dist * max_dist);
   std::vector<icp_step::Rigid> T(n);
   for (std::size_t c = 0; c < n; ++c) T[c] = toRigid(inits[c]);
-  const std::vector<char> running(n, 1);
-  std::vector<std::array<double, 3>> centroid(2 * n);
+  std::vector<char> running(n, 1);
+  std::vector<std::array<double, 3>> centroid(n);
   std::vector<char> usable(n * static_cast<std::size_t>(m));
   std::vector<double> point_terms(usable.size() * icp_step::kTerms);
   // Each point's match of the iteration before: it bounds the next search (the same matches;
   // the whole-body ICP 8% faster on 2 cores at 800k; the small ICPs of icp() above were 2.5%
   // slower with it, so they search without).
   std::vector<int> match(usable.size(), -1);
-  // Each start's sums (and centroid, above) twice: iteration `it` writes those of it % 2, so that
-  // a thread that starts the next iteration does not overwrite what another still reads for this
-  // one's step.
-  std::vector<std::array<double, icp_step::kTerms>> sums_of(2 * n);
-  std::vector<int> used_of(2 * n, 0);
-  const double count = static_cast<double>(std::max<Eigen::Index>(1, m));
-  constexpr int kCols = icp_step::kTerms + 1;  // the terms, then the count of usable points
-  // One team for all the iterations. In each: every start's centroid, the matches and terms, then
-  // every start's sums, each a loop of the team's threads. A sum is one column (a start's
-  // coordinate or term) added in point order, the columns side by side: the same sums as one
-  // thread's, which the team waited for (the tracking's whole-body ICP: 54 000 additions per
-  // iteration, 0.01 s of its 0.34 s on 2 cores). Then every thread takes the same steps from the
-  // same sums into its own copy of the poses (a few microseconds), so that no thread waits for
-  // one that steps alone: a team per iteration, with the steps between teams, cost two waits per
-  // iteration more (about 1 100 iterations a run at 800k). A centroid column moves its own
-  // coordinate of every point and a match its own point (apply()'s arithmetic: row k of R times
-  // the point, plus t_k): a loop of moves before them cost another.
+  std::vector<std::array<double, icp_step::kTerms>> sums_of(n);
+  std::vector<int> used_of(n, 0);
+  std::vector<int> act;
+  for (int it = 0; it < iterations; ++it) {
+    act.clear();
+    for (std::size_t c = 0; c < n; ++c)
+      if (running[c]) act.push_back(static_cast<int>(c));
+    if (act.empty()) break;
+    const Eigen::Index items = static_cast<Eigen::Index>(act.size()) * m;
+    const int na = static_cast<int>(act.size());
+    const double count = static_cast<double>(std::max<Eigen::Index>(1, m));
+    // One team per iteration: each start's centroid, the matches and terms, then each start's
+    // sums. A sum is one column (a start's coordinate or term) added in point order, the columns
+    // side by side: the same sums as one thread's, which the team waited for (the tracking's
+    // whole-body ICP: 54 000 additions per iteration, 0.01 s of its 0.34 s on 2 cores). A
+    // centroid column moves its own coordinate of every point, and a match its own point (the
+    // coordinates apply() gives: row k of R times the point, plus t_k): a loop of moves before
+    // them cost the team a barrier per iteration (1 100 iterations a run at 800k).
+    constexpr int kCols = icp_step::kTerms + 1;  // the terms, then the count of usable points
 #pragma omp parallel
-  {
-    std::vector<icp_step::Rigid> Tt(T);  // this thread's poses: every thread's are the same
-    std::vector<char> run(running);
-    std::vector<int> act;
-    for (int it = 0; it < iterations; ++it) {
-      act.clear();
-      for (std::size_t c = 0; c < n; ++c)
-        if (run[c]) act.push_back(static_cast<int>(c));
-      if (act.empty()) break;  // every thread at the same iteration
-      const Eigen::Index items = static_cast<Eigen::Index>(act.size()) * m;
-      const int na = static_cast<int>(act.size());
-      std::array<double, 3>* cen = &centroid[(it % 2) * n];
-      std::array<double, icp_step::kTerms>* sums = &sums_of[(it % 2) * n];
-      int* used_n = &used_of[(it % 2) * n];
+    {
 #pragma omp for schedule(static)
       for (int x = 0; x < na * 3; ++x) {
         const int c = act[x / 3], k = x % 3;
-        const double* row = Tt[c].r + 3 * k;
+        const double* row = T[c].r + 3 * k;
         double ct = 0.0;
         for (Eigen::Index i = 0; i < m; ++i)
-          ct += icp_step::dot3(row, src.p.col(i).data()) + Tt[c].t[k];
-        cen[c][k] = ct / count;
+          ct += icp_step::dot3(row, src.p.col(i).data()) + T[c].t[k];
+        centroid[c][k] = ct / count;
       }
 #pragma omp for schedule(static)
       for (Eigen::Index q = 0; q < items; ++q) {
@@ -408,32 +397,32 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
         const Eigen::Index i = q % m;
         const std::size_t slot = static_cast<std::size_t>(c) * m + i;
         double y[3];
-        icp_step::apply(Tt[c], src.p.col(i).data(), y);
-        usable[slot] = matchTerms(src, i, y, Tt[c], cen[c].data(), f, max_d2,
+        icp_step::apply(T[c], src.p.col(i).data(), y);
+        usable[slot] = matchTerms(src, i, y, T[c], centroid[c].data(), f, max_d2,
                                   &point_terms[slot * icp_step::kTerms], &match[slot])
                            ? 1
                            : 0;
       }
-#pragma omp for schedule(static)  // its end: every thread reads every start's sums
+#pragma omp for schedule(static) nowait  // the team's end waits for it
       for (int x = 0; x < na * kCols; ++x) {
         const int c = act[x / kCols], q = x % kCols;
         const std::size_t first = static_cast<std::size_t>(c) * m;
         if (q == icp_step::kTerms) {
           int used = 0;
           for (Eigen::Index i = 0; i < m; ++i) used += usable[first + i];
-          used_n[c] = used;
+          used_of[c] = used;
           continue;
         }
         double sum = 0.0;
         for (Eigen::Index i = 0; i < m; ++i)
           if (usable[first + i]) sum += point_terms[(first + i) * icp_step::kTerms + q];
-        sums[c][q] = sum;
+        sums_of[c][q] = sum;
       }
-      for (int c : act)
-        if (!takeStep(sums[c].data(), used_n[c], cen[c].data(), f.spacing, Tt[c])) run[c] = 0;
     }
-#pragma omp single nowait
-    T = Tt;
+    for (int c : act) {
+      if (!takeStep(sums_of[c].data(), used_of[c], centroid[c].data(), f.spacing, T[c]))
+        running[c] = 0;
+    }
   }
   for (std::size_t c = 0; c < n; ++c) out.push_back(toPose(T[c]));
   return out;
