@@ -1367,9 +1367,13 @@ constexpr std::size_t kLockedCopyBytes = std::size_t(1) << 20;
 // uploadInto from `v`'s buffer, page-locked through `lock` where the copy is large: the whole
 // buffer (its capacity), so that a later copy from the same buffer finds it locked.
 template <class Vector>
-void uploadLocked(DeviceArray<typename Vector::value_type>& a, const Vector& v, HostLock& lock) {
+void lockLarge(const Vector& v, HostLock& lock) {
   using T = typename Vector::value_type;
   if (v.size() * sizeof(T) >= kLockedCopyBytes) lock.lock(v.data(), v.capacity() * sizeof(T));
+}
+template <class Vector>
+void uploadLocked(DeviceArray<typename Vector::value_type>& a, const Vector& v, HostLock& lock) {
+  lockLarge(v, lock);
   uploadInto(a, v.data(), v.size());
 }
 }  // namespace
@@ -1620,14 +1624,21 @@ unsigned char* PinnedHost::reserve(std::size_t bytes) {
   return static_cast<unsigned char*>(ptr_);
 }
 
-void uploadFrames(const FrameArrays& in, FrameStore& store) {
+void lockFrameArrays(const FrameArrays& in) {
+  lockLarge(in.nodes, in.nodes_lock);
+  lockLarge(in.points, in.points_lock);
+  lockLarge(in.normals, in.normals_lock);
+}
+
+void uploadFrames(const FrameArrays& in, FrameStore& store, bool lock) {
   store.frames = 0;  // no frames while they are replaced: a failed upload leaves none
   store.normal_cos = in.normal_cos;
   store.clip = in.clip;
-  uploadLocked(store.nodes, in.nodes, in.nodes_lock);
+  if (lock) lockFrameArrays(in);  // else they go from where they are (locked or not)
+  uploadInto(store.nodes, in.nodes.data(), in.nodes.size());
   uploadInto(store.root, in.root.data(), in.root.size());
-  uploadLocked(store.points, in.points, in.points_lock);
-  uploadLocked(store.normals, in.normals, in.normals_lock);
+  uploadInto(store.points, in.points.data(), in.points.size());
+  uploadInto(store.normals, in.normals.data(), in.normals.size());
   uploadInto(store.spacing, in.spacing.data(), in.spacing.size());
   uploadInto(store.unoriented, in.unoriented.data(), in.unoriented.size());
   store.point0 = in.point0;

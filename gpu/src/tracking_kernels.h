@@ -193,8 +193,13 @@ class CallTimer {
 void reportCalls(const FrameStore& store, const char* owner);
 
 /** Puts `in` on the device as `store`'s frames, in place of any there: a buffer that holds its
- * array is kept, others are allocated again; the store's batch buffers are not touched. */
-void uploadFrames(const FrameArrays& in, FrameStore& store);
+ * array is kept, others are allocated again; the store's batch buffers are not touched. With
+ * `lock`, `in`'s large buffers are page-locked first (lockFrameArrays); without, they go from
+ * where they are, locked or not. */
+void uploadFrames(const FrameArrays& in, FrameStore& store, bool lock = true);
+/** Locks `in`'s large buffers (HostLock) for the uploads to come, where they are not locked
+ * already; no CUDA error escapes (a buffer left unlocked uploads pageable). */
+void lockFrameArrays(const FrameArrays& in);
 
 /** The tracking's fits besides the frames. */
 struct TrackingArrays {

@@ -18,6 +18,7 @@
 
 #include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
 namespace pcl_animseg {
@@ -101,6 +102,7 @@ class RigidFits : public segmentation::RigidFitDevice {
  private:
   std::unique_ptr<detail::FrameStore> surfaces_;
   std::unique_ptr<detail::FrameArrays> packed_;  // the surfaces' host buffers, reused
+  std::thread locking_;  // page-locks packed_'s buffers after an upload, for the next one
   std::unique_ptr<detail::RigidSources> sources_;
   std::unique_ptr<detail::KnnStore> knn_;  // the kept trees
   long long knn_token_ = 0;                // the kept trees' token (0: none kept)
