@@ -133,7 +133,7 @@ void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
   // From page-locked buffers where the surfaces before locked them (the rigid motions' seeded
   // surfaces at 800k: 5-6 -> 2-4 ms). They are locked beside the caller's work after this upload:
   // locked on the way, the refinement's first upload took 9-13 ms instead of 7-9 ms.
-  detail::uploadFrames(*packed_, *surfaces_, false);
+  detail::uploadFrames(*packed_, *surfaces_);
   const detail::FrameArrays* packed = packed_.get();
   try {
     locking_ = std::thread([packed] { detail::lockFrameArrays(*packed); });

@@ -1360,22 +1360,17 @@ void uploadInto(DeviceArray<T>& a, const T* host, std::size_t n) {
   a.uploadBytes(host, n * sizeof(T));
 }
 
-// Copies of at least this many bytes go from page-locked memory (HostLock); below it the locking
-// would cost more than it saves.
+// Buffers of at least this many bytes are worth locking (HostLock) for the copies to come.
 constexpr std::size_t kLockedCopyBytes = std::size_t(1) << 20;
 
-// uploadInto from `v`'s buffer, page-locked through `lock` where the copy is large: the whole
-// buffer (its capacity), so that a later copy from the same buffer finds it locked.
+// `v`'s buffer page-locked through `lock` where it holds a large array: the whole buffer (its
+// capacity), so that the array packed into it again, up to that size, finds it locked.
 template <class Vector>
 void lockLarge(const Vector& v, HostLock& lock) {
   using T = typename Vector::value_type;
   if (v.size() * sizeof(T) >= kLockedCopyBytes) lock.lock(v.data(), v.capacity() * sizeof(T));
 }
-template <class Vector>
-void uploadLocked(DeviceArray<typename Vector::value_type>& a, const Vector& v, HostLock& lock) {
-  lockLarge(v, lock);
-  uploadInto(a, v.data(), v.size());
-}
+
 }  // namespace
 
 void uploadKnnTrees(const KnnTrees& trees, KnnStore& store) {
@@ -1383,10 +1378,8 @@ void uploadKnnTrees(const KnnTrees& trees, KnnStore& store) {
   store.first.assign(trees.size.size() + 1, 0);
   for (std::size_t t = 0; t < trees.size.size(); ++t)
     store.first[t + 1] = store.first[t] + trees.size[t];
-  // Locked for these copies only: the packing is not kept.
-  HostLock nodes_lock, points_lock;
-  uploadLocked(store.nodes, trees.nodes, nodes_lock);
-  uploadLocked(store.points, trees.points, points_lock);
+  store.nodes.upload(trees.nodes.data(), trees.nodes.size());
+  store.points.upload(trees.points.data(), trees.points.size());
   store.rows.upload(trees.rows);
   store.root.upload(trees.root);
   store.size.upload(trees.size);
@@ -1630,11 +1623,10 @@ void lockFrameArrays(const FrameArrays& in) {
   lockLarge(in.normals, in.normals_lock);
 }
 
-void uploadFrames(const FrameArrays& in, FrameStore& store, bool lock) {
+void uploadFrames(const FrameArrays& in, FrameStore& store) {
   store.frames = 0;  // no frames while they are replaced: a failed upload leaves none
   store.normal_cos = in.normal_cos;
   store.clip = in.clip;
-  if (lock) lockFrameArrays(in);  // else they go from where they are (locked or not)
   uploadInto(store.nodes, in.nodes.data(), in.nodes.size());
   uploadInto(store.root, in.root.data(), in.root.size());
   uploadInto(store.points, in.points.data(), in.points.size());

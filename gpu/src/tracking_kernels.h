@@ -52,9 +52,9 @@ constexpr int kPoseDoubles = 12;
 
 /** Host memory page-locked (cudaHostRegister) for the copies out of it while it stays where it
  * is. A copy from pageable memory goes through the driver's staging buffers; from locked memory
- * it goes straight to the device (the motion method's frames at 800k, 27.9 MB: 5.7-13.7 ms
- * pageable, 3.8-4.6 ms locked, the locking included). The memory must be unlocked before it is
- * freed or moved (a vector reallocated): unlock(), or the lock's end. */
+ * it goes straight to the device (the rigid motions' part surfaces at 800k, about 28 MB: 5-6 ms
+ * pageable, 2 ms locked). The memory must be unlocked before it is freed or moved (a vector
+ * reallocated): unlock(), or the lock's end. */
 class HostLock {
  public:
   HostLock() = default;
@@ -86,10 +86,10 @@ struct FrameArrays {
   std::vector<double> spacing;  // per frame
   std::vector<int> unoriented;  // per frame
   std::vector<int> point0;      // per frame: its first point (leaf order), plus the end
-  /** The large arrays' buffers page-locked by their upload (uploadFrames) and kept locked while
-   * they stay (a packing into the same buffers uploads from locked memory again); declared after
-   * the arrays, so that they are unlocked before the arrays are freed. packDeviceFrames unlocks
-   * a buffer before it grows it. */
+  /** The large arrays' buffers where page-locked (lockFrameArrays), kept locked while they stay
+   * (a packing into the same buffers uploads from locked memory again); declared after the
+   * arrays, so that they are unlocked before the arrays are freed. packDeviceFrames unlocks a
+   * buffer before it grows it. */
   mutable HostLock nodes_lock, points_lock, normals_lock;
 };
 
@@ -193,12 +193,14 @@ class CallTimer {
 void reportCalls(const FrameStore& store, const char* owner);
 
 /** Puts `in` on the device as `store`'s frames, in place of any there: a buffer that holds its
- * array is kept, others are allocated again; the store's batch buffers are not touched. With
- * `lock`, `in`'s large buffers are page-locked first (lockFrameArrays); without, they go from
- * where they are, locked or not. */
-void uploadFrames(const FrameArrays& in, FrameStore& store, bool lock = true);
+ * array is kept, others are allocated again; the store's batch buffers are not touched. The
+ * arrays go from where they are, page-locked (lockFrameArrays) or not. */
+void uploadFrames(const FrameArrays& in, FrameStore& store);
 /** Locks `in`'s large buffers (HostLock) for the uploads to come, where they are not locked
- * already; no CUDA error escapes (a buffer left unlocked uploads pageable). */
+ * already; no CUDA error escapes (a buffer left unlocked uploads pageable). Locking a buffer costs
+ * about what the copy saves, so it pays only for a buffer uploaded again (RigidFits' surfaces);
+ * the motion method's frames, uploaded once, go pageable (27.9 MB at 800k: a median of 5.7 ms
+ * pageable, 5.3 ms locked on the way, locking included, over four leases). */
 void lockFrameArrays(const FrameArrays& in);
 
 /** The tracking's fits besides the frames. */
