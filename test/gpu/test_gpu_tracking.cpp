@@ -355,10 +355,10 @@ TEST(GpuTracking, RigidFitsOfLargeSourcesAreTheCpus) {
   }
 }
 
-// One device's surfaces set again and again: from 80 000 points (their arrays go up from
-// page-locked memory, 1.3 MB of points alone), to twice as many (the packing's buffers grow, so
-// they are unlocked first and locked anew), back to the first (the larger buffers, still locked,
-// hold them). Every labelling's motions are the CPU's bit for bit.
+// One device's surfaces set again and again: 80 000 points (1.3 MB of points alone: their buffers
+// are page-locked after the upload, for the next), twice as many (the buffers grow, so they are
+// unlocked first, then locked anew), the first again (the grown buffers, still locked, hold them:
+// the upload goes from locked memory). Every labelling's motions are the CPU's bit for bit.
 TEST(GpuTracking, SurfacesSetAgainOnOneDeviceGiveTheCpusMotions) {
   std::string why;
   if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
