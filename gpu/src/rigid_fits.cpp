@@ -134,7 +134,7 @@ void RigidFits::setSurfaces(const segmentation::DeviceFrames& surfaces) {
   // surfaces at 800k: 5-6 -> 2-4 ms). They are locked beside the caller's work after this upload:
   // locked on the way, the refinement's first upload took 9-13 ms instead of 7-9 ms.
   detail::uploadFrames(*packed_, *surfaces_);
-  const detail::FrameArrays* packed = packed_.get();
+  detail::FrameArrays* packed = packed_.get();
   try {
     locking_ = std::thread([packed] { detail::lockFrameArrays(*packed); });
   } catch (const std::system_error&) {  // no thread: the next upload goes pageable

@@ -1617,7 +1617,7 @@ unsigned char* PinnedHost::reserve(std::size_t bytes) {
   return static_cast<unsigned char*>(ptr_);
 }
 
-void lockFrameArrays(const FrameArrays& in) {
+void lockFrameArrays(FrameArrays& in) {
   lockLarge(in.nodes, in.nodes_lock);
   lockLarge(in.points, in.points_lock);
   lockLarge(in.normals, in.normals_lock);

@@ -90,7 +90,7 @@ struct FrameArrays {
    * (a packing into the same buffers uploads from locked memory again); declared after the
    * arrays, so that they are unlocked before the arrays are freed. packDeviceFrames unlocks a
    * buffer before it grows it. */
-  mutable HostLock nodes_lock, points_lock, normals_lock;
+  HostLock nodes_lock, points_lock, normals_lock;
 };
 
 /** Page-locked host memory (cudaHostAlloc), grown as needed and kept: a batch's inputs go up
@@ -201,7 +201,7 @@ void uploadFrames(const FrameArrays& in, FrameStore& store);
  * about what the copy saves, so it pays only for a buffer uploaded again (RigidFits' surfaces);
  * the motion method's frames, uploaded once, go pageable (27.9 MB at 800k: a median of 5.7 ms
  * pageable, 5.3 ms locked on the way, locking included, over four leases). */
-void lockFrameArrays(const FrameArrays& in);
+void lockFrameArrays(FrameArrays& in);
 
 /** The tracking's fits besides the frames. */
 struct TrackingArrays {
