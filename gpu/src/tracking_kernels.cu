@@ -1320,59 +1320,6 @@ void runMotionCheck(const KnnStore& store, const MotionCheckArrays& in, float* o
   d_out.download(out);
 }
 
-HostLock& HostLock::operator=(HostLock&& o) noexcept {
-  if (this != &o) {
-    unlock();
-    p_ = std::exchange(o.p_, nullptr);
-    bytes_ = std::exchange(o.bytes_, 0);
-  }
-  return *this;
-}
-
-bool HostLock::lock(const void* p, std::size_t bytes) {
-  if (p_ && p_ == p && bytes_ == bytes) return true;
-  unlock();
-  if (!p || bytes == 0) return false;
-  void* q = const_cast<void*>(p);
-  if (cudaHostRegister(q, bytes, cudaHostRegisterDefault) != cudaSuccess) {
-    cudaGetLastError();  // not a sticky error: the copy goes pageable
-    return false;
-  }
-  p_ = q;
-  bytes_ = bytes;
-  return true;
-}
-
-void HostLock::unlock() {
-  if (!p_) return;
-  if (cudaHostUnregister(p_) != cudaSuccess) cudaGetLastError();  // nothing left to undo
-  p_ = nullptr;
-  bytes_ = 0;
-}
-
-namespace {
-// `n` elements from `host` into `a`, whose buffer is kept where it holds them (a store's frames
-// replaced by others of no more points: no cudaFree, which waits for the device, and no
-// cudaMalloc).
-template <class T>
-void uploadInto(DeviceArray<T>& a, const T* host, std::size_t n) {
-  if (a.sizeBytes() < n * sizeof(T)) a.create(n);
-  a.uploadBytes(host, n * sizeof(T));
-}
-
-// Buffers of at least this many bytes are worth locking (HostLock) for the copies to come.
-constexpr std::size_t kLockedCopyBytes = std::size_t(1) << 20;
-
-// `v`'s buffer page-locked through `lock` where it holds a large array: the whole buffer (its
-// capacity), so that the array packed into it again, up to that size, finds it locked.
-template <class Vector>
-void lockLarge(const Vector& v, HostLock& lock) {
-  using T = typename Vector::value_type;
-  if (v.size() * sizeof(T) >= kLockedCopyBytes) lock.lock(v.data(), v.capacity() * sizeof(T));
-}
-
-}  // namespace
-
 void uploadKnnTrees(const KnnTrees& trees, KnnStore& store) {
   store.trees = 0;
   store.first.assign(trees.size.size() + 1, 0);
@@ -1616,6 +1563,59 @@ unsigned char* PinnedHost::reserve(std::size_t bytes) {
   }
   return static_cast<unsigned char*>(ptr_);
 }
+
+HostLock& HostLock::operator=(HostLock&& o) noexcept {
+  if (this != &o) {
+    unlock();
+    p_ = std::exchange(o.p_, nullptr);
+    bytes_ = std::exchange(o.bytes_, 0);
+  }
+  return *this;
+}
+
+bool HostLock::lock(const void* p, std::size_t bytes) {
+  if (p_ && p_ == p && bytes_ == bytes) return true;
+  unlock();
+  if (!p || bytes == 0) return false;
+  void* q = const_cast<void*>(p);
+  if (cudaHostRegister(q, bytes, cudaHostRegisterDefault) != cudaSuccess) {
+    cudaGetLastError();  // not a sticky error: the copy goes pageable
+    return false;
+  }
+  p_ = q;
+  bytes_ = bytes;
+  return true;
+}
+
+void HostLock::unlock() {
+  if (!p_) return;
+  if (cudaHostUnregister(p_) != cudaSuccess) cudaGetLastError();  // nothing left to undo
+  p_ = nullptr;
+  bytes_ = 0;
+}
+
+namespace {
+// `n` elements from `host` into `a`, whose buffer is kept where it holds them (a store's frames
+// replaced by others of no more points: no cudaFree, which waits for the device, and no
+// cudaMalloc).
+template <class T>
+void uploadInto(DeviceArray<T>& a, const T* host, std::size_t n) {
+  if (a.sizeBytes() < n * sizeof(T)) a.create(n);
+  a.uploadBytes(host, n * sizeof(T));
+}
+
+// Buffers of at least this many bytes are worth locking (HostLock) for the copies to come.
+constexpr std::size_t kLockedCopyBytes = std::size_t(1) << 20;
+
+// `v`'s buffer page-locked through `lock` where it holds a large array: the whole buffer (its
+// capacity), so that the array packed into it again, up to that size, finds it locked.
+template <class Vector>
+void lockLarge(const Vector& v, HostLock& lock) {
+  using T = typename Vector::value_type;
+  if (v.size() * sizeof(T) >= kLockedCopyBytes) lock.lock(v.data(), v.capacity() * sizeof(T));
+}
+
+}  // namespace
 
 void lockFrameArrays(FrameArrays& in) {
   lockLarge(in.nodes, in.nodes_lock);
