@@ -4,10 +4,7 @@
 #include <algorithm>
 #include <cstdlib>
 #include <map>
-#include <string>
-#include <vector>
 
-#include "../../tools/cli/launch_args.h"
 #include "tools/cli_util.h"
 
 namespace fs = std::filesystem;
@@ -138,74 +135,27 @@ TEST(AnimsegCli, ProgramsAllocateThroughJemallocWithHugePages) {
 }
 
 // animseg writes PNGs without a window: PCL's visualization library (VTK's rendering, OpenGL,
-// X11, MPI), which only the interactive viewer needs, is not among the libraries it loads. The
-// program itself loads none of the pipeline's: its body, libpcl_animseg_cli.so, loads them after
-// the GPU's driver has started (tools/animseg.cpp).
+// X11, MPI), which only the interactive viewer needs, is not among the libraries it loads.
 TEST(AnimsegCli, StartsWithoutTheViewersLibraries) {
   TempDir tmp;
-  const auto listed = [&](const std::string& command) {
-    // The dynamic loader lists what would load, and runs none of it.
-    const RunResult r = run(command, tmp.dir());
+  const auto loaded = [&](const std::string& name) {
+    // The dynamic loader lists what a program would load, and runs none of it.
+    const RunResult r = run("LD_TRACE_LOADED_OBJECTS=1 " + tool(name), tmp.dir());
     EXPECT_EQ(r.code, 0) << r.err;
     return r.out;
   };
-  const std::string launcher = listed("LD_TRACE_LOADED_OBJECTS=1 " + tool("animseg"));
-  EXPECT_EQ(launcher.find("libpcl"), std::string::npos) << launcher;
-  EXPECT_EQ(launcher.find("libvtk"), std::string::npos) << launcher;
-  EXPECT_EQ(launcher.find("libcuda"), std::string::npos) << launcher;  // loaded where present
-  const std::string animseg = listed("ldd " + tool("../lib/libpcl_animseg_cli.so"));
+  const std::string animseg = loaded("animseg");
   ASSERT_NE(animseg.find("libpcl_animseg_visualization"), std::string::npos) << animseg;
   EXPECT_EQ(animseg.find("libpcl_visualization"), std::string::npos) << animseg;
   EXPECT_EQ(animseg.find("libvtkRenderingOpenGL2"), std::string::npos) << animseg;
   EXPECT_EQ(animseg.find("libX11"), std::string::npos) << animseg;
   EXPECT_EQ(animseg.find("libmpi"), std::string::npos) << animseg;
   // The viewer does load them: the names above are the ones to look for.
-  const std::string view = listed("LD_TRACE_LOADED_OBJECTS=1 " + tool("animseg_view"));
+  const std::string view = loaded("animseg_view");
   EXPECT_NE(view.find("libpcl_visualization"), std::string::npos) << view;
   EXPECT_NE(view.find("libvtkRenderingOpenGL2"), std::string::npos) << view;
   EXPECT_NE(view.find("libX11"), std::string::npos) << view;
   EXPECT_NE(view.find("libmpi"), std::string::npos) << view;
-}
-
-// What the program reads of its arguments before the pipeline loads: whether to start the GPU's
-// driver early. Only where the run surely starts the GPU itself; never for --device cpu, never
-// where it cannot tell (a config file, an abbreviated option, a GPU picked by number).
-TEST(AnimsegCli, StartsTheGpuEarlyOnlyWhereTheRunWould) {
-  const auto starts = [](std::vector<std::string> args) {
-    args.insert(args.begin(), "animseg");
-    std::vector<char*> argv;
-    for (std::string& a : args) argv.push_back(a.data());
-    return pcl_animseg::tools::startsGpu(static_cast<int>(argv.size()), argv.data());
-  };
-  EXPECT_TRUE(starts({"--input", "in", "--output", "out"}));
-  EXPECT_TRUE(starts({"-i", "in", "-o", "out", "--device", "gpu"}));
-  EXPECT_TRUE(starts({"--device=auto", "--dissolve-ratio", "2"}));
-  EXPECT_FALSE(starts({"--input", "in", "--device", "cpu"}));
-  EXPECT_FALSE(starts({"--device=cpu", "--input", "in"}));
-  EXPECT_FALSE(starts({"--device", "gpu:1"}));
-  EXPECT_FALSE(starts({"--device"}));
-  EXPECT_FALSE(starts({"--dev", "gpu"}));
-  EXPECT_FALSE(starts({"--devi=cpu"}));
-  EXPECT_FALSE(starts({"--config", "run.json"}));
-  EXPECT_FALSE(starts({"--conf=run.json"}));
-  EXPECT_FALSE(starts({"--help"}));
-  EXPECT_FALSE(starts({"-h"}));
-  EXPECT_FALSE(starts({"--device", "tpu"}));  // the program says what is wrong
-}
-
-// The program and its body: the same answers, and under ANIMSEG_MS_TIMING the launcher says when
-// the pipeline's libraries had loaded.
-TEST(AnimsegCli, LoadsItsPipelineAndPassesItsArguments) {
-  TempDir tmp;
-  RunResult r = run("ANIMSEG_MS_TIMING=1 " + tool("animseg") + " --help", tmp.dir());
-  ASSERT_EQ(r.code, 0) << r.err;
-  EXPECT_NE(r.out.find("Usage: animseg --input IN --output OUT"), std::string::npos) << r.out;
-  EXPECT_NE(r.err.find("[launcher] the pipeline's libraries loaded in"), std::string::npos)
-      << r.err;
-  r = run(tool("animseg") + " --device cpu --bogus", tmp.dir());
-  EXPECT_EQ(r.code, 1);
-  EXPECT_EQ(countLines(r.err), 1) << r.err;
-  EXPECT_NE(r.err.find("unrecognised option '--bogus'"), std::string::npos) << r.err;
 }
 
 TEST(AnimsegCli, QuietPrintsNothing) {
