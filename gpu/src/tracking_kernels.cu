@@ -284,6 +284,15 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
       g.v[me][kCols - 1] = 1.0;
     }
   };
+  // The terms of a round's `rows` points (once every row is written), added in point order: term
+  // q by thread q, the count of those that count by thread kTerms.
+  auto addTerms = [&](int rows, double& sum, int& used) {
+    g.sync();
+    if (me < icp_step::kTerms) addRows(g.v, rows, me, sum);
+    if (me == icp_step::kTerms)
+      for (int j = 0; j < rows; ++j) used += g.v[j][kCols - 1] != 0.0;
+    g.sync();
+  };
   // A source of one round with three threads to spare (the samples' 60 points on 64 threads, the
   // part fits' 96 on 128): the spare threads add the centroid while the point threads search (a
   // search does not read the centroid, only the terms do). The same sums in the same order and
@@ -312,11 +321,7 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
       g.share(mine, 3, c, first_spare);  // its barriers end the reads of the moved points
       for (int q = 0; q < 3; ++q) c[q] /= count;
       if (me < m) terms(me, yw, k, c);
-      g.sync();
-      if (me < icp_step::kTerms) addRows(g.v, m, me, sum);
-      if (me == icp_step::kTerms)
-        for (int j = 0; j < m; ++j) used += g.v[j][kCols - 1] != 0.0;
-      g.sync();
+      addTerms(m, sum, used);
     } else {
       // The moved source's centroid, summed in point order by threads 0-2.
       double mine = 0.0;
@@ -332,8 +337,7 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
       }
       g.share(mine, 3, c);
       for (int k = 0; k < 3; ++k) c[k] /= count;
-      // The matched points' terms, summed in point order: term q by thread q, the count by thread
-      // 27.
+      // The matched points' terms, round by round (addTerms).
       for (int base = 0, round = 0; base < m; base += Group::kSize, ++round) {
         const int i = base + me;
         if (i < m) {
@@ -342,12 +346,7 @@ __device__ Rigid icp(const Dev& d, int frame, const double* src, int m, const Ri
           const int k = search(i, round, yw, d2);
           terms(i, yw, k, c);
         }
-        g.sync();
-        const int rows = min(Group::kSize, m - base);
-        if (me < icp_step::kTerms) addRows(g.v, rows, me, sum);
-        if (me == icp_step::kTerms)
-          for (int j = 0; j < rows; ++j) used += g.v[j][kCols - 1] != 0.0;
-        g.sync();
+        addTerms(min(Group::kSize, m - base), sum, used);
       }
     }
     // sums[q] from thread q, the count from thread 27.
