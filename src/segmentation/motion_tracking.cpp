@@ -2744,10 +2744,45 @@ TrajectoryClusters clusterTrajectoriesOn(
   // guess. With many more sets than threads each is a serial chain and the sets run side by side;
   // otherwise all the sets' frames run side by side (fitAlongChains: the same fits, more work,
   // but a merge's or a dissolve's one to three parts keep 16 threads busy).
+  // Where fitParts' time goes on a device (ANIMSEG_MS_TIMING): its calls, and in them the time
+  // inside its batches (packing them and the device's calls), the rest being the chains' own
+  // bookkeeping (fitChainsBatched) and the sources.
+  struct PartFitTally {
+    int calls = 0, chains = 0;
+    double seconds = 0.0, in_batches = 0.0;
+  } part_tally;
+  auto tallied = [&](auto batch) {
+    return [&part_tally, batch](const auto& input) {
+      const auto t0 = std::chrono::steady_clock::now();
+      auto r = batch(input);
+      part_tally.in_batches +=
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      return r;
+    };
+  };
+  auto reportPartFits = [&](const char* what) {
+    if (timer.on() && params.device)
+      std::fprintf(stderr,
+                   "[mean shift] %s: %d part fit calls (%d chains), %.3f s, %.3f s of it in the "
+                   "batches\n",
+                   what, part_tally.calls, part_tally.chains, part_tally.seconds,
+                   part_tally.in_batches);
+    part_tally = PartFitTally();
+  };
   auto fitParts = [&](const std::vector<const std::vector<int>*>& pts,
                       const std::vector<const std::vector<Pose>*>& ia,
                       const std::vector<const std::vector<Pose>*>& ib) {
+    const auto t_call = std::chrono::steady_clock::now();
+    struct Tally {
+      PartFitTally& t;
+      std::chrono::steady_clock::time_point t0;
+      ~Tally() {
+        t.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      }
+    } tally{part_tally, t_call};
     const int C = static_cast<int>(pts.size());
+    ++part_tally.calls;
+    part_tally.chains += C;
     std::vector<Source> src(C);
     for (int c = 0; c < C; ++c) src[c] = sourceOf(rc, *pts[c], kPartPoints);
     auto starts = [&](int c, int t, const ChainStep& step, const std::vector<Pose>* fit) {
@@ -2784,8 +2819,8 @@ TrajectoryClusters clusterTrajectoriesOn(
       for (const ChainScore<Pose>& x : items) list.push_back({x.chain, x.frame, x.pose});
       return batches.residuals(list);
     };
-    return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts, scoreBatch, fitBatch, same,
-                            true, 6);
+    return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts, tallied(scoreBatch),
+                            tallied(fitBatch), same, true, 6);
   };
   auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
                      const std::vector<Pose>* ib) {
@@ -2803,6 +2838,8 @@ TrajectoryClusters clusterTrajectoriesOn(
     for (std::size_t i = 0; i < which.size(); ++i) gpose[which[i]].swap(fit[i]);
   };
   fitGroups(false);
+  reportPartFits("part fits");
+  lapD("clustering: part fits");
   // Groups of phase 1 straddle joints where samples' poses were ambiguous: a few rounds of
   // moving points to the group whose motion explains them (with the motions refit) put the
   // borders where the motion changes before any group is scored as a whole.
@@ -2818,6 +2855,8 @@ TrajectoryClusters clusterTrajectoriesOn(
       fitGroups(true);
     }
   }
+  reportPartFits("border rounds");
+  lapD("clustering: border rounds");
 
   // Groups that the border rounds left with a handful of points (their cells went to the parts
   // whose motions explain them) are remnants, not parts: their points join the part of their
@@ -2835,7 +2874,7 @@ TrajectoryClusters clusterTrajectoriesOn(
     }
   }
 
-  lapD("clustering: part fits + borders");
+  lapD("clustering: remnants");
   struct PartEdge {
     double cost = 0.0;
     bool joined = false;  // a surface-graph edge joins the two parts
@@ -3366,6 +3405,7 @@ TrajectoryClusters clusterTrajectoriesOn(
                  "[mean shift] part merges: %d merges (fits %.3f s, edges %.3f s), %d dissolves "
                  "(%.3f s: point costs %.3f s, fits %.3f s), dissolve costs %.3f s\n",
                  n_merges, t_fit, t_edges, n_dissolves, t_dissolve, t_dpts, t_dfit, t_dcost);
+  reportPartFits("part merges");
   lapD("clustering: part merges");
   refresh_dissolve = false;
   // Snapshot: final ids in order of each group's first sample.
