@@ -247,8 +247,10 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
   // An unchained start that lost to it cannot win: it scores above it, or the same and later.
   // Without speculation nothing is scored ahead: every start is scored here.
   constexpr double kLost = std::numeric_limits<double>::infinity();
-  std::vector<std::vector<double>> spec_r(C, std::vector<double>(F, kNone));
-  std::vector<std::vector<std::size_t>> spec_k(C, std::vector<std::size_t>(F, 0));
+  // Per (chain, frame), at c * F + t.
+  std::vector<double> spec_r(static_cast<std::size_t>(C) * F, kNone);
+  std::vector<std::size_t> spec_k(static_cast<std::size_t>(C) * F, 0);
+  auto at_ct = [F](int c, int t) { return static_cast<std::size_t>(c) * F + t; };
   // Which of a frame's starts it scores here (the others are spec's).
   auto scoredHere = [&](const ChainStart<Pose>& x) { return x.chained || !speculate; };
   // `scored`: the scores of the starts scoredHere, in their order.
@@ -261,7 +263,7 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
       if (scoredHere(s[k]))
         r = *scored++;
       else
-        r = unchained++ == spec_k[c][t] ? spec_r[c][t] : kLost;
+        r = unchained++ == spec_k[at_ct(c, t)] ? spec_r[at_ct(c, t)] : kLost;
       if (r < r0) r0 = r, best = k;
     }
     return best;
@@ -280,6 +282,9 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
       s[j] = starts(c, t, chain.step[t], from ? &(*from)[c] : nullptr);
     });
     std::vector<ChainScore<Pose>> items;
+    std::size_t listed = 0;
+    for (const Starts_& x : s) listed += x.size();
+    items.reserve(listed);
     at.assign(todo.size() + 1, 0);
     for (std::size_t j = 0; j < todo.size(); ++j) {
       at[j] = items.size();
@@ -297,6 +302,9 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
   auto fitMarked = [&](const std::vector<Job>& job, const std::vector<char>& marked,
                        std::vector<std::vector<Pose>>& out) {
     std::vector<Job> jobs;
+    std::size_t n = 0;
+    for (char m : marked) n += m != 0;
+    jobs.reserve(n);
     for (std::size_t j = 0; j < job.size(); ++j)
       if (marked[j]) jobs.push_back(job[j]);
     if (jobs.empty()) return;
@@ -356,9 +364,9 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
         const auto [c, t] = all[j];
         for (std::size_t k = 0; k < s[j].size(); ++k) {
           const double r = scores[at[j] + k];
-          if (r < spec_r[c][t]) spec_r[c][t] = r, spec_k[c][t] = k;
+          if (r < spec_r[at_ct(c, t)]) spec_r[at_ct(c, t)] = r, spec_k[at_ct(c, t)] = k;
         }
-        job[j] = {c, t, s[j][spec_k[c][t]].pose, spec_r[c][t]};
+        job[j] = {c, t, s[j][spec_k[at_ct(c, t)]].pose, spec_r[at_ct(c, t)]};
         fitted[j] = 1;
       }
       fitMarked(job, fitted, spec);
@@ -370,15 +378,28 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     // others keep their fit (the same inputs give the same fit). A run of n frames where the
     // chained start wins is final after n rounds, which step 3 would fit one after the other.
     // `before` holds the fits each frame of `guess` was computed from.
+    // changed[c * F + t]: whether frame t's fit in `guess` differs from the one in `before`
+    // (only a frame fitted again in the round can differ), so that a frame's inputs are compared
+    // once a round, not by each frame that reads them.
     before = spec;
+    std::vector<char> changed(static_cast<std::size_t>(C) * F, 0);
+    for (int c = 0; c < C; ++c)
+      for (int t = 0; t < F; ++t) changed[at_ct(c, t)] = !same(guess[c][t], before[c][t]);
+    std::vector<std::vector<Pose>> next;
+    std::vector<std::pair<int, int>> redo;
     for (int round = 2; round <= extra_rounds + 1; ++round) {
-      std::vector<std::pair<int, int>> redo;
+      redo.clear();
       for (int c = 0; c < C; ++c)
-        for (int t = 0; t < F; ++t)
-          if (t != ref && !sameInputs(c, t, guess, before)) redo.push_back({c, t});
+        for (int t = 0; t < F; ++t) {
+          if (t == ref) continue;
+          const int t1 = chain.step[t].before, t2 = chain.step[t].two_before;
+          if (changed[at_ct(c, t1)] || (t2 >= 0 && changed[at_ct(c, t2)])) redo.push_back({c, t});
+        }
       if (redo.empty()) break;
-      std::vector<std::vector<Pose>> next = guess;
+      next = guess;  // the same shape every round: its storage is reused
       fitGivenAll(redo, guess, next);
+      std::fill(changed.begin(), changed.end(), 0);
+      for (const auto& [c, t] : redo) changed[at_ct(c, t)] = !same(next[c][t], guess[c][t]);
       before.swap(guess);
       guess.swap(next);
     }
