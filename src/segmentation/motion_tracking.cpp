@@ -3443,6 +3443,7 @@ TrajectoryClusters clusterTrajectoriesOn(
   };
   if (!with_parts || !merges_device) {
     hierarchyMerges(out.merges);
+    reportPartFits("hierarchy merges");
     timer.lap("clustering: hierarchy merges");
     if (with_parts) with_parts(out);
     return out;
@@ -3467,6 +3468,7 @@ TrajectoryClusters clusterTrajectoriesOn(
     if (timer.on())
       std::fprintf(stderr, "[mean shift] hierarchy merges alone: %.3f s\n",
                    std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+    reportPartFits("hierarchy merges");  // the one thread that fits parts now
   });
   with_parts(out);
   beside.join();  // the merges' device error, if any, is the stage's
