@@ -376,19 +376,17 @@ std::vector<Pose> icpFromStarts(const Source& src, const std::vector<Pose>& init
     // sums. A sum is one column (a start's coordinate or term) added in point order, the columns
     // side by side: the same sums as one thread's, which the team waited for (the tracking's
     // whole-body ICP: 54 000 additions per iteration, 0.01 s of its 0.34 s on 2 cores). A
-    // centroid column moves its own coordinate of every point, and a match its own point (the
-    // coordinates apply() gives: row k of R times the point, plus t_k): a loop of moves before
-    // them cost the team a barrier per iteration (1 100 iterations a run at 800k).
+    // centroid column moves its own coordinate of every point (applied(): apply()'s
+    // coordinate), and a match its own point: a loop of moves before them cost the team a
+    // barrier per iteration (1 100 iterations a run at 800k).
     constexpr int kCols = icp_step::kTerms + 1;  // the terms, then the count of usable points
 #pragma omp parallel
     {
 #pragma omp for schedule(static)
       for (int x = 0; x < na * 3; ++x) {
         const int c = act[x / 3], k = x % 3;
-        const double* row = T[c].r + 3 * k;
         double ct = 0.0;
-        for (Eigen::Index i = 0; i < m; ++i)
-          ct += icp_step::dot3(row, src.p.col(i).data()) + T[c].t[k];
+        for (Eigen::Index i = 0; i < m; ++i) ct += icp_step::applied(T[c], src.p.col(i).data(), k);
         centroid[c][k] = ct / count;
       }
 #pragma omp for schedule(static)

@@ -58,9 +58,14 @@ PCL_ANIMSEG_HD inline void rotate(const Rigid& a, const double* v, double* out) 
   for (int i = 0; i < 3; ++i) out[i] = dot3(a.r + 3 * i, v);
 }
 
+/** \brief Coordinate i of R v + t (apply()'s, for a caller that needs one coordinate). */
+PCL_ANIMSEG_HD inline double applied(const Rigid& a, const double* v, int i) {
+  return dot3(a.r + 3 * i, v) + a.t[i];
+}
+
 /** \brief out = R v + t. */
 PCL_ANIMSEG_HD inline void apply(const Rigid& a, const double* v, double* out) {
-  for (int i = 0; i < 3; ++i) out[i] = dot3(a.r + 3 * i, v) + a.t[i];
+  for (int i = 0; i < 3; ++i) out[i] = applied(a, v, i);
 }
 
 /** \brief a * b (b first). */
