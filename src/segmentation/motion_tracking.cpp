@@ -2743,41 +2743,32 @@ TrajectoryClusters clusterTrajectoriesOn(
   // otherwise all the sets' frames run side by side (fitAlongChains: the same fits, more work,
   // but a merge's or a dissolve's one to three parts keep 16 threads busy).
   // Where fitParts' time goes on a device (ANIMSEG_MS_TIMING): its calls, and in them the time
-  // inside its batches (packing them and the device's calls), the rest being the chains' own
-  // bookkeeping (fitChainsBatched) and the sources.
+  // inside its batches (scores and fits: packing them and the device's calls), the rest being
+  // the chains' own bookkeeping (fitChainsBatched) and the sources.
   struct PartFitTally {
     int calls = 0, chains = 0;
-    double seconds = 0.0, in_batches = 0.0;
+    double seconds = 0.0;
+    BatchTally batches;
   } part_tally;
-  auto tallied = [&](auto batch) {
-    return [&part_tally, batch](const auto& input) {
-      const auto t0 = std::chrono::steady_clock::now();
-      auto r = batch(input);
-      part_tally.in_batches +=
-          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-      return r;
-    };
-  };
   auto reportPartFits = [&](const char* what) {
     if (timer.on() && params.device)
       std::fprintf(stderr,
                    "[mean shift] %s: %d part fit calls (%d chains), %.3f s, %.3f s of it in the "
                    "batches\n",
                    what, part_tally.calls, part_tally.chains, part_tally.seconds,
-                   part_tally.in_batches);
+                   part_tally.batches.seconds);
     part_tally = PartFitTally();
   };
   auto fitParts = [&](const std::vector<const std::vector<int>*>& pts,
                       const std::vector<const std::vector<Pose>*>& ia,
                       const std::vector<const std::vector<Pose>*>& ib) {
-    const auto t_call = std::chrono::steady_clock::now();
-    struct Tally {
+    struct Tally {  // the call's time, whichever way it returns
       PartFitTally& t;
       std::chrono::steady_clock::time_point t0;
       ~Tally() {
         t.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
       }
-    } tally{part_tally, t_call};
+    } tally{part_tally, std::chrono::steady_clock::now()};
     const int C = static_cast<int>(pts.size());
     ++part_tally.calls;
     part_tally.chains += C;
@@ -2817,8 +2808,9 @@ TrajectoryClusters clusterTrajectoriesOn(
       for (const ChainScore<Pose>& x : items) list.push_back({x.chain, x.frame, x.pose});
       return batches.residuals(list);
     };
-    return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts, tallied(scoreBatch),
-                            tallied(fitBatch), same, true, 6);
+    return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts,
+                            tallied(part_tally.batches, scoreBatch),
+                            tallied(part_tally.batches, fitBatch), same, true, 6);
   };
   auto fitPart = [&](const std::vector<int>& pts, const std::vector<Pose>& ia,
                      const std::vector<Pose>* ib) {

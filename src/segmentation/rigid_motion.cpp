@@ -641,29 +641,14 @@ std::vector<std::vector<ChainedPart::Link>> fitOnDevice(const std::vector<Chaine
   };
   // Where the time goes (ANIMSEG_MS_TIMING): the fit batches and the score batches.
   detail::StageTimer timer("rigid motion");
-  struct Tally {
-    int calls = 0;
-    std::size_t items = 0;
-    double seconds = 0.0;
-  } fit_tally, score_tally;
-  // batch(input) for a batch of `input`, counted in `tally`.
-  auto counted = [&](Tally& tally, auto batch) {
-    return [&tally, batch, since](const auto& input) {
-      const auto t0 = Clock::now();
-      auto r = batch(input);
-      tally.seconds += since(t0);
-      ++tally.calls;
-      tally.items += input.size();
-      return r;
-    };
-  };
+  BatchTally fit_tally, score_tally;
   // Speculative rounds cost a device little and save batches of step 3.
   auto out = fitChainsBatched(
       static_cast<int>(act.size()), frames, 0, act.front()->first(),
       [&](int c, int t, const ChainStep& step, const std::vector<Link>* fits) {
         return act[c]->starts(t, step.before, fits);
       },
-      counted(score_tally, scoreBatch), counted(fit_tally, fitBatch), ChainedPart::same, speculate,
+      tallied(score_tally, scoreBatch), tallied(fit_tally, fitBatch), ChainedPart::same, speculate,
       speculate ? 6 : 0, p.max_chain_steps);
   if (timer.on())
     std::fprintf(stderr,

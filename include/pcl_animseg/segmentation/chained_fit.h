@@ -4,6 +4,7 @@
 #include <pcl_animseg/error.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstddef>
 #include <limits>
 #include <string>
@@ -127,6 +128,27 @@ std::vector<double> scoreEach(const std::vector<ChainScore<Pose>>& items, Score&
   detail::eachIndex(n, 4,
                     [&](long j) { out[j] = score(items[j].chain, items[j].frame, items[j].pose); });
   return out;
+}
+
+/** \brief A count of fitChainsBatched's batches of one kind, for timings: the calls, their
+ * items and the seconds inside them. */
+struct BatchTally {
+  int calls = 0;
+  std::size_t items = 0;
+  double seconds = 0.0;
+};
+
+/** \brief `batch` (a score or fit batch) counted in `tally` at every call. */
+template <class Batch>
+auto tallied(BatchTally& tally, Batch batch) {
+  return [&tally, batch](const auto& input) {
+    const auto t0 = std::chrono::steady_clock::now();
+    auto r = batch(input);
+    tally.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    ++tally.calls;
+    tally.items += input.size();
+    return r;
+  };
 }
 
 // The steps of fitAlongChains with the fits and the scores in batches (defined below).
