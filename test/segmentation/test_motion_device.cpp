@@ -399,6 +399,38 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_FALSE(backend->device.overlapped);
 }
 
+// The part merges' speculative fits (MotionTrackingParams::speculate_merge_fits): with them the
+// device makes fewer part-fit batches (a merge whose fit was made beside an earlier step makes
+// none, and the optional chains add none), and the labels and merges are the CPU's either way.
+TEST(MotionDevice, SpeculativeMergeFitsSaveBatchesAndKeepTheCpusMerges) {
+  const auto seq = chain(8, 3000, 4);
+  seg::MotionTrackingParams mp;
+  mp.point_neighbours = motionParams().neighbours;
+  std::vector<int> cpu_flat;
+  int cpu_parts = 0;
+  std::vector<seg::ClusterMerge> cpu_merges;
+  seg::segmentByTracking(*seq, mp, cpu_flat, cpu_parts, cpu_merges);
+  const auto answer = cpuPoses(*seq);
+  int batches[2] = {0, 0};
+  for (int speculate = 0; speculate < 2; ++speculate) {
+    RecordingDevice device;
+    device.answer = answer;
+    seg::MotionTrackingParams dp = mp;
+    dp.device = &device;
+    dp.speculate_merge_fits = speculate == 1;
+    std::vector<int> flat;
+    int parts = 0;
+    std::vector<seg::ClusterMerge> merges;
+    seg::segmentByTracking(*seq, dp, flat, parts, merges);
+    EXPECT_EQ(parts, cpu_parts) << speculate;
+    EXPECT_EQ(flat, cpu_flat) << speculate;
+    EXPECT_EQ(merges, cpu_merges) << speculate;
+    batches[speculate] = device.fit_batches;
+  }
+  EXPECT_GT(batches[0], 0);
+  EXPECT_LT(batches[1], batches[0]);
+}
+
 // Every frame's labels by the moved reference: from a device that leaves every point undecided
 // (the cores search them all again) or one that does not offer the search, the CPU's labels.
 TEST(MotionDevice, EveryFramesLabelsFromADeviceThatLeavesThemOrDoesNotOfferThemAreTheCpus) {

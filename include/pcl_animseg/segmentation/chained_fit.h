@@ -156,7 +156,9 @@ template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
                                                 Starts starts, ScoreBatch scoreBatch,
                                                 FitBatch fitBatch, Same same, bool speculate,
-                                                int extra_rounds, int max_steps = kMaxChainSteps);
+                                                int extra_rounds, int max_steps = kMaxChainSteps,
+                                                int required = -1,
+                                                std::vector<char>* complete = nullptr);
 
 // The parallel steps of fitAlongChain, for several chains at once (defined below).
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
@@ -248,13 +250,26 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
  * side by side, the frames as many steps from the reference at a time (both sides', and between
  * key frames every stretch's), so that those of all the chains are one batch. For a device that
  * fits and scores many frames at once (the CUDA module); on the CPU fitEach and scoreEach are the
- * batches. The same fits as fitAlongChains and the serial chains. */
+ * batches. The same fits as fitAlongChains and the serial chains.
+ *
+ * Optional chains: with `required` (0 < required < chains; default, all), the chains from
+ * `required` on ride along in the batches of the first `required` and never add a batch of their
+ * own: the rounds of step 2b end when the required chains' end, and optional chains that would
+ * make a score or fit batch without a required chain's item in it are given up. `complete`,
+ * where given, gets one flag per chain: whether its fits are final (always, for a required
+ * chain); a given-up chain's fits are not. The required chains get the fits and the batches they
+ * would get alone, and a complete chain's fits are the ones it would get alone (the rounds only
+ * guess: step 3 checks every guess). Written for speculative fits, which must not make the fits
+ * that are needed now wait. */
 template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same>
 std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
                                                 Starts starts, ScoreBatch scoreBatch,
                                                 FitBatch fitBatch, Same same, bool speculate,
-                                                int extra_rounds, int max_steps) {
+                                                int extra_rounds, int max_steps, int required,
+                                                std::vector<char>* complete) {
   const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
+  const int R = required > 0 && required < C ? required : C;  // the required chains, first
+  std::vector<char> alive(static_cast<std::size_t>(C), 1);
   const ChainFrames chain = chainFrames(F, ref, max_steps);
   // Default: 6 more rounds on 4 threads or more (each costs fits that step 3 might not need;
   // on 2 threads step 3's chains side by side keep both busy).
@@ -273,6 +288,15 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
   std::vector<double> spec_r(static_cast<std::size_t>(C) * F, kNone);
   std::vector<std::size_t> spec_k(static_cast<std::size_t>(C) * F, 0);
   auto at_ct = [F](int c, int t) { return static_cast<std::size_t>(c) * F + t; };
+  // Optional chains that alone would make a batch (no required chain's item in `batch`) are
+  // given up; returns whether any was.
+  auto giveUpAlone = [&](const auto& batch) {
+    if (R == C || batch.empty()) return false;
+    for (const auto& x : batch)
+      if (x.chain < R) return false;
+    for (const auto& x : batch) alive[x.chain] = 0;
+    return true;
+  };
   // Which of a frame's starts it scores here (the others are spec's).
   auto scoredHere = [&](const ChainStart<Pose>& x) { return x.chained || !speculate; };
   // `scored`: the scores of the starts scoredHere, in their order.
@@ -307,13 +331,19 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     std::size_t listed = 0;
     for (const Starts_& x : s) listed += x.size();
     items.reserve(listed);
-    at.assign(todo.size() + 1, 0);
-    for (std::size_t j = 0; j < todo.size(); ++j) {
-      at[j] = items.size();
-      for (const ChainStart<Pose>& x : s[j])
-        if (keep(x)) items.push_back({todo[j].first, todo[j].second, x.pose});
-    }
-    at[todo.size()] = items.size();
+    auto list = [&] {
+      items.clear();
+      at.assign(todo.size() + 1, 0);
+      for (std::size_t j = 0; j < todo.size(); ++j) {
+        at[j] = items.size();
+        if (!alive[todo[j].first]) continue;
+        for (const ChainStart<Pose>& x : s[j])
+          if (keep(x)) items.push_back({todo[j].first, todo[j].second, x.pose});
+      }
+      at[todo.size()] = items.size();
+    };
+    list();
+    if (giveUpAlone(items)) list();
     scores.clear();
     if (!items.empty()) scores = scoreBatch(items);
     if (scores.size() != items.size())
@@ -328,7 +358,8 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     for (char m : marked) n += m != 0;
     jobs.reserve(n);
     for (std::size_t j = 0; j < job.size(); ++j)
-      if (marked[j]) jobs.push_back(job[j]);
+      if (marked[j] && alive[job[j].chain]) jobs.push_back(job[j]);
+    if (giveUpAlone(jobs)) return;
     if (jobs.empty()) return;
     const std::vector<Pose> res = fitBatch(jobs);
     for (std::size_t j = 0; j < jobs.size(); ++j) out[jobs[j].chain][jobs[j].frame] = res[j];
@@ -348,6 +379,7 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     std::vector<char> fitted(todo.size(), 0);
     for (std::size_t j = 0; j < todo.size(); ++j) {
       const auto [c, t] = todo[j];
+      if (!alive[c]) continue;
       double r0;
       const std::size_t best = winner(c, t, s[j], scores.data() + at[j], r0);
       if (scoredHere(s[j][best])) {
@@ -411,13 +443,16 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     std::vector<std::pair<int, int>> redo;
     for (int round = 2; round <= extra_rounds + 1; ++round) {
       redo.clear();
-      for (int c = 0; c < C; ++c)
-        for (int t = 0; t < F; ++t) {
+      std::size_t required_redo = 0;
+      for (int c = 0; c < C; ++c) {
+        for (int t = 0; t < F && alive[c]; ++t) {
           if (t == ref) continue;
           const int t1 = chain.step[t].before, t2 = chain.step[t].two_before;
           if (changed[at_ct(c, t1)] || (t2 >= 0 && changed[at_ct(c, t2)])) redo.push_back({c, t});
         }
-      if (redo.empty()) break;
+        if (c + 1 == R) required_redo = redo.size();
+      }
+      if (required_redo == 0) break;  // the optional chains' rounds alone: left to step 3
       next = guess;  // the same shape every round: its storage is reused
       fitGivenAll(redo, guess, next);
       std::fill(changed.begin(), changed.end(), 0);
@@ -438,17 +473,20 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     if (static_cast<int>(at_depth.size()) < depth[t]) at_depth.resize(depth[t]);
     at_depth[depth[t] - 1].push_back(t);
   }
+  std::vector<std::pair<int, int>> redo;
   for (const std::vector<int>& frames : at_depth) {
-    std::vector<std::pair<int, int>> redo;
+    redo.clear();
     for (int t : frames)
       for (int c = 0; c < C; ++c) {
+        if (!alive[c]) continue;
         if (speculate && sameInputs(c, t, fit, before))
           fit[c][t] = guess[c][t];
         else
           redo.push_back({c, t});
       }
-    fitGivenAll(redo, fit, fit);
+    fitGivenAll(redo, fit, fit);  // an optional chain alone in it is given up there
   }
+  if (complete) complete->assign(alive.begin(), alive.end());
   return fit;
 }
 

@@ -135,6 +135,11 @@ struct MotionTrackingParams {
    * segmentByTracking hand it the frames). nullptr: the CPU. The results are the CPU's bit for
    * bit. */
   MotionDevice* device = nullptr;
+  /** With a device: each part merge's or dissolve's part fits also fit, as an optional chain of
+   * the same device batches (fitChainsBatched), the union of the cheapest pair of parts the step
+   * leaves as they are; when that pair merges next with the same points and starts, the merge
+   * takes that fit. The same results either way (fewer device calls with it); off to compare. */
+  bool speculate_merge_fits = true;
   /** The caller's own work, run on a thread of its own while the method's chains of device
    * calls and host steps leave most cores idle: segmentByTracking starts it when the samples'
    * poses are all that is left of the tracking (the clustering and the part motions follow) and
