@@ -661,6 +661,27 @@ __global__ void partFitJobsWide(Dev d, const double* __restrict__ points,
           GroupOfBlock<kWideThreads>{static_cast<int>(threadIdx.x), rows, slot});
 }
 
+// One part fit per block of kLargeThreads threads, for batches whose sources have more points
+// than kWideThreads (the labels' part motions: up to 400 points a part): a source of up to
+// kLargeThreads points is searched in one round per ICP iteration instead of four, its sums
+// still added in point order (the same poses). The scratch rows (kLargeThreads x kCols doubles,
+// 112 KiB) are dynamic shared memory; the launch bound keeps the registers within the SM's.
+constexpr int kLargeThreads = 512;
+constexpr std::size_t kLargeShared =
+    (static_cast<std::size_t>(kLargeThreads) + 1) * kCols * sizeof(double);
+__global__ void __launch_bounds__(kLargeThreads)
+    partFitJobsLarge(Dev d, const double* __restrict__ points, const int* __restrict__ source_begin,
+                     const double* __restrict__ motions, const PartFitJob* __restrict__ jobs,
+                     double* out, double* out_res) {
+  extern __shared__ double large_rows[];  // kLargeThreads rows, then the shared slot
+  partFit(d, points, source_begin, motions, jobs[blockIdx.x],
+          out + static_cast<long long>(blockIdx.x) * kPoseDoubles,
+          out_res ? out_res + blockIdx.x : nullptr,
+          GroupOfBlock<kLargeThreads>{
+              static_cast<int>(threadIdx.x), reinterpret_cast<double(*)[kCols]>(large_rows),
+              large_rows + static_cast<std::size_t>(kLargeThreads) * kCols});
+}
+
 // Point costs (motion_tracking.cpp's pointCost), one (job, frame) per thread, frame-major
 // (thread t * n + j: a warp searches one frame's tree for neighbouring jobs): the point's surface
 // error under its motion's pose in frame t, 0 in the reference frame, into errors[t * n + j]. A
@@ -1890,9 +1911,21 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
   const std::size_t res_count = residual ? jobs.size() : 0;
   double* out = resultsOnHost(frames, (pose_count + res_count) * sizeof(double));
   double* out_res = residual ? out + pose_count : nullptr;
-  // A small batch: a fit per block finishes sooner; a large one fills the GPU with a fit per
-  // warp.
-  if (n <= kWideFitBatch)
+  // A small batch: a fit per block finishes sooner (a block of kLargeThreads where a source has
+  // more points than kWideThreads); a large one fills the GPU with a fit per warp.
+  int largest = 0;
+  for (const PartFitJob& j : jobs)
+    largest = std::max(largest, source_begin[j.source + 1] - source_begin[j.source]);
+  if (n <= kWideFitBatch && largest > kWideThreads) {
+    if (!frames.large_fits_set) {
+      cudaSafeCall(cudaFuncSetAttribute(partFitJobsLarge,
+                                        cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                        static_cast<int>(kLargeShared)));
+      frames.large_fits_set = true;
+    }
+    partFitJobsLarge<<<static_cast<int>(n), kLargeThreads, kLargeShared>>>(
+        d, in.points, in.begin, in.motions, in.list, out, out_res);
+  } else if (n <= kWideFitBatch)
     partFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
                                                            in.list, out, out_res);
   else

@@ -161,6 +161,7 @@ struct FrameStore {
   DeviceMemory rigid_scratch;
   int rigid_clusters[3] = {-1, -1, -1};
   bool rigid_shared_set = false;
+  bool large_fits_set = false;  ///< the large part fits' shared memory allowed (runPartFits)
   /** Calls by kind (residuals, point costs, part fits, rigid fits): count, jobs and wall
    * seconds, printed on stderr when the store goes and ANIMSEG_MS_TIMING is set. */
   struct CallStats {

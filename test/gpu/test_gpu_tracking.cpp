@@ -494,6 +494,47 @@ TEST(GpuTracking, ResidualBatchesAreTheCpusBothWays) {
   EXPECT_EQ(differ_here, 0);
 }
 
+// Part fits on the GPU are the CPU's (cpuPartFits), bit for bit, on blocks of both widths: a
+// batch whose sources have at most 128 points (a block of 128 threads a fit, one round of
+// points per iteration), and one with sources of 500 and 3000 points (a block of 512 threads a
+// fit: the labels' part motions fit sources of up to 400 points), the starts under four motions.
+TEST(GpuTracking, PartFitsAreTheCpusOnBlocksOfBothWidths) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const SourcesOnFrames data;
+  gpu::MotionTracking device;
+  device.setFrames(data.frames);
+  for (const bool large : {false, true}) {
+    seg::PartFitJobs fits;
+    fits.points = data.b.points;
+    fits.source_begin = data.b.source_begin;
+    fits.motions = data.b.motions;
+    fits.iterations = 10;
+    for (const auto& r : data.b.jobs) {
+      const int m = data.b.source_begin[r.source + 1] - data.b.source_begin[r.source];
+      if ((m > 128) != large) continue;
+      fits.jobs.push_back({r.source, r.motion, r.frame, std::numeric_limits<double>::infinity(),
+                           4.0 * data.frames.frames[r.frame].spacing});
+    }
+    ASSERT_FALSE(fits.jobs.empty());
+    const std::vector<double> cpu = animseg_test::cpuPartFits(data.frames, fits);
+    std::vector<double> gpu_poses;
+    device.partFits(fits, gpu_poses);
+    ASSERT_EQ(gpu_poses.size(), cpu.size());
+    int differ = 0, moved = 0;
+    for (std::size_t j = 0; j < fits.jobs.size(); ++j) {
+      differ +=
+          !std::equal(cpu.begin() + 12 * j, cpu.begin() + 12 * (j + 1), gpu_poses.begin() + 12 * j);
+      moved += !std::equal(cpu.begin() + 12 * j, cpu.begin() + 12 * (j + 1),
+                           fits.motions.begin() + 12 * fits.jobs[j].motion);
+    }
+    std::printf("%zu part fits of %s sources: %d differ from the CPU's (%d moved from the start)\n",
+                fits.jobs.size(), large ? "500 and 3000-point" : "0 to 37-point", differ, moved);
+    EXPECT_EQ(differ, 0) << large;
+    EXPECT_GT(moved, 0) << large;  // the fits did something
+  }
+}
+
 // A part fit's score of its own result (MotionTracking::partFitsWithResiduals, one call) is what
 // a residual batch gives for the pose kept, bit for bit: the fit's result, or the start where the
 // fit scored above r0; the poses are partFits()'.

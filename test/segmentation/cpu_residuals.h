@@ -7,6 +7,7 @@
 #include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/motion_device.h>
 
+#include <algorithm>
 #include <cmath>
 #include <vector>
 
@@ -49,6 +50,70 @@ inline std::vector<double> cpuResiduals(const pcl_animseg::segmentation::DeviceF
     out.push_back(end > first ? std::sqrt(sum / (end - first)) : 0.0);
   }
   return out;
+}
+
+// Every part fit of a batch (motion_device.h's PartFitJobs) as the motion method's icp() makes
+// it: damped ICP with icp_step (the point-to-plane terms of the matches whose normals agree,
+// added in point order about the moved source's centroid), the fit kept where its residual is
+// at most r0, else the start; the poses (12 doubles each) in the jobs' order.
+inline std::vector<double> cpuPartFits(const pcl_animseg::segmentation::DeviceFrames& frames,
+                                       const pcl_animseg::segmentation::PartFitJobs& b) {
+  namespace is = pcl_animseg::segmentation::icp_step;
+  std::vector<double> poses;
+  for (const auto& job : b.jobs) {
+    const int first = b.source_begin[job.source], m = b.source_begin[job.source + 1] - first;
+    const auto& f = frames.frames[job.frame];
+    const is::Rigid init = is::load(&b.motions[12 * static_cast<std::size_t>(job.motion)]);
+    is::Rigid T = init;
+    const float max_d2 = static_cast<float>(job.max_dist * job.max_dist);
+    std::vector<double> moved(3 * static_cast<std::size_t>(m));
+    for (int it = 0; it < b.iterations; ++it) {
+      double c[3] = {0, 0, 0};
+      for (int i = 0; i < m; ++i) {
+        is::apply(T, &b.points[6 * static_cast<std::size_t>(first + i)], &moved[3 * i]);
+        for (int k = 0; k < 3; ++k) c[k] += moved[3 * i + k];
+      }
+      for (int k = 0; k < 3; ++k) c[k] /= static_cast<double>(std::max(1, m));
+      double sums[is::kTerms] = {};
+      int used = 0;
+      for (int i = 0; i < m; ++i) {
+        const float q[3] = {static_cast<float>(moved[3 * i]), static_cast<float>(moved[3 * i + 1]),
+                            static_cast<float>(moved[3 * i + 2])};
+        float d2 = 0.0f;
+        const bool finite = std::isfinite(q[0]) && std::isfinite(q[1]) && std::isfinite(q[2]);
+        const int leaf = finite ? f.tree->nearestLeaf(q, std::nextafter(max_d2, 1e30f), d2) : -1;
+        if (leaf < 0) continue;
+        double tp[3], tn[3], n[3];
+        for (int k = 0; k < 3; ++k) {
+          tp[k] = f.tree->leafPoints()[3 * leaf + k];
+          tn[k] = f.leaf_normals[3 * leaf + k];
+        }
+        is::rotate(T, &b.points[6 * static_cast<std::size_t>(first + i) + 3], n);
+        const double cs = is::dot3(n, tn);
+        if ((f.unoriented ? std::fabs(cs) : cs) < frames.normal_cos) continue;
+        ++used;
+        double terms[is::kTerms];
+        is::pointTerms(&moved[3 * i], c, tp, tn, terms);
+        for (int q2 = 0; q2 < is::kTerms; ++q2) sums[q2] += terms[q2];
+      }
+      if (used < 6) break;
+      double x[6];
+      if (!is::solveStep(sums, x)) break;
+      T = is::compose(is::stepMotion(x, c), T);
+      if (is::converged(x, f.spacing)) break;
+    }
+    double sum = 0.0;
+    for (int i = 0; i < m; ++i) {
+      double y[3], n[3];
+      is::apply(T, &b.points[6 * static_cast<std::size_t>(first + i)], y);
+      is::rotate(T, &b.points[6 * static_cast<std::size_t>(first + i) + 3], n);
+      sum += deviceSurfaceError(frames, job.frame, y, n);
+    }
+    const double r = m > 0 ? std::sqrt(sum / m) : 0.0;
+    poses.resize(poses.size() + 12);
+    is::store(r <= job.r0 ? T : init, &poses[poses.size() - 12]);
+  }
+  return poses;
 }
 
 }  // namespace animseg_test

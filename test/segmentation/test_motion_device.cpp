@@ -51,12 +51,6 @@ class RecordingDevice : public seg::MotionDevice {
     ++frame_calls;
     threads_at_frames = omp_get_max_threads();
     frames = f;
-    leaf_of.assign(f.frames.size(), {});
-    for (std::size_t t = 0; t < f.frames.size(); ++t) {
-      const auto& rows = f.frames[t].tree->leafRows();
-      leaf_of[t].resize(rows.size());
-      for (std::size_t i = 0; i < rows.size(); ++i) leaf_of[t][rows[i]] = static_cast<int>(i);
-    }
   }
   void beginSamples(const seg::SampleTrackingProblem& p) override {
     tracker = std::this_thread::get_id();
@@ -154,74 +148,13 @@ class RecordingDevice : public seg::MotionDevice {
       if (!b.per_frame) out.push_back(sum);
     }
   }
-  // The nearest point of frame t within sqrt(max_d2) (inclusive; none for a non-finite query),
-  // as its leaf index, from the tree given.
-  int nearestLeaf(int t, const double* y, float max_d2, float& d2) const {
-    const float q[3] = {static_cast<float>(y[0]), static_cast<float>(y[1]),
-                        static_cast<float>(y[2])};
-    if (!std::isfinite(q[0]) || !std::isfinite(q[1]) || !std::isfinite(q[2])) return -1;
-    const int row = frames.frames[t].tree->nearest(q, std::nextafter(max_d2, 1e30f), d2);
-    return row < 0 ? -1 : leaf_of[t][row];
-  }
-  // The motion method's part fit from what it was given: damped ICP with icp_step (the point-to-
-  // plane terms of the matches whose normals agree), kept when its residual is at most r0.
+  // The motion method's part fit from what it was given (cpuPartFits: icp_step's damped ICP,
+  // kept when its residual is at most r0).
   void partFits(const seg::PartFitJobs& b, std::vector<double>& poses) override {
     const Call call(*this);
     ++fit_batches;
     fits += b.jobs.size();
-    poses.clear();
-    namespace is = seg::icp_step;
-    for (const auto& job : b.jobs) {
-      const int first = b.source_begin[job.source], m = b.source_begin[job.source + 1] - first;
-      const auto& f = frames.frames[job.frame];
-      const is::Rigid init = motionAt(b.motions, job.motion);
-      is::Rigid T = init;
-      const float max_d2 = static_cast<float>(job.max_dist * job.max_dist);
-      std::vector<double> moved(3 * static_cast<std::size_t>(m));
-      for (int it = 0; it < b.iterations; ++it) {
-        double c[3] = {0, 0, 0};
-        for (int i = 0; i < m; ++i) {
-          is::apply(T, &b.points[6 * (first + i)], &moved[3 * i]);
-          for (int k = 0; k < 3; ++k) c[k] += moved[3 * i + k];
-        }
-        for (int k = 0; k < 3; ++k) c[k] /= static_cast<double>(std::max(1, m));
-        double sums[is::kTerms] = {};
-        int used = 0;
-        for (int i = 0; i < m; ++i) {
-          float d2 = 0.0f;
-          const int leaf = nearestLeaf(job.frame, &moved[3 * i], max_d2, d2);
-          if (leaf < 0) continue;
-          double tp[3], tn[3], n[3];
-          for (int k = 0; k < 3; ++k) {
-            tp[k] = f.tree->leafPoints()[3 * leaf + k];
-            tn[k] = f.leaf_normals[3 * leaf + k];
-          }
-          is::rotate(T, &b.points[6 * (first + i) + 3], n);
-          const double cs = is::dot3(n, tn);
-          if ((f.unoriented ? std::fabs(cs) : cs) < frames.normal_cos) continue;
-          ++used;
-          double terms[is::kTerms];
-          is::pointTerms(&moved[3 * i], c, tp, tn, terms);
-          for (int q = 0; q < is::kTerms; ++q) sums[q] += terms[q];
-        }
-        if (used < 6) break;
-        double x[6];
-        if (!is::solveStep(sums, x)) break;
-        T = is::compose(is::stepMotion(x, c), T);
-        if (is::converged(x, f.spacing)) break;
-      }
-      double sum = 0.0;
-      for (int i = 0; i < m; ++i) {
-        double y[3], n[3];
-        is::apply(T, &b.points[6 * (first + i)], y);
-        is::rotate(T, &b.points[6 * (first + i) + 3], n);
-        sum += surfaceError(job.frame, y, n);
-      }
-      const double r = m > 0 ? std::sqrt(sum / m) : 0.0;
-      const is::Rigid& kept = r <= job.r0 ? T : init;
-      poses.resize(poses.size() + 12);
-      is::store(kept, &poses[poses.size() - 12]);
-    }
+    poses = animseg_test::cpuPartFits(frames, b);
   }
   // Every frame's labels by the moved reference, as specified (cpu_moved_nearest.h), from the
   // frames given; or none (offer_moved false), or every point left undecided (undecide_all).
@@ -277,7 +210,6 @@ class RecordingDevice : public seg::MotionDevice {
   bool start = false;  // starting() until the first call
   int threads_at_frames = 0, threads_at_tracking = 0, frames_given = 0;
   seg::DeviceFrames frames;
-  std::vector<std::vector<int>> leaf_of;  // per frame: tree row -> leaf index
   std::vector<std::vector<Eigen::Isometry3d>> answer;
 };
 
