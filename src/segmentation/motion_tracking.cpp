@@ -2760,6 +2760,9 @@ TrajectoryClusters clusterTrajectoriesOn(
                    part_tally.batches.seconds);
     part_tally = PartFitTally();
   };
+  // Whether fitParts runs on the device (a device serves one caller at a time, so not inside a
+  // parallel region).
+  auto partsOnDevice = [&] { return params.device && !omp_in_parallel(); };
   // `optional` (on a device): the last chains are optional (fitChainsBatched), `complete` says
   // which chains' fits are final.
   auto fitParts = [&](const std::vector<const std::vector<int>*>& pts,
@@ -2793,7 +2796,7 @@ TrajectoryClusters clusterTrajectoriesOn(
       return residual(src[c], cand, frames[t]) <= r0 ? cand : init;
     };
     auto same = [](const Pose& p, const Pose& q) { return p.matrix() == q.matrix(); };
-    if (!params.device || omp_in_parallel()) {  // a device serves one caller at a time
+    if (!partsOnDevice()) {
       if (complete) complete->assign(static_cast<std::size_t>(C), 1);
       return fitChains(C, T, ref, Pose(Pose::Identity()), starts, score, fitFrom, same);
     }
@@ -3267,7 +3270,7 @@ TrajectoryClusters clusterTrajectoriesOn(
   auto pickSpeculation = [&](const std::vector<int>& changing,
                              std::vector<std::pair<std::pair<int, int>, Speculated>>& specs) {
     specs.clear();
-    if (!params.device || !params.speculate_merge_fits || omp_in_parallel()) return;
+    if (!params.speculate_merge_fits || !partsOnDevice()) return;
     std::vector<std::pair<double, std::pair<int, int>>> order;
     for (const auto& [k, e] : pedges) {
       if (std::binary_search(changing.begin(), changing.end(), k.first) ||
@@ -3287,30 +3290,6 @@ TrajectoryClusters clusterTrajectoriesOn(
       specs.emplace_back(std::make_pair(c, d), std::move(spec));
     }
   };
-  // Adds `specs` as optional chains of a fitParts call (pts, ia, ib), then keeps the complete
-  // ones' fits from its result.
-  auto addSpeculations = [&](std::vector<std::pair<std::pair<int, int>, Speculated>>& specs,
-                             std::vector<const std::vector<int>*>& pts,
-                             std::vector<const std::vector<Pose>*>& ia,
-                             std::vector<const std::vector<Pose>*>& ib) {
-    for (auto& [pair, spec] : specs) {
-      pts.push_back(&spec.pts);
-      ia.push_back(&gpose[pair.first]);
-      ib.push_back(&gpose[pair.second]);
-    }
-  };
-  auto keepSpeculations = [&](std::vector<std::pair<std::pair<int, int>, Speculated>>& specs,
-                              std::vector<std::vector<Pose>>& fit,
-                              const std::vector<char>& complete) {
-    const std::size_t first = fit.size() - specs.size();
-    for (std::size_t i = 0; i < specs.size(); ++i) {
-      ++spec_fits;
-      if (!complete[first + i]) continue;
-      ++spec_complete;
-      specs[i].second.fit.swap(fit[first + i]);
-      speculated[specs[i].first] = std::move(specs[i].second);
-    }
-  };
   // The parts in `changed` get new points or motions: their pairs' speculated fits go.
   auto forgetSpeculations = [&](const std::vector<int>& changed) {
     for (auto it = speculated.begin(); it != speculated.end();)
@@ -3318,6 +3297,34 @@ TrajectoryClusters clusterTrajectoriesOn(
                    std::find(changed.begin(), changed.end(), it->first.second) != changed.end()
                ? speculated.erase(it)
                : std::next(it);
+  };
+  // A step's part fits (fitParts of pts, ia, ib) where the step changes the parts in `changing`
+  // (sorted), with the speculated pairs beside them as optional chains: the step's own fits; the
+  // changed parts' speculated fits dropped, the new complete ones kept.
+  auto fitStep = [&](const std::vector<int>& changing, std::vector<const std::vector<int>*> pts,
+                     std::vector<const std::vector<Pose>*> ia,
+                     std::vector<const std::vector<Pose>*> ib) {
+    std::vector<std::pair<std::pair<int, int>, Speculated>> specs;
+    pickSpeculation(changing, specs);
+    const std::size_t own = pts.size();
+    for (auto& [pair, spec] : specs) {
+      pts.push_back(&spec.pts);
+      ia.push_back(&gpose[pair.first]);
+      ib.push_back(&gpose[pair.second]);
+    }
+    std::vector<char> complete;
+    std::vector<std::vector<Pose>> fit =
+        fitParts(pts, ia, ib, static_cast<int>(specs.size()), &complete);
+    forgetSpeculations(changing);
+    for (std::size_t i = 0; i < specs.size(); ++i) {
+      ++spec_fits;
+      if (!complete[own + i]) continue;
+      ++spec_complete;
+      specs[i].second.fit.swap(fit[own + i]);
+      speculated[specs[i].first] = std::move(specs[i].second);
+    }
+    fit.resize(own);
+    return fit;
   };
   auto dissolvePart = [&](int x) {
     const std::vector<int> nb = dissolveCandidates(x);
@@ -3378,15 +3385,8 @@ TrajectoryClusters clusterTrajectoriesOn(
       std::vector<int> changing(rec);
       changing.push_back(x);
       std::sort(changing.begin(), changing.end());
-      std::vector<std::pair<std::pair<int, int>, Speculated>> specs;
-      pickSpeculation(changing, specs);
-      addSpeculations(specs, pts, ia, ib);
-      std::vector<char> complete;
-      std::vector<std::vector<Pose>> fit =
-          fitParts(pts, ia, ib, static_cast<int>(specs.size()), &complete);
+      std::vector<std::vector<Pose>> fit = fitStep(changing, pts, ia, ib);
       for (std::size_t r = 0; r < rec.size(); ++r) gpose[rec[r]].swap(fit[r]);
-      forgetSpeculations(changing);
-      keepSpeculations(specs, fit, complete);
     }
     t_dfit += since(t0);
     for (std::size_t r = 0; r < rec.size(); ++r) {
@@ -3428,19 +3428,10 @@ TrajectoryClusters clusterTrajectoriesOn(
     if (const Speculated* known = speculatedFit(a, b, u)) {
       gpose[a] = known->fit;
       ++spec_hits;
+      forgetSpeculations({a, b});
     } else {
-      std::vector<std::pair<std::pair<int, int>, Speculated>> specs;
-      pickSpeculation({a, b}, specs);
-      std::vector<const std::vector<int>*> pts{&u};
-      std::vector<const std::vector<Pose>*> ia{&gpose[a]}, ib{&gpose[b]};
-      addSpeculations(specs, pts, ia, ib);
-      std::vector<char> complete;
-      std::vector<std::vector<Pose>> fit =
-          fitParts(pts, ia, ib, static_cast<int>(specs.size()), &complete);
-      gpose[a].swap(fit[0]);
-      keepSpeculations(specs, fit, complete);
+      gpose[a].swap(fitStep({a, b}, {&u}, {&gpose[a]}, {&gpose[b]})[0]);
     }
-    forgetSpeculations({a, b});
     t_fit += since(t0);
     t0 = std::chrono::steady_clock::now();
     gpts[a].swap(u);
