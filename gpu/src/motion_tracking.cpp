@@ -64,8 +64,9 @@ bool MotionTracking::starting() const { return probeState() == ProbeState::Runni
 namespace detail {
 void reportCalls(const FrameStore& store, const char* owner) {
   if (!std::getenv("ANIMSEG_MS_TIMING")) return;
-  static const char* const kinds[4] = {"residuals", "point costs", "part fits", "rigid fits"};
-  for (int k = 0; k < 4; ++k)
+  static const char* const kinds[FrameStore::kCallKinds] = {"residuals", "point costs", "part fits",
+                                                            "rigid fits", "scored part fits"};
+  for (int k = 0; k < FrameStore::kCallKinds; ++k)
     if (store.stats[k].calls)
       std::fprintf(stderr, "[gpu %s] %s: %ld calls, %ld jobs, %.3f s\n", owner, kinds[k],
                    store.stats[k].calls, store.stats[k].jobs, store.stats[k].seconds);
@@ -163,7 +164,7 @@ std::unique_ptr<FrameStore> uploadPackedFrames(const FrameArrays& packed,
                                                const FrameStore* previous) {
   auto store = std::make_unique<FrameStore>();
   uploadFrames(packed, *store);
-  if (previous) std::copy(previous->stats, previous->stats + 4, store->stats);
+  if (previous) std::copy(previous->stats, previous->stats + FrameStore::kCallKinds, store->stats);
   return store;
 }
 
@@ -480,6 +481,45 @@ void MotionTracking::fitParts(const segmentation::PartFitJobs& jobs, std::vector
   const detail::CallTimer timer(*frames_, 2, list.size());
   detail::runPartFits(*frames_, jobs.points, jobs.source_begin, jobs.motions, list, jobs.iterations,
                       poses, residual);
+}
+
+void MotionTracking::scoreAndFit(const segmentation::ScoreFitJobs& jobs,
+                                 std::vector<double>& scores, std::vector<int>& fitted,
+                                 std::vector<double>& poses) {
+  const std::string what = "GPU scored part fits";
+  if (!store()) throw DeviceError(what + ": no frames were set");
+  int sources = 0, motions = 0;
+  countSourcesAndMotions(jobs.points, jobs.source_begin, jobs.motions, what, sources, motions);
+  if (jobs.iterations < 0) throw DeviceError(what + ": negative iterations");
+  if (jobs.places.size() != static_cast<std::size_t>(motions))
+    throw DeviceError(what + ": a place per start is needed");
+  std::vector<detail::ScoreFitJob> list;
+  list.reserve(jobs.jobs.size());
+  for (const segmentation::ScoreFitJobs::Job& j : jobs.jobs) {
+    // More starts than a job holds: the default's two calls (residuals, then part fits).
+    if (j.count > detail::kScoreFitStarts) {
+      segmentation::MotionDevice::scoreAndFit(jobs, scores, fitted, poses);
+      return;
+    }
+    if (j.count < 0 || j.first < 0 || j.first + j.count > motions)
+      throw DeviceError(what + ": a job's starts out of range");
+    for (int k = 0; k < j.count; ++k)
+      checkJob(j.source, sources, j.first + k, motions, j.frame, frames_->frames, what);
+    detail::ScoreFitJob d{};
+    d.source = j.source;
+    d.frame = j.frame;
+    d.first = j.first;
+    d.count = j.count;
+    for (int k = 0; k < j.count; ++k)
+      d.place[k] = jobs.places[static_cast<std::size_t>(j.first + k)];
+    d.base_place = j.base_place;
+    d.base_score = j.base_score;
+    d.max_dist = j.max_dist;
+    list.push_back(d);
+  }
+  const detail::CallTimer timer(*frames_, 4, list.size());
+  detail::runScoreFits(*frames_, jobs.points, jobs.source_begin, jobs.motions, list,
+                       static_cast<std::size_t>(motions), jobs.iterations, scores, fitted, poses);
 }
 
 }  // namespace gpu

@@ -682,6 +682,90 @@ __global__ void __launch_bounds__(kLargeThreads)
               large_rows + static_cast<std::size_t>(kLargeThreads) * kCols});
 }
 
+// One score-and-fit job (runScoreFits) by a group of threads: its starts scored in start order
+// (residual(), the score batch's values), the winner chosen as chained_fit.h's scoreFitWinner
+// does (the first of the lowest score by place, the base among them; place 0 where no score is
+// below the largest double), and where one of its starts wins, partFit's fit from it with r0
+// its score. Every thread computes the same scores (residual() shares them), so every thread
+// takes the same branches. `out`: the pose (12 doubles), then the winner's index (a double).
+template <class Group>
+__device__ void scoreFit(const Dev& d, const double* points, const int* source_begin,
+                         const double* motions, const ScoreFitJob& job, double* scores, double* out,
+                         const Group& g) {
+  const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
+  const double* src = points + 6LL * b;
+  double r0 = DBL_MAX;
+  int best_place = 0;
+  bool base_done = job.base_place < 0;
+  for (int k = 0; k <= job.count; ++k) {
+    if (!base_done && (k == job.count || job.base_place < job.place[k])) {
+      base_done = true;
+      if (job.base_score < r0) r0 = job.base_score, best_place = job.base_place;
+    }
+    if (k == job.count) break;
+    const Rigid T = icp_step::load(motions + static_cast<long long>(job.first + k) * kPoseDoubles);
+    const double r = residual(d, job.frame, src, m, T, g);
+    if (g.rank == 0) scores[job.first + k] = r;
+    if (r < r0) r0 = r, best_place = job.place[k];
+  }
+  int win = -1;
+  for (int k = 0; k < job.count && win < 0; ++k)
+    if (job.place[k] == best_place) win = k;
+  if (win < 0) {
+    if (g.rank == 0) {
+      icp_step::store(icp_step::identity(), out);
+      out[kPoseDoubles] = -1.0;
+    }
+    return;
+  }
+  const Rigid init =
+      icp_step::load(motions + static_cast<long long>(job.first + win) * kPoseDoubles);
+  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
+  const double r = residual(d, job.frame, src, m, cand, g);
+  if (g.rank == 0) {
+    icp_step::store(r <= r0 ? cand : init, out);
+    out[kPoseDoubles] = static_cast<double>(win);
+  }
+}
+
+// The three widths of partFitJobs, partFitJobsWide and partFitJobsLarge for score-and-fit jobs.
+constexpr int kScoreFitOut = kPoseDoubles + 1;
+__global__ void scoreFitJobs(Dev d, const double* __restrict__ points,
+                             const int* __restrict__ source_begin,
+                             const double* __restrict__ motions,
+                             const ScoreFitJob* __restrict__ jobs, int n, double* scores,
+                             double* out) {
+  __shared__ Scratch scratch[kWarpsPerBlock];
+  const int w = (blockIdx.x * blockDim.x + threadIdx.x) / kWarp;
+  const int lane = threadIdx.x % kWarp;
+  if (w >= n) return;  // the whole warp
+  scoreFit(d, points, source_begin, motions, jobs[w], scores,
+           out + static_cast<long long>(w) * kScoreFitOut,
+           WarpGroup(lane, scratch[threadIdx.x / kWarp]));
+}
+__global__ void scoreFitJobsWide(Dev d, const double* __restrict__ points,
+                                 const int* __restrict__ source_begin,
+                                 const double* __restrict__ motions,
+                                 const ScoreFitJob* __restrict__ jobs, double* scores,
+                                 double* out) {
+  __shared__ double rows[kWideThreads][kCols];
+  __shared__ double slot[kCols];
+  scoreFit(d, points, source_begin, motions, jobs[blockIdx.x], scores,
+           out + static_cast<long long>(blockIdx.x) * kScoreFitOut,
+           GroupOfBlock<kWideThreads>{static_cast<int>(threadIdx.x), rows, slot});
+}
+__global__ void __launch_bounds__(kLargeThreads)
+    scoreFitJobsLarge(Dev d, const double* __restrict__ points,
+                      const int* __restrict__ source_begin, const double* __restrict__ motions,
+                      const ScoreFitJob* __restrict__ jobs, double* scores, double* out) {
+  extern __shared__ double large_rows[];  // kLargeThreads rows, then the shared slot
+  scoreFit(d, points, source_begin, motions, jobs[blockIdx.x], scores,
+           out + static_cast<long long>(blockIdx.x) * kScoreFitOut,
+           GroupOfBlock<kLargeThreads>{
+               static_cast<int>(threadIdx.x), reinterpret_cast<double(*)[kCols]>(large_rows),
+               large_rows + static_cast<std::size_t>(kLargeThreads) * kCols});
+}
+
 // Point costs (motion_tracking.cpp's pointCost), one (job, frame) per thread, frame-major
 // (thread t * n + j: a warp searches one frame's tree for neighbouring jobs): the point's surface
 // error under its motion's pose in frame t, 0 in the reference frame, into errors[t * n + j]. A
@@ -1935,6 +2019,57 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
   const double* r = finishedResults(frames, pose_count + res_count);
   poses.assign(r, r + pose_count);
   if (residual) residual->assign(r + pose_count, r + pose_count + res_count);
+}
+
+void runScoreFits(FrameStore& frames, const std::vector<double>& points,
+                  const std::vector<int>& source_begin, const std::vector<double>& motions,
+                  const std::vector<ScoreFitJob>& jobs, std::size_t starts, int iterations,
+                  std::vector<double>& scores, std::vector<int>& fitted,
+                  std::vector<double>& poses) {
+  scores.clear();
+  fitted.clear();
+  poses.clear();
+  if (jobs.empty()) return;
+  const auto in = putBatch(frames, points, &source_begin, motions, jobs, 0);
+  Dev d = frameView(frames);
+  d.iterations = iterations;
+  const long long n = static_cast<long long>(jobs.size());
+  // Per job the pose and the winner (kScoreFitOut doubles), then the scores, in one mapped
+  // results buffer.
+  const std::size_t out_count = jobs.size() * kScoreFitOut;
+  double* out = resultsOnHost(frames, (out_count + starts) * sizeof(double));
+  double* out_scores = out + out_count;
+  // runPartFits' widths: a block a job for small batches (of kLargeThreads where a source has
+  // more points than kWideThreads), a warp a job for large ones.
+  int largest = 0;
+  for (const ScoreFitJob& j : jobs)
+    largest = std::max(largest, source_begin[j.source + 1] - source_begin[j.source]);
+  if (n <= kWideFitBatch && largest > kWideThreads) {
+    if (!frames.large_score_fits_set) {
+      cudaSafeCall(cudaFuncSetAttribute(scoreFitJobsLarge,
+                                        cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                        static_cast<int>(kLargeShared)));
+      frames.large_score_fits_set = true;
+    }
+    scoreFitJobsLarge<<<static_cast<int>(n), kLargeThreads, kLargeShared>>>(
+        d, in.points, in.begin, in.motions, in.list, out_scores, out);
+  } else if (n <= kWideFitBatch) {
+    scoreFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
+                                                            in.list, out_scores, out);
+  } else {
+    scoreFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
+        d, in.points, in.begin, in.motions, in.list, static_cast<int>(n), out_scores, out);
+  }
+  cudaCheckLaunch();
+  const double* r = finishedResults(frames, out_count + starts);
+  scores.assign(r + out_count, r + out_count + starts);
+  fitted.resize(jobs.size());
+  poses.resize(jobs.size() * kPoseDoubles);
+  for (std::size_t j = 0; j < jobs.size(); ++j) {
+    const double* o = r + j * kScoreFitOut;
+    std::copy(o, o + kPoseDoubles, poses.begin() + static_cast<std::ptrdiff_t>(j * kPoseDoubles));
+    fitted[j] = static_cast<int>(o[kPoseDoubles]);
+  }
 }
 
 void runPointCosts(FrameStore& frames, int ref, bool per_frame, const std::vector<double>& points,

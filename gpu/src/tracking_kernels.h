@@ -162,13 +162,15 @@ struct FrameStore {
   int rigid_clusters[3] = {-1, -1, -1};
   bool rigid_shared_set = false;
   bool large_fits_set = false;  ///< the large part fits' shared memory allowed (runPartFits)
-  /** Calls by kind (residuals, point costs, part fits, rigid fits): count, jobs and wall
-   * seconds, printed on stderr when the store goes and ANIMSEG_MS_TIMING is set. */
+  bool large_score_fits_set = false;  ///< the same for runScoreFits
+  /** Calls by kind (residuals, point costs, part fits, rigid fits, scored part fits): count, jobs
+   * and wall seconds, printed on stderr when the store goes and ANIMSEG_MS_TIMING is set. */
   struct CallStats {
     long calls = 0, jobs = 0;
     double seconds = 0.0;
   };
-  CallStats stats[4];
+  static constexpr int kCallKinds = 5;
+  CallStats stats[kCallKinds];
   /** The labels' copies of the reference (runMovedNearest) before they go up: kept, pageable. */
   PackedVector<float> moved_host;
 };
@@ -291,6 +293,30 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<int>& source_begin, const std::vector<double>& motions,
                  const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses,
                  std::vector<double>* residual = nullptr);
+
+/** A score-and-fit job (segmentation::ScoreFitJobs): its starts (motions first .. first + count
+ * - 1, at most kScoreFitStarts) with their places, its base, the match distance. */
+constexpr int kScoreFitStarts = 8;
+struct ScoreFitJob {
+  int source;
+  int frame;
+  int first;
+  int count;
+  int place[kScoreFitStarts];
+  int base_place;
+  double base_score;
+  double max_dist;
+};
+
+/** segmentation::ScoreFitJobs in one call: each job's starts scored (runResiduals' values, into
+ * `scores`, one per start), its winner chosen as chained_fit.h's scoreFitWinner does (`fitted`:
+ * its index among the job's starts, -1 for none), and where a start wins, runPartFits' fit from
+ * it with r0 its score (`poses`: 12 doubles per job, the identity where nothing is fitted). */
+void runScoreFits(FrameStore& frames, const std::vector<double>& points,
+                  const std::vector<int>& source_begin, const std::vector<double>& motions,
+                  const std::vector<ScoreFitJob>& jobs, std::size_t starts, int iterations,
+                  std::vector<double>& scores, std::vector<int>& fitted,
+                  std::vector<double>& poses);
 
 /** A rigid motions' fit (segmentation::RigidFitJob) with its source's range: points
  * [source_begin, source_begin + source_count) of the packed sources (x, y, z doubles). */

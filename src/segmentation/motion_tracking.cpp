@@ -794,6 +794,48 @@ void MotionDevice::partFitsWithResiduals(const PartFitJobs& jobs, std::vector<do
   residuals(scores, residual);
 }
 
+void MotionDevice::scoreAndFit(const ScoreFitJobs& jobs, std::vector<double>& scores,
+                               std::vector<int>& fitted, std::vector<double>& poses) {
+  ResidualJobs r;
+  r.points = jobs.points;
+  r.source_begin = jobs.source_begin;
+  r.motions = jobs.motions;
+  for (const ScoreFitJobs::Job& j : jobs.jobs)
+    for (int k = 0; k < j.count; ++k) r.jobs.push_back({j.source, j.first + k, j.frame});
+  residuals(r, scores);
+  if (scores.size() != r.jobs.size())
+    throw Error("motion method: the device returned " + std::to_string(scores.size()) +
+                " residuals for " + std::to_string(r.jobs.size()) + " starts");
+  PartFitJobs f;
+  f.iterations = jobs.iterations;
+  f.points = jobs.points;
+  f.source_begin = jobs.source_begin;
+  f.motions = jobs.motions;
+  fitted.assign(jobs.jobs.size(), -1);
+  std::vector<std::size_t> of;
+  for (std::size_t j = 0; j < jobs.jobs.size(); ++j) {
+    const ScoreFitJobs::Job& job = jobs.jobs[j];
+    double r0;
+    fitted[j] =
+        scoreFitWinner(scores.data() + job.first, jobs.places.data() + job.first,
+                       static_cast<std::size_t>(job.count), job.base_score, job.base_place, r0);
+    if (fitted[j] < 0) continue;
+    f.jobs.push_back({job.source, job.first + fitted[j], job.frame, r0, job.max_dist});
+    of.push_back(j);
+  }
+  poses.assign(12 * jobs.jobs.size(), 0.0);
+  for (std::size_t j = 0; j < jobs.jobs.size(); ++j)
+    poses[12 * j] = poses[12 * j + 4] = poses[12 * j + 8] = 1.0;
+  if (f.jobs.empty()) return;
+  std::vector<double> fit;
+  partFits(f, fit);
+  if (fit.size() != 12 * f.jobs.size())
+    throw Error("motion method: the device returned " + std::to_string(fit.size() / 12) +
+                " part fits for " + std::to_string(f.jobs.size()));
+  for (std::size_t i = 0; i < of.size(); ++i)
+    std::copy(fit.begin() + 12 * i, fit.begin() + 12 * (i + 1), poses.begin() + 12 * of[i]);
+}
+
 void MotionDevice::trackFrames(const std::vector<int>& frames,
                                const std::vector<Eigen::Isometry3d>& global,
                                const std::vector<std::vector<int>>& level) {
@@ -954,6 +996,10 @@ class DeviceInFront : public MotionDevice {
   void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
                              std::vector<double>& residual) override {
     around([&] { device_.partFitsWithResiduals(jobs, poses, residual); });
+  }
+  void scoreAndFit(const ScoreFitJobs& jobs, std::vector<double>& scores, std::vector<int>& fitted,
+                   std::vector<double>& poses) override {
+    around([&] { device_.scoreAndFit(jobs, scores, fitted, poses); });
   }
   bool nearestMoved(const MovedCopies& moved, std::vector<int>& pick) override {
     bool offered = false;
@@ -2027,9 +2073,41 @@ class DeviceSourceBatches {
     for (std::size_t j = 0; j < jobs.size(); ++j) out[j] = motionAt(&poses[12 * j]);
     return out;
   }
+  /** fitChainsBatched's score batch and the fits it decides in one call (scoreAndFit), icp()
+   * with `max_dist` of each frame as fits() makes them. */
+  ChainScoreFitResult<Pose> scoreFits(const ChainScoreFit<Pose>& batch,
+                                      const std::function<double(int)>& max_dist) {
+    ScoreFitJobs& sf = score_fits_;
+    sf.iterations = fits_.iterations;
+    if (sf.points.empty()) {
+      sf.points = scores_.points;
+      sf.source_begin = scores_.source_begin;
+    }
+    sf.motions.clear();
+    sf.places.clear();
+    sf.jobs.clear();
+    for (const ChainScore<Pose>& x : batch.starts) appendMotion(x.pose, sf.motions);
+    sf.places = batch.place;
+    for (const auto& it : batch.items)
+      sf.jobs.push_back({it.chain, it.frame, static_cast<int>(it.first), static_cast<int>(it.count),
+                         it.base_score, it.base_place, max_dist(it.frame)});
+    ChainScoreFitResult<Pose> r;
+    std::vector<double> poses;
+    device_.scoreAndFit(sf, r.scores, r.fitted, poses);
+    if (r.scores.size() != batch.starts.size() || r.fitted.size() != batch.items.size() ||
+        poses.size() != 12 * batch.items.size())
+      throw Error("motion method: the device returned " + std::to_string(r.scores.size()) +
+                  " scores and " + std::to_string(poses.size() / 12) + " fits for " +
+                  std::to_string(batch.starts.size()) + " starts of " +
+                  std::to_string(batch.items.size()) + " frames");
+    r.fits.resize(batch.items.size());
+    for (std::size_t j = 0; j < batch.items.size(); ++j) r.fits[j] = motionAt(&poses[12 * j]);
+    return r;
+  }
 
  private:
   MotionDevice& device_;
+  ScoreFitJobs score_fits_;
   ResidualJobs scores_;
   PartFitJobs fits_;
 };
@@ -2817,10 +2895,18 @@ TrajectoryClusters clusterTrajectoriesOn(
       for (const ChainScore<Pose>& x : items) list.push_back({x.chain, x.frame, x.pose});
       return batches.residuals(list);
     };
+    // Each score batch and the fits it decides in one device call (scoreAndFit): one round trip
+    // where there were two.
+    const std::function<ChainScoreFitResult<Pose>(const ChainScoreFit<Pose>&)> scoreFit =
+        [&](const ChainScoreFit<Pose>& b) {
+          return tallied(part_tally.batches, [&](const std::vector<ChainScore<Pose>>&) {
+            return batches.scoreFits(b, [&](int t) { return 4.0 * frames[t].spacing; });
+          })(b.starts);
+        };
     return fitChainsBatched(C, T, ref, Pose(Pose::Identity()), starts,
                             tallied(part_tally.batches, scoreBatch),
                             tallied(part_tally.batches, fitBatch), same, true, 6, kMaxChainSteps,
-                            C - optional, complete);
+                            C - optional, complete, params.fuse_score_fits ? &scoreFit : nullptr);
   };
   // Every group's motion from its own; `only_nonempty`: groups without points keep theirs.
   auto fitGroups = [&](bool only_nonempty) {

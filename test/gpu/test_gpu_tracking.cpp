@@ -535,6 +535,121 @@ TEST(GpuTracking, PartFitsAreTheCpusOnBlocksOfBothWidths) {
   }
 }
 
+// The CPU's residuals and part fits as a device (cpu_residuals.h), so that MotionDevice's default
+// scoreAndFit (a residual batch, the winners, a part-fit batch) is the reference.
+class CpuPartDevice : public seg::MotionDevice {
+ public:
+  std::string name() const override { return "cpu"; }
+  void setFrames(const seg::DeviceFrames& frames) override { frames_ = frames; }
+  void trackSamples(const seg::SampleTrackingProblem&, std::vector<std::vector<Eigen::Isometry3d>>&,
+                    std::vector<std::vector<double>>&) override {}
+  void residuals(const seg::ResidualJobs& jobs, std::vector<double>& out) override {
+    out = animseg_test::cpuResiduals(frames_, jobs);
+  }
+  void pointCosts(const seg::PointCostJobs&, std::vector<double>&) override {}
+  void partFits(const seg::PartFitJobs& jobs, std::vector<double>& poses) override {
+    poses = animseg_test::cpuPartFits(frames_, jobs);
+  }
+
+ private:
+  seg::DeviceFrames frames_;
+};
+
+// Starts scored and the winners fitted in one call (MotionTracking::scoreAndFit) give the CPU's
+// scores, winners and poses bit for bit: bases before, between and after the starts, bases that
+// win and bases that cannot, ties (one start twice), jobs without starts; sources of 0 to 37
+// points (a block of 128 threads a job), of 500 and 3000 (512), and a batch of more than 512 jobs
+// (a warp a job).
+TEST(GpuTracking, ScoredPartFitsAreTheCpusInOneCall) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const SourcesOnFrames data;
+  gpu::MotionTracking device;
+  device.setFrames(data.frames);
+  CpuPartDevice cpu;
+  cpu.setFrames(data.frames);
+  const int frames = static_cast<int>(data.frames.frames.size());
+  // The CPU's residual of source s under motion m in frame t, for bases that tie with a start.
+  auto residualOf = [&](int s, int m, int t) {
+    seg::ResidualJobs r;
+    r.points = data.b.points;
+    r.source_begin = data.b.source_begin;
+    r.motions = data.b.motions;
+    r.jobs.push_back({s, m, t});
+    return animseg_test::cpuResiduals(data.frames, r)[0];
+  };
+  for (const int kind : {0, 1, 2}) {  // small sources, large ones, small ones many times over
+    seg::ScoreFitJobs sf;
+    sf.points = data.b.points;
+    sf.source_begin = data.b.source_begin;
+    sf.iterations = 8;
+    auto job = [&](int s, int t, std::vector<std::pair<int, int>> motion_place, int base_place,
+                   double base_score) {
+      seg::ScoreFitJobs::Job j;
+      j.source = s;
+      j.frame = t;
+      j.first = static_cast<int>(sf.places.size());
+      j.count = static_cast<int>(motion_place.size());
+      j.base_place = base_place;
+      j.base_score = base_score;
+      j.max_dist = 4.0 * data.frames.frames[t].spacing;
+      for (const auto& [m, place] : motion_place) {
+        sf.motions.insert(sf.motions.end(), data.b.motions.begin() + 12 * m,
+                          data.b.motions.begin() + 12 * (m + 1));
+        sf.places.push_back(place);
+      }
+      sf.jobs.push_back(j);
+    };
+    const double kMax = std::numeric_limits<double>::max();
+    const int repeats = kind == 2 ? 40 : 1;
+    for (int rep = 0; rep < repeats; ++rep)
+      for (int s = kind == 1 ? 3 : 0; s < (kind == 1 ? 5 : 3); ++s)
+        for (int t = 0; t < frames; ++t) {
+          job(s, t, {{0, 0}, {1, 1}}, -1, 0.0);
+          job(s, t, {{1, 1}, {3, 3}}, 0, 1e-9);  // a base first that wins but for a 0
+          job(s, t, {{2, 0}, {2, 2}}, 1, kMax);  // a tie (place 0 wins); a base that cannot
+          job(s, t, {}, 0, 0.5);                 // nothing to score: the base wins
+          job(s, t, {{3, 1}}, -1, 0.0);          // the start at place 1, none at 0
+          job(s, t, {{0, 2}, {1, 3}}, 0, residualOf(s, 1, t));  // a base tied with a start
+          job(s, t, {{(s + t) % 4, 0}, {1, 2}, {2, 3}}, 1, residualOf(s, (s + t + 1) % 4, t));
+        }
+    std::vector<double> cs, gs, cp, gp;
+    std::vector<int> cf, gf;
+    cpu.scoreAndFit(sf, cs, cf, cp);
+    device.scoreAndFit(sf, gs, gf, gp);
+    ASSERT_EQ(gs.size(), sf.places.size());
+    ASSERT_EQ(gf.size(), sf.jobs.size());
+    ASSERT_EQ(gp.size(), 12 * sf.jobs.size());
+    int scores_differ = 0, winners_differ = 0, poses_differ = 0, fitted = 0, base_won = 0,
+        moved = 0;
+    for (std::size_t k = 0; k < cs.size(); ++k) scores_differ += gs[k] != cs[k];
+    for (std::size_t j = 0; j < sf.jobs.size(); ++j) {
+      winners_differ += gf[j] != cf[j];
+      if (cf[j] < 0) {
+        ++base_won;
+        continue;
+      }
+      ++fitted;
+      poses_differ +=
+          !std::equal(cp.begin() + 12 * j, cp.begin() + 12 * (j + 1), gp.begin() + 12 * j);
+      moved += !std::equal(cp.begin() + 12 * j, cp.begin() + 12 * (j + 1),
+                           sf.motions.begin() + 12 * (sf.jobs[j].first + cf[j]));
+    }
+    std::printf(
+        "%zu scored part fits (%s): %d scores, %d winners, %d of %d poses differ from the "
+        "CPU's (%d bases won, %d fits moved)\n",
+        sf.jobs.size(), kind == 1 ? "500 and 3000-point sources" : "0 to 37-point sources",
+        scores_differ, winners_differ, poses_differ, fitted, base_won, moved);
+    EXPECT_EQ(scores_differ, 0) << kind;
+    EXPECT_EQ(winners_differ, 0) << kind;
+    EXPECT_EQ(poses_differ, 0) << kind;
+    EXPECT_GT(base_won, 0) << kind;
+    EXPECT_GT(fitted, 0) << kind;
+    EXPECT_GT(moved, 0) << kind;
+    if (kind == 2) EXPECT_GT(sf.jobs.size(), 512u);
+  }
+}
+
 // A part fit's score of its own result (MotionTracking::partFitsWithResiduals, one call) is what
 // a residual batch gives for the pose kept, bit for bit: the fit's result, or the start where the
 // fit scored above r0; the poses are partFits()'.

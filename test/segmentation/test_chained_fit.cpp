@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <random>
 #include <vector>
 
@@ -238,6 +239,114 @@ TEST(ChainedFit, OptionalChainsAddNoBatchAndTheCompleteOnesAreTheirOwnFits) {
   // Both cases happen with these toys (a chain whose fits settle in fewer rounds than another's).
   EXPECT_GT(complete_seen, 0);
   EXPECT_GT(given_up, 0);
+}
+
+// scoreFitWinner: the first of the lowest score by place, the base among the starts; a score
+// must be below the largest double to win, and place 0 wins where none is (fitChainsBatched's
+// winner, whose unchained losers score +infinity).
+TEST(ChainedFit, AScoreAndFitsWinnerIsTheFirstOfTheLowestScoreByPlace) {
+  const double kMax = std::numeric_limits<double>::max();
+  double r0 = 0.0;
+  const double s1[] = {2.0, 1.0, 1.0};
+  const int p1[] = {0, 2, 3};
+  EXPECT_EQ(seg::scoreFitWinner(s1, p1, 3, 0.0, -1, r0), 1);  // ties: the lower place
+  EXPECT_EQ(r0, 1.0);
+  EXPECT_EQ(seg::scoreFitWinner(s1, p1, 3, 1.0, 1, r0), -1);  // the base, place 1, ties first
+  EXPECT_EQ(r0, 1.0);
+  EXPECT_EQ(seg::scoreFitWinner(s1, p1, 3, 1.0, 4, r0), 1);  // a base after it ties too late
+  EXPECT_EQ(seg::scoreFitWinner(s1, p1, 3, 0.5, 4, r0), -1);
+  EXPECT_EQ(r0, 0.5);
+  const double s2[] = {kMax, std::numeric_limits<double>::infinity()};
+  const int p2[] = {0, 1};
+  EXPECT_EQ(seg::scoreFitWinner(s2, p2, 2, kMax, 2, r0), 0);  // none below: place 0
+  EXPECT_EQ(r0, kMax);
+  const int p3[] = {1, 2};
+  EXPECT_EQ(seg::scoreFitWinner(s2, p3, 2, kMax, 0, r0), -1);  // place 0 is the base
+  EXPECT_EQ(seg::scoreFitWinner(s2, p3, 2, 0.0, -1, r0), -1);  // place 0 is not scored
+  EXPECT_EQ(seg::scoreFitWinner(nullptr, nullptr, 0, 3.0, 0, r0), -1);
+  EXPECT_EQ(r0, 3.0);
+}
+
+// Each score batch and the fits it decides in one call (fitChainsBatched's scoreFit) give the
+// fits of the two batches, with one call per score batch and no fit batch, with and without the
+// speculation; with optional chains the required chain's fits and calls are its own.
+TEST(ChainedFit, ScoreAndFitInOneCallGivesTheFitsOfTwoBatches) {
+  const int T = 48, chains = 10;
+  std::vector<Toy> toys;
+  for (int c = 0; c < chains; ++c) toys.emplace_back(T, 500 + c);
+  auto starts = [&](int c, int t, const seg::ChainStep& st, const std::vector<double>* fit) {
+    return toys[c].starts(t, st, fit);
+  };
+  auto same = [](double p, double q) { return p == q; };
+  int scores_n = 0, fits_n = 0, fused_n = 0, fused_fits = 0, unfitted = 0;
+  auto scoreBatch = [&](const std::vector<seg::ChainScore<double>>& items) {
+    ++scores_n;
+    std::vector<double> out;
+    for (const auto& x : items) out.push_back(toys[x.chain].score(x.frame, x.pose));
+    return out;
+  };
+  auto fitBatch = [&](const std::vector<seg::ChainFit<double>>& jobs) {
+    ++fits_n;
+    std::vector<double> out;
+    for (const auto& j : jobs) out.push_back(toys[j.chain].fitFrom(j.frame, j.start, j.score));
+    return out;
+  };
+  const std::function<seg::ChainScoreFitResult<double>(const seg::ChainScoreFit<double>&)> fused =
+      [&](const seg::ChainScoreFit<double>& b) {
+        ++fused_n;
+        seg::ChainScoreFitResult<double> r;
+        for (const auto& x : b.starts) r.scores.push_back(toys[x.chain].score(x.frame, x.pose));
+        for (const auto& it : b.items) {
+          double r0;
+          const int w = seg::scoreFitWinner(r.scores.data() + it.first, b.place.data() + it.first,
+                                            it.count, it.base_score, it.base_place, r0);
+          r.fitted.push_back(w);
+          r.fits.push_back(
+              w < 0 ? 0.0 : toys[it.chain].fitFrom(it.frame, b.starts[it.first + w].pose, r0));
+          fused_fits += w >= 0;
+          unfitted += w < 0;
+        }
+        return r;
+      };
+  for (const int ref : {0, 20, 47})
+    for (const bool speculate : {true, false}) {
+      scores_n = fits_n = fused_n = 0;
+      const auto two = seg::fitChainsBatched(chains, T, ref, 0.0, starts, scoreBatch, fitBatch,
+                                             same, speculate, 6);
+      const int two_scores = scores_n;
+      EXPECT_GT(fits_n, 0);
+      scores_n = fits_n = 0;
+      const auto one =
+          seg::fitChainsBatched(chains, T, ref, 0.0, starts, scoreBatch, fitBatch, same, speculate,
+                                6, seg::kMaxChainSteps, -1, nullptr, &fused);
+      EXPECT_EQ(one, two) << ref << " " << speculate;
+      for (int c = 0; c < chains; ++c) EXPECT_EQ(one[c], toys[c].run(ref, false)) << c;
+      EXPECT_EQ(scores_n, 0);
+      EXPECT_EQ(fits_n, 0);
+      EXPECT_EQ(fused_n, two_scores) << ref << " " << speculate;
+    }
+  EXPECT_GT(fused_fits, 0);
+  EXPECT_GT(unfitted, 0);  // frames whose unchained fit stood (the speculation's)
+  // Chain 0 required, the other nine optional: its fits and its calls as alone.
+  auto toyStarts = [&](int c) {
+    return [&, c](int, int t, const seg::ChainStep& st, const std::vector<double>* fit) {
+      return toys[c].starts(t, st, fit);
+    };
+  };
+  fused_n = 0;
+  const auto alone = seg::fitChainsBatched(1, T, 0, 0.0, toyStarts(0), scoreBatch, fitBatch, same,
+                                           true, 6, seg::kMaxChainSteps, -1, nullptr, &fused);
+  const int alone_calls = fused_n;
+  fused_n = 0;
+  std::vector<char> complete;
+  const auto with = seg::fitChainsBatched(chains, T, 0, 0.0, starts, scoreBatch, fitBatch, same,
+                                          true, 6, seg::kMaxChainSteps, 1, &complete, &fused);
+  EXPECT_EQ(with[0], alone[0]);
+  EXPECT_EQ(fused_n, alone_calls);
+  ASSERT_EQ(complete.size(), static_cast<std::size_t>(chains));
+  EXPECT_TRUE(complete[0]);
+  for (int c = 1; c < chains; ++c)
+    if (complete[c]) EXPECT_EQ(with[c], toys[c].run(0, false)) << c;
 }
 
 TEST(ChainedFit, SingleFrameAndEmptySequence) {

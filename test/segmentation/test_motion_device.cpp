@@ -156,6 +156,17 @@ class RecordingDevice : public seg::MotionDevice {
     fits += b.jobs.size();
     poses = animseg_test::cpuPartFits(frames, b);
   }
+  // Scored part fits: MotionDevice's default (a residual batch, then a part-fit batch), counted
+  // as one call; the batches it makes are counted apart (inner_*).
+  void scoreAndFit(const seg::ScoreFitJobs& jobs, std::vector<double>& scores,
+                   std::vector<int>& fitted, std::vector<double>& poses) override {
+    ++score_fit_calls;
+    const int b0 = batches, f0 = fit_batches;
+    seg::MotionDevice::scoreAndFit(jobs, scores, fitted, poses);
+    inner_batches += batches - b0;
+    inner_fit_batches += fit_batches - f0;
+  }
+  int score_fit_calls = 0, inner_batches = 0, inner_fit_batches = 0;
   // Every frame's labels by the moved reference, as specified (cpu_moved_nearest.h), from the
   // frames given; or none (offer_moved false), or every point left undecided (undecide_all).
   bool nearestMoved(const seg::MovedCopies& m, std::vector<int>& pick) override {
@@ -361,6 +372,46 @@ TEST(MotionDevice, SpeculativeMergeFitsSaveBatchesAndKeepTheCpusMerges) {
   }
   EXPECT_GT(batches[0], 0);
   EXPECT_LT(batches[1], batches[0]);
+}
+
+// The part fits' score batches and the fits they decide in one call each
+// (MotionTrackingParams::fuse_score_fits): the CPU's labels and merges either way, in fewer calls
+// with it.
+TEST(MotionDevice, ScoredPartFitsInOneCallKeepTheCpusMergesInFewerCalls) {
+  const auto seq = chain(8, 3000, 4);
+  seg::MotionTrackingParams mp;
+  mp.point_neighbours = motionParams().neighbours;
+  std::vector<int> cpu_flat;
+  int cpu_parts = 0;
+  std::vector<seg::ClusterMerge> cpu_merges;
+  seg::segmentByTracking(*seq, mp, cpu_flat, cpu_parts, cpu_merges);
+  const auto answer = cpuPoses(*seq);
+  int calls[2] = {0, 0}, fused[2] = {0, 0};
+  for (int fuse = 0; fuse < 2; ++fuse) {
+    RecordingDevice device;
+    device.answer = answer;
+    seg::MotionTrackingParams dp = mp;
+    dp.device = &device;
+    dp.fuse_score_fits = fuse == 1;
+    std::vector<int> flat;
+    int parts = 0;
+    std::vector<seg::ClusterMerge> merges;
+    seg::segmentByTracking(*seq, dp, flat, parts, merges);
+    EXPECT_EQ(parts, cpu_parts) << fuse;
+    EXPECT_EQ(flat, cpu_flat) << fuse;
+    EXPECT_EQ(merges, cpu_merges) << fuse;
+    // Round trips: the residual and part-fit batches made directly, and the scored part fits.
+    calls[fuse] = device.batches - device.inner_batches + device.fit_batches -
+                  device.inner_fit_batches + device.score_fit_calls;
+    fused[fuse] = device.score_fit_calls;
+  }
+  EXPECT_EQ(fused[0], 0);
+  EXPECT_GT(fused[1], 0);
+  EXPECT_LT(calls[1], calls[0]);
+  std::printf(
+      "the motion method's device calls: %d, with scored part fits in one call %d (%d "
+      "of them)\n",
+      calls[0], calls[1], fused[1]);
 }
 
 // Every frame's labels by the moved reference: from a device that leaves every point undecided

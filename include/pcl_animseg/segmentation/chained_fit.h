@@ -6,8 +6,11 @@
 #include <algorithm>
 #include <chrono>
 #include <cstddef>
+#include <functional>
 #include <limits>
 #include <string>
+#include <tuple>
+#include <utility>
 #include <vector>
 
 namespace pcl_animseg {
@@ -151,14 +154,65 @@ auto tallied(BatchTally& tally, Batch batch) {
   };
 }
 
+/** \brief A score batch and the fits it decides, for a device that makes both in one call
+ * (fitChainsBatched's `scoreFit`): item j's starts to score are starts[first .. first + count),
+ * `place` holding each one's place among its frame's starts (rising within an item), and its
+ * base is a start scored before, at place base_place with score base_score (none where
+ * base_place < 0). */
+template <class Pose>
+struct ChainScoreFit {
+  struct Item {
+    int chain = 0, frame = 0;
+    std::size_t first = 0, count = 0;
+    double base_score = 0.0;
+    int base_place = -1;
+  };
+  std::vector<ChainScore<Pose>> starts;
+  std::vector<int> place;
+  std::vector<Item> items;
+};
+
+/** \brief The answer to a ChainScoreFit: a score per start (the score batch's), and per item the
+ * fit (the fit batch's, fitFrom(chain, frame, start, score)) from its winner where that is one of
+ * its starts: `fitted[j]` the winner's index among item j's starts, -1 where the base or an
+ * unscored place won (nothing fitted); `fits[j]` the pose. The winner: the first of the lowest
+ * score by place (a score must be below the largest double to win; place 0 wins where none
+ * does), scoreFitWinner's. */
+template <class Pose>
+struct ChainScoreFitResult {
+  std::vector<double> scores;
+  std::vector<int> fitted;
+  std::vector<Pose> fits;
+};
+
+/** \brief The winner of one ChainScoreFit item from its starts' scores (`scores`, `place`: its
+ * `count` starts') and its base: the index among its starts of the first of the lowest score by
+ * place, -1 where the base (or a place that is not scored) wins; `r0` its score (the largest
+ * double where no score is below it). fitChainsBatched's choice, written once for a device. */
+inline int scoreFitWinner(const double* scores, const int* place, std::size_t count,
+                          double base_score, int base_place, double& r0) {
+  r0 = std::numeric_limits<double>::max();
+  int best_place = 0;
+  bool base_done = base_place < 0;
+  for (std::size_t k = 0; k <= count; ++k) {
+    if (!base_done && (k == count || base_place < place[k])) {
+      base_done = true;
+      if (base_score < r0) r0 = base_score, best_place = base_place;
+    }
+    if (k < count && scores[k] < r0) r0 = scores[k], best_place = place[k];
+  }
+  for (std::size_t k = 0; k < count; ++k)
+    if (place[k] == best_place) return static_cast<int>(k);
+  return -1;
+}
+
 // The steps of fitAlongChains with the fits and the scores in batches (defined below).
 template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same>
-std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
-                                                Starts starts, ScoreBatch scoreBatch,
-                                                FitBatch fitBatch, Same same, bool speculate,
-                                                int extra_rounds, int max_steps = kMaxChainSteps,
-                                                int required = -1,
-                                                std::vector<char>* complete = nullptr);
+std::vector<std::vector<Pose>> fitChainsBatched(
+    int chains, int T, int ref, const Pose& identity, Starts starts, ScoreBatch scoreBatch,
+    FitBatch fitBatch, Same same, bool speculate, int extra_rounds, int max_steps = kMaxChainSteps,
+    int required = -1, std::vector<char>* complete = nullptr,
+    const std::function<ChainScoreFitResult<Pose>(const ChainScoreFit<Pose>&)>* scoreFit = nullptr);
 
 // The parallel steps of fitAlongChain, for several chains at once (defined below).
 template <class Pose, class Starts, class Score, class FitFrom, class Same>
@@ -260,13 +314,18 @@ std::vector<std::vector<Pose>> fitAlongChains(int chains, int T, int ref, const 
  * chain); a given-up chain's fits are not. The required chains get the fits and the batches they
  * would get alone, and a complete chain's fits are the ones it would get alone (the rounds only
  * guess: step 3 checks every guess). Written for speculative fits, which must not make the fits
- * that are needed now wait. */
+ * that are needed now wait.
+ *
+ * With `scoreFit` (non-null), each score batch and the fit batch it decides are one call
+ * (ChainScoreFit): a device then makes one round trip where it made two. The same scores, the
+ * same winners and the same fits, so the same results; an optional chain is then given up only
+ * where a score batch would hold it alone (its fits ride in the call of its scores). */
 template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same>
-std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, const Pose& identity,
-                                                Starts starts, ScoreBatch scoreBatch,
-                                                FitBatch fitBatch, Same same, bool speculate,
-                                                int extra_rounds, int max_steps, int required,
-                                                std::vector<char>* complete) {
+std::vector<std::vector<Pose>> fitChainsBatched(
+    int chains, int T, int ref, const Pose& identity, Starts starts, ScoreBatch scoreBatch,
+    FitBatch fitBatch, Same same, bool speculate, int extra_rounds, int max_steps, int required,
+    std::vector<char>* complete,
+    const std::function<ChainScoreFitResult<Pose>(const ChainScoreFit<Pose>&)>* scoreFit) {
   const int C = chains > 0 ? chains : 0, F = T > 0 ? T : 0;
   const int R = required > 0 && required < C ? required : C;  // the required chains, first
   std::vector<char> alive(static_cast<std::size_t>(C), 1);
@@ -315,40 +374,89 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     return best;
   };
   // The starts of every (chain, frame) of `todo` (side by side) and the scores of those listed
-  // by `keep` (one batch): at[j] is where todo[j]'s scores begin in `scores`.
+  // by `keep` (one batch): at[j] is where todo[j]'s scores begin in `scores`. With `fused` (and
+  // scoreFit), the batch is a ChainScoreFit whose items' bases are base(j, s[j]) (a place and
+  // a score, or a place < 0), and the fits it decides come back in *fused.
   using Starts_ = std::vector<ChainStart<Pose>>;
+  using Fused = ChainScoreFitResult<Pose>;
   auto startsAndScores = [&](const std::vector<std::pair<int, int>>& todo,
                              const std::vector<std::vector<Pose>>* from, auto keep,
                              std::vector<Starts_>& s, std::vector<std::size_t>& at,
-                             std::vector<double>& scores) {
+                             std::vector<double>& scores, Fused* fused = nullptr,
+                             const std::function<std::pair<int, double>(
+                                 std::size_t, const Starts_&)>& base = nullptr) {
     const long n = static_cast<long>(todo.size());
     s.assign(todo.size(), Starts_());
     detail::eachIndex(n, 4, [&](long j) {
       const auto [c, t] = todo[j];
       s[j] = starts(c, t, chain.step[t], from ? &(*from)[c] : nullptr);
     });
-    std::vector<ChainScore<Pose>> items;
+    ChainScoreFit<Pose> batch;
+    std::vector<ChainScore<Pose>>& items = batch.starts;
     std::size_t listed = 0;
     for (const Starts_& x : s) listed += x.size();
     items.reserve(listed);
     auto list = [&] {
       items.clear();
+      batch.place.clear();
+      batch.items.clear();
       at.assign(todo.size() + 1, 0);
       for (std::size_t j = 0; j < todo.size(); ++j) {
         at[j] = items.size();
         if (!alive[todo[j].first]) continue;
-        for (const ChainStart<Pose>& x : s[j])
-          if (keep(x)) items.push_back({todo[j].first, todo[j].second, x.pose});
+        for (std::size_t k = 0; k < s[j].size(); ++k)
+          if (keep(s[j][k])) {
+            items.push_back({todo[j].first, todo[j].second, s[j][k].pose});
+            batch.place.push_back(static_cast<int>(k));
+          }
+        if (fused) {
+          typename ChainScoreFit<Pose>::Item it;
+          it.chain = todo[j].first;
+          it.frame = todo[j].second;
+          it.first = at[j];
+          it.count = items.size() - at[j];
+          if (base) std::tie(it.base_place, it.base_score) = base(j, s[j]);
+          batch.items.push_back(it);
+        }
       }
       at[todo.size()] = items.size();
     };
     list();
     if (giveUpAlone(items)) list();
     scores.clear();
-    if (!items.empty()) scores = scoreBatch(items);
+    const bool fuse = fused && scoreFit;
+    if (fuse) *fused = Fused();
+    if (!items.empty()) {
+      if (fuse) {
+        *fused = (*scoreFit)(batch);
+        scores = fused->scores;
+        if (fused->fitted.size() != batch.items.size() || fused->fits.size() != batch.items.size())
+          throw Error("chained fit: a score-and-fit batch returned " +
+                      std::to_string(fused->fits.size()) + " fits for " +
+                      std::to_string(batch.items.size()) + " frames");
+      } else {
+        scores = scoreBatch(items);
+      }
+    }
     if (scores.size() != items.size())
       throw Error("chained fit: a score batch returned " + std::to_string(scores.size()) +
                   " scores for " + std::to_string(items.size()));
+  };
+  // Item i of a fused batch (the i-th listed of `todo`, which lists only alive chains' frames)
+  // by todo index: listed[j], -1 for a frame of a given-up chain.
+  auto listedOf = [&](const std::vector<std::pair<int, int>>& todo) {
+    std::vector<int> listed(todo.size(), -1);
+    int i = 0;
+    for (std::size_t j = 0; j < todo.size(); ++j)
+      if (alive[todo[j].first]) listed[j] = i++;
+    return listed;
+  };
+  // The fused batch's fit of item i, whose winner is its scored start `scored_index` by the
+  // caller's scores: the device's winner must be the same start.
+  auto fusedFit = [&](const Fused& f, int i, std::size_t scored_index) -> const Pose& {
+    if (i < 0 || f.fitted[static_cast<std::size_t>(i)] != static_cast<int>(scored_index))
+      throw Error("chained fit: a score-and-fit batch chose another start than its scores do");
+    return f.fits[static_cast<std::size_t>(i)];
   };
   // The jobs of the slots marked in `marked`, fitted in one batch, each result to out[c][t].
   auto fitMarked = [&](const std::vector<Job>& job, const std::vector<char>& marked,
@@ -374,22 +482,41 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
     std::vector<Starts_> s;
     std::vector<std::size_t> at;
     std::vector<double> scores;
-    startsAndScores(todo, &from, scoredHere, s, at, scores);
-    std::vector<Job> job(todo.size());
-    std::vector<char> fitted(todo.size(), 0);
+    // With scoreFit: the frame's unscored winner so far (spec_k among its unchained starts,
+    // scored spec_r in step 1) as its base.
+    Fused f;
+    const bool fuse = scoreFit != nullptr;
+    auto base = [&](std::size_t j, const Starts_& sj) -> std::pair<int, double> {
+      const auto [c, t] = todo[j];
+      std::size_t u = 0;
+      for (std::size_t k = 0; k < sj.size(); ++k)
+        if (!scoredHere(sj[k]) && u++ == spec_k[at_ct(c, t)])
+          return {static_cast<int>(k), spec_r[at_ct(c, t)]};
+      return {-1, 0.0};
+    };
+    startsAndScores(todo, &from, scoredHere, s, at, scores, fuse ? &f : nullptr, base);
+    const std::vector<int> listed = fuse ? listedOf(todo) : std::vector<int>();
+    std::vector<Job> job(fuse ? 0 : todo.size());
+    std::vector<char> fitted(fuse ? 0 : todo.size(), 0);
     for (std::size_t j = 0; j < todo.size(); ++j) {
       const auto [c, t] = todo[j];
       if (!alive[c]) continue;
       double r0;
       const std::size_t best = winner(c, t, s[j], scores.data() + at[j], r0);
       if (scoredHere(s[j][best])) {
-        job[j] = {c, t, s[j][best].pose, r0};
-        fitted[j] = 1;
+        if (fuse) {
+          std::size_t scored_index = 0;
+          for (std::size_t k = 0; k < best; ++k) scored_index += scoredHere(s[j][k]) ? 1 : 0;
+          out[c][t] = fusedFit(f, listed[j], scored_index);
+        } else {
+          job[j] = {c, t, s[j][best].pose, r0};
+          fitted[j] = 1;
+        }
       } else {
         out[c][t] = spec[c][t];
       }
     }
-    fitMarked(job, fitted, out);
+    if (!fuse) fitMarked(job, fitted, out);
   };
   // Whether the fits that frame t's chained starts may use are the same in a and b: the frame
   // before it and the frame two before (chainFrames).
@@ -409,8 +536,12 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
       std::vector<Starts_> s;
       std::vector<std::size_t> at;
       std::vector<double> scores;
+      Fused f;
+      const bool fuse = scoreFit != nullptr;
       startsAndScores(
-          all, nullptr, [](const ChainStart<Pose>&) { return true; }, s, at, scores);
+          all, nullptr, [](const ChainStart<Pose>&) { return true; }, s, at, scores,
+          fuse ? &f : nullptr);
+      const std::vector<int> listed = fuse ? listedOf(all) : std::vector<int>();
       std::vector<Job> job(all.size());
       std::vector<char> fitted(all.size(), 0);
       for (std::size_t j = 0; j < all.size(); ++j) {
@@ -420,10 +551,14 @@ std::vector<std::vector<Pose>> fitChainsBatched(int chains, int T, int ref, cons
           const double r = scores[at[j] + k];
           if (r < spec_r[at_ct(c, t)]) spec_r[at_ct(c, t)] = r, spec_k[at_ct(c, t)] = k;
         }
+        if (fuse) {
+          if (alive[c]) spec[c][t] = fusedFit(f, listed[j], spec_k[at_ct(c, t)]);
+          continue;
+        }
         job[j] = {c, t, s[j][spec_k[at_ct(c, t)]].pose, spec_r[at_ct(c, t)]};
         fitted[j] = 1;
       }
-      fitMarked(job, fitted, spec);
+      if (!fuse) fitMarked(job, fitted, spec);
     }
     // Step 2: frame t assumes that the frames before it kept their unchained fits (spec).
     fitGivenAll(all, spec, guess);

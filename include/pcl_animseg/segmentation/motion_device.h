@@ -115,6 +115,31 @@ struct PartFitJobs {
   std::vector<Job> jobs;
 };
 
+/** \brief Starts to score and the part fits they decide, for a device to make in one call
+ * (MotionDevice::scoreAndFit; the chained fits' score batch and the fit batch that follows it).
+ * Job j scores its starts, motions jobs[j].first .. first + count - 1 (residuals()' value of its
+ * source under each in its frame); with its base (a start scored before: score base_score at
+ * place base_place; none where base_place < 0), the winner is the first of the lowest score by
+ * place (`places`: each start's place, rising within a job; a score must be below the largest
+ * double to win, and place 0 wins where none does: chained_fit.h's scoreFitWinner). Where the
+ * winner is one of the job's starts, the job is partFits()' job from it (r0 its score). */
+struct ScoreFitJobs {
+  struct Job {
+    int source;
+    int frame;
+    int first, count;
+    double base_score;
+    int base_place;
+    double max_dist;
+  };
+  int iterations = 8;
+  std::vector<double> points;        ///< 6 per point: position, normal (reference coordinates)
+  std::vector<int> source_begin{0};  ///< source k: points source_begin[k] .. source_begin[k+1]-1
+  std::vector<double> motions;       ///< 12 per start: the rotation row by row, the translation
+  std::vector<int> places;           ///< per start
+  std::vector<Job> jobs;
+};
+
 /** \brief MotionDevice::nearestMoved's answer for a point that a tie leaves to the caller. */
 constexpr int kMovedUndecided = -2;
 
@@ -214,6 +239,13 @@ class MotionDevice {
    * returns that score, the same bits, without the second call. */
   virtual void partFitsWithResiduals(const PartFitJobs& jobs, std::vector<double>& poses,
                                      std::vector<double>& residual);
+  /** \brief ScoreFitJobs in one call: `scores`, one per start (in start order); `fitted`, per
+   * job, the winner's index among its starts (-1: the base or an unscored place won, nothing
+   * fitted); `poses`, 12 per job, the fit where fitted[j] >= 0 (else the identity). The default
+   * asks residuals() and then partFits(); a device that scores and fits in one round trip (the
+   * CUDA module's) gives the same bits. */
+  virtual void scoreAndFit(const ScoreFitJobs& jobs, std::vector<double>& scores,
+                           std::vector<int>& fitted, std::vector<double>& poses);
   /** \brief MovedCopies' labelling searched on the device: for each frame t (setFrames' frames),
    * for each point of its tree in leaf order (FlatKdTree3::leafPoints), the index (one of
    * `moved.order`) of the copy that labels it, -1 where frame t has no copies, or

@@ -140,6 +140,10 @@ struct MotionTrackingParams {
    * leaves as they are; when that pair merges next with the same points and starts, the merge
    * takes that fit. The same results either way (fewer device calls with it); off to compare. */
   bool speculate_merge_fits = true;
+  /** With a device: each of the part fits' score batches and the fits it decides in one device
+   * call (MotionDevice::scoreAndFit, fitChainsBatched's `scoreFit`) instead of two. The same
+   * results either way; off to compare. */
+  bool fuse_score_fits = true;
   /** The caller's own work, run on a thread of its own while the method's chains of device
    * calls and host steps leave most cores idle: segmentByTracking starts it when the samples'
    * poses are all that is left of the tracking (the clustering and the part motions follow) and

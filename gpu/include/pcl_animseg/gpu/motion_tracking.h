@@ -63,6 +63,10 @@ class MotionTracking : public segmentation::MotionDevice {
    * start's, where the start is kept): one call, the residuals() values. */
   void partFitsWithResiduals(const segmentation::PartFitJobs& jobs, std::vector<double>& poses,
                              std::vector<double>& residual) override;
+  /** \brief The starts scored and the winners fitted in one call (a block or a warp a job: the
+   * residuals() and partFits() values, the same bits as the default's two calls). */
+  void scoreAndFit(const segmentation::ScoreFitJobs& jobs, std::vector<double>& scores,
+                   std::vector<int>& fitted, std::vector<double>& poses) override;
   /** \brief Every frame's points against their copies of the reference, a warp per 32 points
    * (tiles of copies whose box is too far from the points' box are skipped). Throws Error on a
    * CUDA failure or no frames set. */
