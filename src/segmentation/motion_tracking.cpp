@@ -3239,6 +3239,30 @@ TrajectoryClusters clusterTrajectoriesOn(
         for (Eigen::Index k = b.k0; k < b.k1; ++k)
           d.jobs.push_back({first[i] + static_cast<int>(k), motion_of[b.y]});
       }
+      // The own residuals from the same batch: each of the part's source points under its own
+      // motion, per frame (own_first[i]: its first job), then summed in point order here, as
+      // residual() adds the same errors: the same values, one device call instead of two.
+      std::vector<std::size_t> own_first(list.size(), 0);
+      {
+        std::vector<char> listed(list.size(), 0);
+        for (const auto& own_job : own_jobs) {
+          const std::size_t i = own_job.first;
+          if (listed[i]) continue;
+          listed[i] = 1;
+          if (first[i] < 0) {
+            first[i] = static_cast<int>(d.points.size() / 6);
+            appendPoints(src[i].p, src[i].n, d.points);
+          }
+          const int x = list[i];
+          if (motion_of[x] < 0) {
+            motion_of[x] = static_cast<int>(d.motions.size() / (12 * static_cast<std::size_t>(T)));
+            for (const Pose& m : gpose[x]) appendMotion(m, d.motions);
+          }
+          own_first[i] = d.jobs.size();
+          for (Eigen::Index k = 0; k < src[i].p.cols(); ++k)
+            d.jobs.push_back({first[i] + static_cast<int>(k), motion_of[x]});
+        }
+      }
       std::vector<double> e;
       if (!d.jobs.empty()) params.device->pointCosts(d, e);
       if (e.size() != d.jobs.size() * static_cast<std::size_t>(T))
@@ -3263,14 +3287,13 @@ TrajectoryClusters clusterTrajectoriesOn(
           b.c->sum[k] = sum;
         }
       }
-      ResidualBatch own_batch(frames, params.device);
-      std::vector<int> own_src(list.size(), -1);
       for (const auto& [i, t] : own_jobs) {
-        if (own_src[i] < 0) own_src[i] = own_batch.addSource(src[i]);
-        own_batch.add(own_src[i], own_batch.addMotion(gpose[list[i]][t]), t);
+        const Eigen::Index m = src[i].p.cols();
+        double sum = 0.0;
+        for (Eigen::Index k = 0; k < m; ++k)
+          sum += e[(own_first[i] + static_cast<std::size_t>(k)) * T + t];
+        own[i][t] = m > 0 ? std::sqrt(sum / static_cast<double>(m)) : 0.0;
       }
-      const std::vector<double> r = own_batch.run();
-      for (std::size_t j = 0; j < no; ++j) own[own_jobs[j].first][own_jobs[j].second] = r[j];
     } else {
 #pragma omp parallel for schedule(dynamic, 1)
       for (std::size_t j = 0; j < nj + no; ++j) {
