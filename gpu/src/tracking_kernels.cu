@@ -1979,6 +1979,29 @@ void runResiduals(FrameStore& frames, const std::vector<double>& points,
   out.assign(r, r + jobs.size());
 }
 
+// The threads of a batch of fits (runPartFits, runScoreFits): a small batch finishes sooner with
+// a fit per block (of kLargeThreads where a source has more points than kWideThreads, else of
+// kWideThreads); a large one fills the GPU with a fit per warp.
+enum class FitWidth { kWarp, kWide, kLarge };
+template <class Job>
+FitWidth fitWidth(const std::vector<Job>& jobs, const std::vector<int>& source_begin) {
+  if (static_cast<long long>(jobs.size()) > kWideFitBatch) return FitWidth::kWarp;
+  int largest = 0;
+  for (const Job& j : jobs)
+    largest = std::max(largest, source_begin[j.source + 1] - source_begin[j.source]);
+  return largest > kWideThreads ? FitWidth::kLarge : FitWidth::kWide;
+}
+
+// Lets `kernel` (a kLargeThreads kernel) use kLargeShared bytes of dynamic shared memory, once per
+// store (`done`).
+template <class Kernel>
+void allowLargeShared(Kernel kernel, bool& done) {
+  if (done) return;
+  cudaSafeCall(cudaFuncSetAttribute(kernel, cudaFuncAttributeMaxDynamicSharedMemorySize,
+                                    static_cast<int>(kLargeShared)));
+  done = true;
+}
+
 void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<int>& source_begin, const std::vector<double>& motions,
                  const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses,
@@ -1995,21 +2018,12 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
   const std::size_t res_count = residual ? jobs.size() : 0;
   double* out = resultsOnHost(frames, (pose_count + res_count) * sizeof(double));
   double* out_res = residual ? out + pose_count : nullptr;
-  // A small batch: a fit per block finishes sooner (a block of kLargeThreads where a source has
-  // more points than kWideThreads); a large one fills the GPU with a fit per warp.
-  int largest = 0;
-  for (const PartFitJob& j : jobs)
-    largest = std::max(largest, source_begin[j.source + 1] - source_begin[j.source]);
-  if (n <= kWideFitBatch && largest > kWideThreads) {
-    if (!frames.large_fits_set) {
-      cudaSafeCall(cudaFuncSetAttribute(partFitJobsLarge,
-                                        cudaFuncAttributeMaxDynamicSharedMemorySize,
-                                        static_cast<int>(kLargeShared)));
-      frames.large_fits_set = true;
-    }
+  const FitWidth width = fitWidth(jobs, source_begin);
+  if (width == FitWidth::kLarge) {
+    allowLargeShared(partFitJobsLarge, frames.large_fits_set);
     partFitJobsLarge<<<static_cast<int>(n), kLargeThreads, kLargeShared>>>(
         d, in.points, in.begin, in.motions, in.list, out, out_res);
-  } else if (n <= kWideFitBatch)
+  } else if (width == FitWidth::kWide)
     partFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
                                                            in.list, out, out_res);
   else
@@ -2039,21 +2053,12 @@ void runScoreFits(FrameStore& frames, const std::vector<double>& points,
   const std::size_t out_count = jobs.size() * kScoreFitOut;
   double* out = resultsOnHost(frames, (out_count + starts) * sizeof(double));
   double* out_scores = out + out_count;
-  // runPartFits' widths: a block a job for small batches (of kLargeThreads where a source has
-  // more points than kWideThreads), a warp a job for large ones.
-  int largest = 0;
-  for (const ScoreFitJob& j : jobs)
-    largest = std::max(largest, source_begin[j.source + 1] - source_begin[j.source]);
-  if (n <= kWideFitBatch && largest > kWideThreads) {
-    if (!frames.large_score_fits_set) {
-      cudaSafeCall(cudaFuncSetAttribute(scoreFitJobsLarge,
-                                        cudaFuncAttributeMaxDynamicSharedMemorySize,
-                                        static_cast<int>(kLargeShared)));
-      frames.large_score_fits_set = true;
-    }
+  const FitWidth width = fitWidth(jobs, source_begin);
+  if (width == FitWidth::kLarge) {
+    allowLargeShared(scoreFitJobsLarge, frames.large_score_fits_set);
     scoreFitJobsLarge<<<static_cast<int>(n), kLargeThreads, kLargeShared>>>(
         d, in.points, in.begin, in.motions, in.list, out_scores, out);
-  } else if (n <= kWideFitBatch) {
+  } else if (width == FitWidth::kWide) {
     scoreFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
                                                             in.list, out_scores, out);
   } else {

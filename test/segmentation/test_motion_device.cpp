@@ -342,10 +342,11 @@ TEST(MotionDevice, ADeviceThatComputesAsTheCpuGivesTheCpusLabels) {
   EXPECT_FALSE(backend->device.overlapped);
 }
 
-// The part merges' speculative fits (MotionTrackingParams::speculate_merge_fits): with them the
-// device makes fewer part-fit batches (a merge whose fit was made beside an earlier step makes
-// none, and the optional chains add none), and the labels and merges are the CPU's either way.
-TEST(MotionDevice, SpeculativeMergeFitsSaveBatchesAndKeepTheCpusMerges) {
+// The motion method on an 8-frame chain with a recording device, once with a setting off and once
+// on (`set(params, on)`): the CPU's parts, labels and merges both ways; `count(device)` after
+// each run, returned as {off, on}.
+template <class Set, class Count>
+std::pair<int, int> cpusMergesBothWays(Set set, Count count) {
   const auto seq = chain(8, 3000, 4);
   seg::MotionTrackingParams mp;
   mp.point_neighbours = motionParams().neighbours;
@@ -354,64 +355,58 @@ TEST(MotionDevice, SpeculativeMergeFitsSaveBatchesAndKeepTheCpusMerges) {
   std::vector<seg::ClusterMerge> cpu_merges;
   seg::segmentByTracking(*seq, mp, cpu_flat, cpu_parts, cpu_merges);
   const auto answer = cpuPoses(*seq);
-  int batches[2] = {0, 0};
-  for (int speculate = 0; speculate < 2; ++speculate) {
+  int counted[2] = {0, 0};
+  for (int on = 0; on < 2; ++on) {
     RecordingDevice device;
     device.answer = answer;
     seg::MotionTrackingParams dp = mp;
     dp.device = &device;
-    dp.speculate_merge_fits = speculate == 1;
+    set(dp, on == 1);
     std::vector<int> flat;
     int parts = 0;
     std::vector<seg::ClusterMerge> merges;
     seg::segmentByTracking(*seq, dp, flat, parts, merges);
-    EXPECT_EQ(parts, cpu_parts) << speculate;
-    EXPECT_EQ(flat, cpu_flat) << speculate;
-    EXPECT_EQ(merges, cpu_merges) << speculate;
-    batches[speculate] = device.fit_batches;
+    EXPECT_EQ(parts, cpu_parts) << on;
+    EXPECT_EQ(flat, cpu_flat) << on;
+    EXPECT_EQ(merges, cpu_merges) << on;
+    counted[on] = count(device);
   }
-  EXPECT_GT(batches[0], 0);
-  EXPECT_LT(batches[1], batches[0]);
+  return {counted[0], counted[1]};
+}
+
+// The part merges' speculative fits (MotionTrackingParams::speculate_merge_fits): with them the
+// CPU's merges, in fewer part-fit batches.
+TEST(MotionDevice, SpeculativeMergeFitsSaveBatchesAndKeepTheCpusMerges) {
+  const auto [without, with] =
+      cpusMergesBothWays([](seg::MotionTrackingParams& p, bool on) { p.speculate_merge_fits = on; },
+                         [](const RecordingDevice& d) { return d.fit_batches; });
+  EXPECT_GT(without, 0);
+  EXPECT_LT(with, without);
 }
 
 // The part fits' score batches and the fits they decide in one call each
 // (MotionTrackingParams::fuse_score_fits): the CPU's labels and merges either way, in fewer calls
 // with it.
 TEST(MotionDevice, ScoredPartFitsInOneCallKeepTheCpusMergesInFewerCalls) {
-  const auto seq = chain(8, 3000, 4);
-  seg::MotionTrackingParams mp;
-  mp.point_neighbours = motionParams().neighbours;
-  std::vector<int> cpu_flat;
-  int cpu_parts = 0;
-  std::vector<seg::ClusterMerge> cpu_merges;
-  seg::segmentByTracking(*seq, mp, cpu_flat, cpu_parts, cpu_merges);
-  const auto answer = cpuPoses(*seq);
-  int calls[2] = {0, 0}, fused[2] = {0, 0};
-  for (int fuse = 0; fuse < 2; ++fuse) {
-    RecordingDevice device;
-    device.answer = answer;
-    seg::MotionTrackingParams dp = mp;
-    dp.device = &device;
-    dp.fuse_score_fits = fuse == 1;
-    std::vector<int> flat;
-    int parts = 0;
-    std::vector<seg::ClusterMerge> merges;
-    seg::segmentByTracking(*seq, dp, flat, parts, merges);
-    EXPECT_EQ(parts, cpu_parts) << fuse;
-    EXPECT_EQ(flat, cpu_flat) << fuse;
-    EXPECT_EQ(merges, cpu_merges) << fuse;
-    // Round trips: the residual and part-fit batches made directly, and the scored part fits.
-    calls[fuse] = device.batches - device.inner_batches + device.fit_batches -
-                  device.inner_fit_batches + device.score_fit_calls;
-    fused[fuse] = device.score_fit_calls;
-  }
+  // Round trips: the residual and part-fit batches made directly, and the scored part fits.
+  auto calls = [](const RecordingDevice& d) {
+    return d.batches - d.inner_batches + d.fit_batches - d.inner_fit_batches + d.score_fit_calls;
+  };
+  std::vector<int> fused;  // the scored part fits' calls, off then on
+  const auto [without, with] =
+      cpusMergesBothWays([](seg::MotionTrackingParams& p, bool on) { p.fuse_score_fits = on; },
+                         [&](const RecordingDevice& d) {
+                           fused.push_back(d.score_fit_calls);
+                           return calls(d);
+                         });
+  ASSERT_EQ(fused.size(), 2u);
   EXPECT_EQ(fused[0], 0);
   EXPECT_GT(fused[1], 0);
-  EXPECT_LT(calls[1], calls[0]);
+  EXPECT_LT(with, without);
   std::printf(
       "the motion method's device calls: %d, with scored part fits in one call %d (%d "
       "of them)\n",
-      calls[0], calls[1], fused[1]);
+      without, with, fused[1]);
 }
 
 // Every frame's labels by the moved reference: from a device that leaves every point undecided
