@@ -18,6 +18,7 @@
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/motion_check.h>
+#include <pcl_animseg/segmentation/score_fit.h>
 
 #include <algorithm>
 #include <cfloat>
@@ -611,6 +612,24 @@ __global__ void residualSums(const double* __restrict__ errors,
   out[j] = sqrt(sum / static_cast<double>(e - b));
 }
 
+// icp() of the m-point source `src` in `frame` from `init`, kept when its residual is at most r0,
+// else `init`: the kept pose to `out`, and where `out_res` is given its residual (the fit's own
+// score; the start's scored only where the start is kept). The residual is shared by the whole
+// group (Group::share), so every thread takes the same branch.
+template <class Group>
+__device__ void fitFrom(const Dev& d, int frame, const double* src, int m, const Rigid& init,
+                        double max_dist, double r0, double* out, double* out_res, const Group& g) {
+  const Rigid cand = icp(d, frame, src, m, init, max_dist, g);
+  const double r = residual(d, frame, src, m, cand, g);
+  const bool kept = r <= r0;
+  double kept_r = r;
+  if (out_res && !kept) kept_r = residual(d, frame, src, m, init, g);
+  if (g.rank == 0) {
+    icp_step::store(kept ? cand : init, out);
+    if (out_res) *out_res = kept_r;
+  }
+}
+
 // One part fit (motion_tracking.cpp's fitParts, fitFrom: icp() from the job's motion, kept when
 // its residual is at most r0) by a group of threads; the pose to `out`, and where `out_res` is
 // given, the kept pose's residual to it (the fit's own score; the start's scored only where the
@@ -623,15 +642,7 @@ __device__ void partFit(const Dev& d, const double* points, const int* source_be
   const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
   const double* src = points + 6LL * b;
   const Rigid init = icp_step::load(motions + static_cast<long long>(job.motion) * kPoseDoubles);
-  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
-  const double r = residual(d, job.frame, src, m, cand, g);
-  const bool kept = r <= job.r0;
-  double kept_r = r;
-  if (out_res && !kept) kept_r = residual(d, job.frame, src, m, init, g);
-  if (g.rank == 0) {
-    icp_step::store(kept ? cand : init, out);
-    if (out_res) *out_res = kept_r;
-  }
+  fitFrom(d, job.frame, src, m, init, job.max_dist, job.r0, out, out_res, g);
 }
 
 // One part fit per warp (partFit).
@@ -683,34 +694,25 @@ __global__ void __launch_bounds__(kLargeThreads)
 }
 
 // One score-and-fit job (runScoreFits) by a group of threads: its starts scored in start order
-// (residual(), the score batch's values), the winner chosen as chained_fit.h's scoreFitWinner
-// does (the first of the lowest score by place, the base among them; place 0 where no score is
-// below the largest double), and where one of its starts wins, partFit's fit from it with r0
-// its score. Every thread computes the same scores (residual() shares them), so every thread
-// takes the same branches. `out`: the pose (12 doubles), then the winner's index (a double).
+// (residual(), the score batch's values), the winner chosen by scoreFitWinner (score_fit.h, the
+// host's rule), and where one of its starts wins, fitFrom's fit from it with r0 its score. Every
+// thread computes the same scores (residual() shares them), so every thread takes the same
+// branches. `out`: the pose (12 doubles), then the winner's index (a double).
 template <class Group>
 __device__ void scoreFit(const Dev& d, const double* points, const int* source_begin,
                          const double* motions, const ScoreFitJob& job, double* scores, double* out,
                          const Group& g) {
   const int b = source_begin[job.source], m = source_begin[job.source + 1] - b;
   const double* src = points + 6LL * b;
-  double r0 = DBL_MAX;
-  int best_place = 0;
-  bool base_done = job.base_place < 0;
-  for (int k = 0; k <= job.count; ++k) {
-    if (!base_done && (k == job.count || job.base_place < job.place[k])) {
-      base_done = true;
-      if (job.base_score < r0) r0 = job.base_score, best_place = job.base_place;
-    }
-    if (k == job.count) break;
+  double scored[kScoreFitStarts];
+  for (int k = 0; k < job.count; ++k) {
     const Rigid T = icp_step::load(motions + static_cast<long long>(job.first + k) * kPoseDoubles);
-    const double r = residual(d, job.frame, src, m, T, g);
-    if (g.rank == 0) scores[job.first + k] = r;
-    if (r < r0) r0 = r, best_place = job.place[k];
+    scored[k] = residual(d, job.frame, src, m, T, g);
+    if (g.rank == 0) scores[job.first + k] = scored[k];
   }
-  int win = -1;
-  for (int k = 0; k < job.count && win < 0; ++k)
-    if (job.place[k] == best_place) win = k;
+  double r0;
+  const int win = segmentation::scoreFitWinner(
+      scored, job.place, static_cast<std::size_t>(job.count), job.base_score, job.base_place, r0);
   if (win < 0) {
     if (g.rank == 0) {
       icp_step::store(icp_step::identity(), out);
@@ -720,12 +722,8 @@ __device__ void scoreFit(const Dev& d, const double* points, const int* source_b
   }
   const Rigid init =
       icp_step::load(motions + static_cast<long long>(job.first + win) * kPoseDoubles);
-  const Rigid cand = icp(d, job.frame, src, m, init, job.max_dist, g);
-  const double r = residual(d, job.frame, src, m, cand, g);
-  if (g.rank == 0) {
-    icp_step::store(r <= r0 ? cand : init, out);
-    out[kPoseDoubles] = static_cast<double>(win);
-  }
+  fitFrom(d, job.frame, src, m, init, job.max_dist, r0, out, nullptr, g);
+  if (g.rank == 0) out[kPoseDoubles] = static_cast<double>(win);
 }
 
 // The three widths of partFitJobs, partFitJobsWide and partFitJobsLarge for score-and-fit jobs.

@@ -309,7 +309,7 @@ struct ScoreFitJob {
 };
 
 /** segmentation::ScoreFitJobs in one call: each job's starts scored (runResiduals' values, into
- * `scores`, one per start), its winner chosen as chained_fit.h's scoreFitWinner does (`fitted`:
+ * `scores`, one per start), its winner chosen as score_fit.h's scoreFitWinner does (`fitted`:
  * its index among the job's starts, -1 for none), and where a start wins, runPartFits' fit from
  * it with r0 its score (`poses`: 12 doubles per job, the identity where nothing is fitted). */
 void runScoreFits(FrameStore& frames, const std::vector<double>& points,

@@ -8,6 +8,7 @@
 #include <pcl_animseg/segmentation/icp_step.h>
 #include <pcl_animseg/segmentation/motion_device.h>
 #include <pcl_animseg/segmentation/motion_tracking.h>
+#include <pcl_animseg/segmentation/score_fit.h>
 #include <pcl_animseg/segmentation/task_graph.h>
 
 #include <Eigen/Dense>

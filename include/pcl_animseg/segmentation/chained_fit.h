@@ -2,6 +2,7 @@
 /** \file chained_fit.h Per-frame fits chained along a sequence, with the frames in parallel. */
 #include <omp.h>
 #include <pcl_animseg/error.h>
+#include <pcl_animseg/segmentation/score_fit.h>
 
 #include <algorithm>
 #include <chrono>
@@ -177,34 +178,13 @@ struct ChainScoreFit {
  * its starts: `fitted[j]` the winner's index among item j's starts, -1 where the base or an
  * unscored place won (nothing fitted); `fits[j]` the pose. The winner: the first of the lowest
  * score by place (a score must be below the largest double to win; place 0 wins where none
- * does), scoreFitWinner's. */
+ * does), scoreFitWinner's (score_fit.h). */
 template <class Pose>
 struct ChainScoreFitResult {
   std::vector<double> scores;
   std::vector<int> fitted;
   std::vector<Pose> fits;
 };
-
-/** \brief The winner of one ChainScoreFit item from its starts' scores (`scores`, `place`: its
- * `count` starts') and its base: the index among its starts of the first of the lowest score by
- * place, -1 where the base (or a place that is not scored) wins; `r0` its score (the largest
- * double where no score is below it). fitChainsBatched's choice, written once for a device. */
-inline int scoreFitWinner(const double* scores, const int* place, std::size_t count,
-                          double base_score, int base_place, double& r0) {
-  r0 = std::numeric_limits<double>::max();
-  int best_place = 0;
-  bool base_done = base_place < 0;
-  for (std::size_t k = 0; k <= count; ++k) {
-    if (!base_done && (k == count || base_place < place[k])) {
-      base_done = true;
-      if (base_score < r0) r0 = base_score, best_place = base_place;
-    }
-    if (k < count && scores[k] < r0) r0 = scores[k], best_place = place[k];
-  }
-  for (std::size_t k = 0; k < count; ++k)
-    if (place[k] == best_place) return static_cast<int>(k);
-  return -1;
-}
 
 // The steps of fitAlongChains with the fits and the scores in batches (defined below).
 template <class Pose, class Starts, class ScoreBatch, class FitBatch, class Same>

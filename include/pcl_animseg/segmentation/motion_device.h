@@ -121,7 +121,7 @@ struct PartFitJobs {
  * source under each in its frame); with its base (a start scored before: score base_score at
  * place base_place; none where base_place < 0), the winner is the first of the lowest score by
  * place (`places`: each start's place, rising within a job; a score must be below the largest
- * double to win, and place 0 wins where none does: chained_fit.h's scoreFitWinner). Where the
+ * double to win, and place 0 wins where none does: score_fit.h's scoreFitWinner). Where the
  * winner is one of the job's starts, the job is partFits()' job from it (r0 its score). */
 struct ScoreFitJobs {
   struct Job {
