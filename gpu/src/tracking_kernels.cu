@@ -1111,7 +1111,11 @@ BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
   const std::size_t at_begin = source_begin ? place(begin_bytes) : 0;
   const std::size_t at_motions = place(motions_bytes);
   const std::size_t at_jobs = place(jobs_bytes);
-  unsigned char* st = frames.staging.reserve(used);
+  unsigned char* st = frames.staging.forBatch(used);
+  if (!st) {  // pageable: the copy below has returned when the buffer may be written again
+    frames.pageable_in.resize(used);
+    st = frames.pageable_in.data();
+  }
   auto copy = [&](std::size_t at, const void* data, std::size_t bytes) {
     if (bytes) std::memcpy(st + at, data, bytes);
   };
@@ -1137,22 +1141,29 @@ BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
 // mapped, so that they need no copy back (finishedResults gives them once the batch is done). A
 // copy back cost a call 8 us more of its 34 (a round trip of two small kernels on the H100).
 double* resultsOnHost(FrameStore& frames, std::size_t bytes) {
-  frames.results.reserve(bytes);
-  return static_cast<double*>(frames.results.devicePtr());
+  frames.results_pageable = frames.results.forBatch(bytes) == nullptr;
+  if (!frames.results_pageable) return static_cast<double*>(frames.results.devicePtr());
+  grow(frames.results_on_device, bytes);
+  return static_cast<double*>(frames.results_on_device.rawPtr());
 }
 
 // A batch's results that its kernels wrote to resultsOnHost(), once everything queued is done
 // (waits once; reports a kernel fault): the mapped buffer, `count` doubles, valid until the
-// store's next batch. Callers copy them out in one pass (assign): assigning zeros first and
-// copying over them wrote every value twice (the part merges' per-frame point costs, 64 MB a run
-// at 800k).
+// store's next batch (or, for a batch too large for it, their copy). Callers copy them out in one
+// pass (assign): assigning zeros first and copying over them wrote every value twice (the part
+// merges' per-frame point costs, 64 MB a run at 800k).
 const double* finishedResults(FrameStore& frames, std::size_t count) {
-  const auto* r = reinterpret_cast<const double*>(frames.results.reserve(count * sizeof(double)));
   if (frames.yield_while_waiting)
     frames.yielding.wait();
   else
     cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
-  return r;
+  if (!frames.results_pageable) return reinterpret_cast<const double*>(frames.results.data());
+  frames.pageable_out.resize(count);
+  cudaSafeCall(cudaMemcpyAsync(frames.pageable_out.data(), frames.results_on_device.rawPtr(),
+                               count * sizeof(double), cudaMemcpyDeviceToHost,
+                               cudaStreamPerThread));
+  cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
+  return frames.pageable_out.data();
 }
 
 int blocksFor(long long warps) {
@@ -1648,22 +1659,69 @@ void YieldingWait::wait() {
   cudaSafeCall(state);
 }
 
+PinnedHost::Block PinnedHost::allocate(std::size_t bytes) {
+  Block b;
+  cudaSafeCall(cudaHostAlloc(&b.ptr, bytes, cudaHostAllocMapped));
+  b.bytes = bytes;
+  const cudaError_t e = cudaHostGetDevicePointer(&b.device, b.ptr, 0);
+  if (e != cudaSuccess) {
+    release(b);
+    cudaSafeCall(e);
+  }
+  return b;
+}
+
+void PinnedHost::release(Block& b) {
+  if (b.ptr) cudaFreeHost(b.ptr);
+  b = Block();
+}
+
+void PinnedHost::adopt(Block& b) {
+  if (b.bytes > block_.bytes) std::swap(b, block_);
+  release(b);
+}
+
 PinnedHost::~PinnedHost() {
-  if (ptr_) cudaFreeHost(ptr_);
+  if (grower_.joinable()) grower_.join();
+  release(grown_);
+  release(block_);
 }
 
 unsigned char* PinnedHost::reserve(std::size_t bytes) {
-  if (bytes > bytes_ || !ptr_) {
-    if (ptr_) cudaFreeHost(ptr_);
-    ptr_ = nullptr;
-    bytes_ = 0;
-    device_ = nullptr;
-    const std::size_t want = std::max<std::size_t>(bytes + bytes / 2, 4096);
-    cudaSafeCall(cudaHostAlloc(&ptr_, want, cudaHostAllocMapped));
-    bytes_ = want;
-    cudaSafeCall(cudaHostGetDevicePointer(&device_, ptr_, 0));
+  if (bytes > block_.bytes || !block_.ptr) {
+    release(block_);
+    block_ = allocate(std::max<std::size_t>(bytes + bytes / 2, 4096));
   }
-  return static_cast<unsigned char*>(ptr_);
+  return data();
+}
+
+unsigned char* PinnedHost::forBatch(std::size_t bytes) {
+  if (grower_.joinable() && grown_ready_.load(std::memory_order_acquire)) {
+    grower_.join();
+    grown_ready_.store(false, std::memory_order_relaxed);
+    adopt(grown_);
+  }
+  if (block_.ptr && bytes <= block_.bytes) return data();
+  if (bytes <= kGrowHere) return reserve(bytes);
+  // Too large to page-lock here: this batch goes without. One of a size that comes again (the
+  // part merges' refreshes, 1.1-1.8 MB at 800k) has a buffer grown for the next one on a thread
+  // of its own; larger ones are one-offs (the sample edges' 8.9 MB of inputs, the first dissolve
+  // costs' 14 MB of results), for which page-locking cost more than the copy it saves.
+  if (bytes <= kGrowBeside && !grower_.joinable()) {
+    int device = 0;
+    cudaSafeCall(cudaGetDevice(&device));
+    const std::size_t want = bytes + bytes / 2;
+    grower_ = std::thread([this, device, want] {
+      try {  // on the caller's device: memory pinned for another one would not count as pinned
+        cudaSafeCall(cudaSetDevice(device));
+        grown_ = allocate(want);
+      } catch (...) {  // the batches go without, as before
+        grown_ = Block();
+      }
+      grown_ready_.store(true, std::memory_order_release);
+    });
+  }
+  return nullptr;
 }
 
 HostLock& HostLock::operator=(HostLock&& o) noexcept {

@@ -5,9 +5,11 @@
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/math/gmm_em.h>
 
+#include <atomic>
 #include <chrono>
 #include <functional>
 #include <memory>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -98,20 +100,45 @@ struct FrameArrays {
  * own staging and a batch waits once, at its end. */
 class PinnedHost {
  public:
+  /** A batch's buffer grows in the caller's thread up to this many bytes, and on a thread of
+   * its own up to kGrowBeside (forBatch). */
+  static constexpr std::size_t kGrowHere = std::size_t(1) << 20;
+  static constexpr std::size_t kGrowBeside = std::size_t(4) << 20;
+
   PinnedHost() = default;
   ~PinnedHost();
   PinnedHost(const PinnedHost&) = delete;
   PinnedHost& operator=(const PinnedHost&) = delete;
   /** At least `bytes` (what it held is not kept when it grows); throws Error on a CUDA failure. */
   unsigned char* reserve(std::size_t bytes);
+  /** For a batch of `bytes`: the buffer where it holds them or where it can grow to them here
+   * cheaply (at most kGrowHere); else null, and the batch goes without page-locked memory.
+   * Page-locking is slow: growing to the one-off batches of the motion method at 800k (the
+   * sample edges' 8.9 MB of inputs, the first dissolve costs' 14 MB of results) took 9-16 ms of
+   * the caller's thread each, more than a pageable copy of them. A batch of at most kGrowBeside
+   * bytes may come again, so a buffer for it is grown on a thread of its own, taken by a later
+   * batch once it is ready. */
+  unsigned char* forBatch(std::size_t bytes);
+  /** The buffer (null before the first reserve). */
+  unsigned char* data() const { return static_cast<unsigned char*>(block_.ptr); }
   /** The buffer's address for kernels (pinned memory is mapped into the device's address
    * space), after reserve(). */
-  void* devicePtr() const { return device_; }
+  void* devicePtr() const { return block_.device; }
 
  private:
-  void* ptr_ = nullptr;
-  void* device_ = nullptr;
-  std::size_t bytes_ = 0;
+  struct Block {
+    void* ptr = nullptr;
+    void* device = nullptr;
+    std::size_t bytes = 0;
+  };
+  static Block allocate(std::size_t bytes);  // throws Error
+  static void release(Block& b);
+  void adopt(Block& b);  // b in place of block_ when larger (the smaller one freed)
+  Block block_;
+  // The growth on a thread of its own: `grown_` once `grown_ready_`.
+  std::thread grower_;
+  Block grown_;
+  std::atomic<bool> grown_ready_{false};
 };
 
 /** Waits for the work queued on the calling thread's stream by polling an event and yielding
@@ -155,6 +182,13 @@ struct FrameStore {
    * batch instead of four, each a synchronous round trip of some 10-25 us. */
   DeviceMemory job_in, job_out;
   PinnedHost staging, results;
+  /** A batch too large for `staging` or `results` (PinnedHost::forBatch) goes through these
+   * instead: its inputs packed into pageable memory, its results written to the device and
+   * copied back (`results_pageable` says which way the batch in flight went). */
+  PackedVector<unsigned char> pageable_in;
+  PackedVector<double> pageable_out;
+  DeviceMemory results_on_device;
+  bool results_pageable = false;
   /** The rigid fits' matches (an int and a float per source point of a batch), how many
    * clusters of 2, 4 and 8 blocks run at once (-1: not measured yet), and whether the fits'
    * kernel may have its dynamic shared memory (set once, before its first launch or query). */

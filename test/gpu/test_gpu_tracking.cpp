@@ -494,6 +494,52 @@ TEST(GpuTracking, ResidualBatchesAreTheCpusBothWays) {
   EXPECT_EQ(differ_here, 0);
 }
 
+// Residual batches of every size a run makes, in the order sizes come in a run (small ones
+// between large ones), each the CPU's, bit for bit. The device keeps page-locked buffers for a
+// batch's inputs and results; one of 1-4 MiB goes pageable while a larger buffer grows on a
+// thread of its own (a later batch takes it when it is ready), and larger ones (the motion
+// method's one-off sample edges and first dissolve costs at 800k) always go pageable. Whichever
+// way each batch goes, its results must be its own.
+TEST(GpuTracking, ResidualBatchesOfEverySizeAreTheCpus) {
+  std::string why;
+  if (!gpu::gpuAvailable(&why)) GTEST_SKIP() << why;
+  const SourcesOnFrames data;
+  // The jobs of the small sources (0, 1 and 37 points), repeated: the batches' sizes grow with
+  // their jobs, and the CPU's residual of each job is computed once.
+  seg::ResidualJobs base = data.b;
+  base.jobs.clear();
+  for (const seg::ResidualJobs::Job& j : data.b.jobs)
+    if (j.source < 3) base.jobs.push_back(j);
+  const std::vector<double> cpu = animseg_test::cpuResiduals(data.frames, base);
+  gpu::MotionTracking device;
+  device.setFrames(data.frames);
+  // 48 jobs a repeat: results of 8 bytes and inputs of 12-16 bytes a job, so 100 repeats are
+  // about 40 KB of results, 4 000 about 1.5 MB (3 MB of inputs), 15 000 about 5.8 MB (11 MB).
+  const int repeats[] = {100, 4000, 15000, 4000, 100, 4000, 15000, 100, 4000, 4000};
+  int batches = 0;
+  for (const bool by_point : {true, false}) {
+    device.setPointParallelLimit(by_point ? (1LL << 30) : 0);
+    for (int r : repeats) {
+      seg::ResidualJobs b = base;
+      b.jobs.clear();
+      for (int k = 0; k < r; ++k) b.jobs.insert(b.jobs.end(), base.jobs.begin(), base.jobs.end());
+      std::vector<double> out;
+      device.residuals(b, out);
+      ASSERT_EQ(out.size(), b.jobs.size());
+      long differ = 0;
+      for (std::size_t j = 0; j < out.size(); ++j) differ += out[j] != cpu[j % cpu.size()];
+      EXPECT_EQ(differ, 0) << r << " repeats, " << (by_point ? "by point" : "by warp");
+      ++batches;
+    }
+  }
+  std::printf("%d residual batches of %zu to %zu jobs: the CPU's\n", batches,
+              48 * static_cast<std::size_t>(100), 48 * static_cast<std::size_t>(15000));
+  // Some residuals are not zero, and they differ between jobs: a batch's results in the wrong
+  // places would show.
+  EXPECT_GT(*std::max_element(cpu.begin(), cpu.end()), *std::min_element(cpu.begin(), cpu.end()));
+  EXPECT_EQ(cpu.size(), 48u);
+}
+
 // Part fits on the GPU are the CPU's (cpuPartFits), bit for bit, on blocks of both widths: a
 // batch whose sources have at most 128 points (a block of 128 threads a fit, one round of
 // points per iteration), and one with sources of 500 and 3000 points (a block of 512 threads a
@@ -646,7 +692,9 @@ TEST(GpuTracking, ScoredPartFitsAreTheCpusInOneCall) {
     EXPECT_GT(base_won, 0) << kind;
     EXPECT_GT(fitted, 0) << kind;
     EXPECT_GT(moved, 0) << kind;
-    if (kind == 2) EXPECT_GT(sf.jobs.size(), 512u);
+    if (kind == 2) {
+      EXPECT_GT(sf.jobs.size(), 512u);
+    }
   }
 }
 
