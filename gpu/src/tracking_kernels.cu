@@ -1143,7 +1143,9 @@ BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
 double* resultsOnHost(FrameStore& frames, std::size_t bytes) {
   frames.results_pageable = frames.results.forBatch(bytes) == nullptr;
   if (!frames.results_pageable) return static_cast<double*>(frames.results.devicePtr());
-  grow(frames.results_on_device, bytes);
+  // The exact size, and let go after the batch (finishedResults): these are one-offs, and
+  // device memory is what the run's peak reports.
+  frames.results_on_device.create(bytes);
   return static_cast<double*>(frames.results_on_device.rawPtr());
 }
 
@@ -1163,6 +1165,7 @@ const double* finishedResults(FrameStore& frames, std::size_t count) {
                                count * sizeof(double), cudaMemcpyDeviceToHost,
                                cudaStreamPerThread));
   cudaSafeCall(cudaStreamSynchronize(cudaStreamPerThread));
+  frames.results_on_device.release();
   return frames.pageable_out.data();
 }
 

@@ -183,8 +183,9 @@ struct FrameStore {
   DeviceMemory job_in, job_out;
   PinnedHost staging, results;
   /** A batch too large for `staging` or `results` (PinnedHost::forBatch) goes through these
-   * instead: its inputs packed into pageable memory, its results written to the device and
-   * copied back (`results_pageable` says which way the batch in flight went). */
+   * instead: its inputs packed into pageable memory, its results written to device memory of
+   * their own (let go once they are copied back) and copied back (`results_pageable` says which
+   * way the batch in flight went). */
   PackedVector<unsigned char> pageable_in;
   PackedVector<double> pageable_out;
   DeviceMemory results_on_device;
