@@ -4,6 +4,7 @@
 // Eigen or PCL here: this header is read by nvcc.
 #include <pcl_animseg/gpu/device_array.h>
 #include <pcl_animseg/math/gmm_em.h>
+#include <pcl_animseg/packed_vector.h>
 
 #include <atomic>
 #include <chrono>
@@ -25,29 +26,6 @@ struct TrackNode {
   int a;
   int b;
 };
-
-/** An allocator whose resize leaves new elements of trivial types uninitialised: the packed
- * frames are written whole right after (a zeroing pass, serial, was a third of their packing). */
-template <class T>
-struct NoInitAllocator : std::allocator<T> {
-  template <class U>
-  struct rebind {
-    using other = NoInitAllocator<U>;
-  };
-  NoInitAllocator() = default;
-  template <class U>
-  NoInitAllocator(const NoInitAllocator<U>&) noexcept {}
-  template <class U>
-  void construct(U* p) noexcept {
-    ::new (static_cast<void*>(p)) U;
-  }
-  template <class U, class... Args>
-  void construct(U* p, Args&&... args) {
-    ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
-  }
-};
-template <class T>
-using PackedVector = std::vector<T, NoInitAllocator<T>>;
 
 /** A pose as 12 doubles: the rotation row by row, then the translation. */
 constexpr int kPoseDoubles = 12;
