@@ -345,8 +345,11 @@ TEST(ChainedFit, ScoreAndFitInOneCallGivesTheFitsOfTwoBatches) {
   EXPECT_EQ(fused_n, alone_calls);
   ASSERT_EQ(complete.size(), static_cast<std::size_t>(chains));
   EXPECT_TRUE(complete[0]);
-  for (int c = 1; c < chains; ++c)
-    if (complete[c]) EXPECT_EQ(with[c], toys[c].run(0, false)) << c;
+  for (int c = 1; c < chains; ++c) {
+    if (complete[c]) {
+      EXPECT_EQ(with[c], toys[c].run(0, false)) << c;
+    }
+  }
 }
 
 TEST(ChainedFit, SingleFrameAndEmptySequence) {
