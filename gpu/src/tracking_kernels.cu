@@ -1140,6 +1140,8 @@ BatchView<Job> putBatch(FrameStore& frames, const std::vector<double>& points,
 // Where a batch's last kernel writes its `bytes` of results: the store's pinned results buffer,
 // mapped, so that they need no copy back (finishedResults gives them once the batch is done). A
 // copy back cost a call 8 us more of its 34 (a round trip of two small kernels on the H100).
+// A batch too large for that buffer (PinnedHost::forBatch) writes to device memory instead,
+// which finishedResults copies back and lets go.
 double* resultsOnHost(FrameStore& frames, std::size_t bytes) {
   frames.results_pageable = frames.results.forBatch(bytes) == nullptr;
   if (!frames.results_pageable) return static_cast<double*>(frames.results.devicePtr());
