@@ -1700,33 +1700,43 @@ unsigned char* PinnedHost::reserve(std::size_t bytes) {
   return data();
 }
 
+void PinnedHost::takeGrown() {
+  grower_.join();
+  grown_ready_.store(false, std::memory_order_relaxed);
+  adopt(grown_);
+}
+
 unsigned char* PinnedHost::forBatch(std::size_t bytes) {
-  if (grower_.joinable() && grown_ready_.load(std::memory_order_acquire)) {
-    grower_.join();
-    grown_ready_.store(false, std::memory_order_relaxed);
-    adopt(grown_);
-  }
+  if (grower_.joinable() && grown_ready_.load(std::memory_order_acquire)) takeGrown();
   if (block_.ptr && bytes <= block_.bytes) return data();
   if (bytes <= kGrowHere) return reserve(bytes);
   // Too large to page-lock here: this batch goes without. One of a size that comes again (the
   // part merges' refreshes, 1.1-1.8 MB at 800k) has a buffer grown for the next one on a thread
   // of its own; larger ones are one-offs (the sample edges' 8.9 MB of inputs, the first dissolve
   // costs' 14 MB of results), for which page-locking cost more than the copy it saves.
-  if (bytes <= kGrowBeside && !grower_.joinable()) {
-    int device = 0;
-    cudaSafeCall(cudaGetDevice(&device));
-    const std::size_t want = bytes + bytes / 2;
-    grower_ = std::thread([this, device, want] {
-      try {  // on the caller's device: memory pinned for another one would not count as pinned
-        cudaSafeCall(cudaSetDevice(device));
-        grown_ = allocate(want);
-      } catch (...) {  // the batches go without, as before
-        grown_ = Block();
-      }
-      grown_ready_.store(true, std::memory_order_release);
-    });
-  }
+  if (bytes <= kGrowBeside) growBeside(bytes);
   return nullptr;
+}
+
+void PinnedHost::growBeside(std::size_t bytes) {
+  if (grower_.joinable()) return;
+  int device = 0;
+  cudaSafeCall(cudaGetDevice(&device));
+  const std::size_t want = std::max<std::size_t>(bytes + bytes / 2, 4096);  // as reserve()
+  grower_ = std::thread([this, device, want] {
+    try {  // on the caller's device: memory pinned for another one would not count as pinned
+      cudaSafeCall(cudaSetDevice(device));
+      grown_ = allocate(want);
+    } catch (...) {  // the batches go without, as before
+      grown_ = Block();
+    }
+    grown_ready_.store(true, std::memory_order_release);
+  });
+}
+
+unsigned char* PinnedHost::awaitGrown(std::size_t bytes) {
+  if (grower_.joinable()) takeGrown();
+  return block_.ptr && bytes <= block_.bytes ? data() : nullptr;
 }
 
 HostLock& HostLock::operator=(HostLock&& o) noexcept {
@@ -1820,19 +1830,14 @@ struct TrackingStream::Impl {
   // copies run after frame() has returned) for the copies that precede its kernel.
   PinnedHost staging;
   // The poses and residuals come back through pinned memory (a pageable download of 4.9 MB at
-  // 800k took 4-5 ms after the last fit); page-locking it takes about as long, so a thread of
-  // its own does that while the fits run. Without it (a failure) they come back pageable.
+  // 800k took 4-5 ms after the last fit); page-locking it takes about as long, so it grows
+  // beside the fits (growBeside). Without it (a failure) they come back pageable.
   PinnedHost results;
-  bool results_pinned = false;
-  std::thread pinning;
   std::size_t queued = 0;  // tasks given so far
   int launches = 0;
   Dev d{};
   Impl(const FrameStore& f, const TrackingArrays& in)
       : t0(std::chrono::steady_clock::now()), frames(f), T(f.frames), S(in.samples) {}
-  ~Impl() {
-    if (pinning.joinable()) pinning.join();
-  }
   std::size_t resultBytes() const {
     return static_cast<std::size_t>(T) * S * (kPoseDoubles + 1) * sizeof(double);
   }
@@ -1878,18 +1883,7 @@ TrackingStream::TrackingStream(const FrameStore& frames, const TrackingArrays& i
   m.next.setZero();
   m.staging.reserve(static_cast<std::size_t>(m.T) *
                     (m.slot() + static_cast<std::size_t>(m.S) * sizeof(int)));
-  if (TS > 0) {
-    int device = 0;
-    cudaSafeCall(cudaGetDevice(&device));
-    m.pinning = std::thread([&m, device] {
-      try {  // on the caller's device: memory pinned for another one would not count as pinned
-        cudaSafeCall(cudaSetDevice(device));
-        m.results.reserve(m.resultBytes());
-        m.results_pinned = true;
-      } catch (...) {  // the pageable download instead
-      }
-    });
-  }
+  if (TS > 0) m.results.growBeside(m.resultBytes());
   static_assert(kPoseDoubles * sizeof(double) % alignof(int) == 0, "staging slots stay aligned");
   m.d = frameView(frames);
   m.d.source = m.source.ptr();
@@ -1969,9 +1963,9 @@ double TrackingStream::end(std::vector<double>& poses, std::vector<double>& resi
   const std::size_t TS = static_cast<std::size_t>(m.T) * m.S;
   poses.resize(TS * kPoseDoubles);
   residual.resize(TS);
-  if (m.pinning.joinable()) m.pinning.join();
-  if (m.results_pinned && TS > 0) {
-    double* host = reinterpret_cast<double*>(m.results.reserve(m.resultBytes()));
+  unsigned char* pinned = TS > 0 ? m.results.awaitGrown(m.resultBytes()) : nullptr;
+  if (pinned) {
+    double* host = reinterpret_cast<double*>(pinned);
     cudaSafeCall(cudaMemcpyAsync(host, m.poses.ptr(), TS * kPoseDoubles * sizeof(double),
                                  cudaMemcpyDeviceToHost, cudaStreamPerThread));
     cudaSafeCall(cudaMemcpyAsync(host + TS * kPoseDoubles, m.res.ptr(), TS * sizeof(double),
@@ -2063,6 +2057,30 @@ void allowLargeShared(Kernel kernel, bool& done) {
   done = true;
 }
 
+// Launches a batch of fits (`in`, its jobs `jobs`) on the kernel of its width (fitWidth):
+// `large` with kLargeShared bytes of shared memory (allowed once per store: `large_set`), `wide`,
+// or `narrow` (a warp a job, which also takes the job count); each is given the frames, the
+// batch's parts, then `out`.
+template <class Job, class Large, class Wide, class Narrow, class... Out>
+void launchFits(const Dev& d, const BatchView<Job>& in, const std::vector<Job>& jobs,
+                const std::vector<int>& source_begin, Large large, bool& large_set, Wide wide,
+                Narrow narrow, Out... out) {
+  const long long n = static_cast<long long>(jobs.size());
+  const FitWidth width = fitWidth(jobs, source_begin);
+  if (width == FitWidth::kLarge) {
+    allowLargeShared(large, large_set);
+    large<<<static_cast<int>(n), kLargeThreads, kLargeShared>>>(d, in.points, in.begin, in.motions,
+                                                                in.list, out...);
+  } else if (width == FitWidth::kWide) {
+    wide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions, in.list,
+                                                out...);
+  } else {
+    narrow<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(d, in.points, in.begin, in.motions, in.list,
+                                                     static_cast<int>(n), out...);
+  }
+  cudaCheckLaunch();
+}
+
 void runPartFits(FrameStore& frames, const std::vector<double>& points,
                  const std::vector<int>& source_begin, const std::vector<double>& motions,
                  const std::vector<PartFitJob>& jobs, int iterations, std::vector<double>& poses,
@@ -2073,24 +2091,13 @@ void runPartFits(FrameStore& frames, const std::vector<double>& points,
   const auto in = putBatch(frames, points, &source_begin, motions, jobs, 0);
   Dev d = frameView(frames);
   d.iterations = iterations;
-  const long long n = static_cast<long long>(jobs.size());
   // The poses, then (where asked for) the residuals, in one mapped results buffer.
   const std::size_t pose_count = jobs.size() * kPoseDoubles;
   const std::size_t res_count = residual ? jobs.size() : 0;
   double* out = resultsOnHost(frames, (pose_count + res_count) * sizeof(double));
   double* out_res = residual ? out + pose_count : nullptr;
-  const FitWidth width = fitWidth(jobs, source_begin);
-  if (width == FitWidth::kLarge) {
-    allowLargeShared(partFitJobsLarge, frames.large_fits_set);
-    partFitJobsLarge<<<static_cast<int>(n), kLargeThreads, kLargeShared>>>(
-        d, in.points, in.begin, in.motions, in.list, out, out_res);
-  } else if (width == FitWidth::kWide)
-    partFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
-                                                           in.list, out, out_res);
-  else
-    partFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
-        d, in.points, in.begin, in.motions, in.list, static_cast<int>(n), out, out_res);
-  cudaCheckLaunch();
+  launchFits(d, in, jobs, source_begin, partFitJobsLarge, frames.large_fits_set, partFitJobsWide,
+             partFitJobs, out, out_res);
   const double* r = finishedResults(frames, pose_count + res_count);
   poses.assign(r, r + pose_count);
   if (residual) residual->assign(r + pose_count, r + pose_count + res_count);
@@ -2108,25 +2115,13 @@ void runScoreFits(FrameStore& frames, const std::vector<double>& points,
   const auto in = putBatch(frames, points, &source_begin, motions, jobs, 0);
   Dev d = frameView(frames);
   d.iterations = iterations;
-  const long long n = static_cast<long long>(jobs.size());
   // Per job the pose and the winner (kScoreFitOut doubles), then the scores, in one mapped
   // results buffer.
   const std::size_t out_count = jobs.size() * kScoreFitOut;
   double* out = resultsOnHost(frames, (out_count + starts) * sizeof(double));
   double* out_scores = out + out_count;
-  const FitWidth width = fitWidth(jobs, source_begin);
-  if (width == FitWidth::kLarge) {
-    allowLargeShared(scoreFitJobsLarge, frames.large_score_fits_set);
-    scoreFitJobsLarge<<<static_cast<int>(n), kLargeThreads, kLargeShared>>>(
-        d, in.points, in.begin, in.motions, in.list, out_scores, out);
-  } else if (width == FitWidth::kWide) {
-    scoreFitJobsWide<<<static_cast<int>(n), kWideThreads>>>(d, in.points, in.begin, in.motions,
-                                                            in.list, out_scores, out);
-  } else {
-    scoreFitJobs<<<blocksFor(n), kWarp * kWarpsPerBlock>>>(
-        d, in.points, in.begin, in.motions, in.list, static_cast<int>(n), out_scores, out);
-  }
-  cudaCheckLaunch();
+  launchFits(d, in, jobs, source_begin, scoreFitJobsLarge, frames.large_score_fits_set,
+             scoreFitJobsWide, scoreFitJobs, out_scores, out);
   const double* r = finishedResults(frames, out_count + starts);
   scores.assign(r + out_count, r + out_count + starts);
   fitted.resize(jobs.size());

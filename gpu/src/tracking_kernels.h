@@ -97,6 +97,13 @@ class PinnedHost {
    * bytes may come again, so a buffer for it is grown on a thread of its own, taken by a later
    * batch once it is ready. */
   unsigned char* forBatch(std::size_t bytes);
+  /** Grows the buffer to hold `bytes` on a thread of its own, unless a growth is under way:
+   * page-locking takes about as long as the copy it speeds up, so it runs beside the caller's
+   * work. awaitGrown or a later forBatch takes the grown buffer. */
+  void growBeside(std::size_t bytes);
+  /** Waits for a growth under way (growBeside) and takes it; returns the buffer where it holds
+   * `bytes`, else null (the growth failed: the caller goes without page-locked memory). */
+  unsigned char* awaitGrown(std::size_t bytes);
   /** The buffer (null before the first reserve). */
   unsigned char* data() const { return static_cast<unsigned char*>(block_.ptr); }
   /** The buffer's address for kernels (pinned memory is mapped into the device's address
@@ -112,6 +119,7 @@ class PinnedHost {
   static Block allocate(std::size_t bytes);  // throws Error
   static void release(Block& b);
   void adopt(Block& b);  // b in place of block_ when larger (the smaller one freed)
+  void takeGrown();      // a finished growth's buffer adopted (grower_ joined)
   Block block_;
   // The growth on a thread of its own: `grown_` once `grown_ready_`.
   std::thread grower_;
