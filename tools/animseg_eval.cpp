@@ -7,6 +7,9 @@
 #include <pcl_animseg/progress.h>
 #include <pcl_animseg/tool_common.h>
 
+#include <algorithm>
+#include <boost/property_tree/json_parser.hpp>
+#include <boost/property_tree/ptree.hpp>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -60,6 +63,55 @@ std::vector<Eigen::Matrix3Xd> sharedVertexPositions(const std::vector<std::strin
   }
   progress.end();
   return positions;
+}
+
+/** The true parts' names from the truth directory's synth.json (animseg_synth's "parts", index
+ * = label); empty where there is no such file or list. */
+std::vector<std::string> partNames(const std::string& truth, Progress& progress) {
+  std::error_code ec;
+  const fs::path path = fs::path(truth) / "synth.json";
+  if (!fs::is_directory(truth, ec) || !fs::is_regular_file(path, ec)) return {};
+  namespace pt = boost::property_tree;
+  pt::ptree tree;
+  try {
+    pt::read_json(path.string(), tree);
+  } catch (const pt::json_parser_error& e) {
+    progress.debug("no part names: '" + path.string() + "': " + e.message());
+    return {};
+  }
+  std::vector<std::string> names;
+  if (const auto parts = tree.get_child_optional("parts"))
+    for (const auto& el : *parts) names.push_back(el.second.get_value<std::string>());
+  return names;
+}
+
+/** Per true part: its points, the predicted part holding most of them, recall, precision, IoU,
+ * and the other true parts that went to the same predicted part (merged with it). */
+std::string partTable(const std::vector<evaluation::PartMatch>& parts,
+                      const std::vector<std::string>& names) {
+  auto nameOf = [&](int label) {
+    return label >= 0 && static_cast<std::size_t>(label) < names.size()
+               ? names[static_cast<std::size_t>(label)]
+               : std::to_string(label);
+  };
+  std::size_t width = 4;
+  for (const auto& m : parts) width = std::max(width, nameOf(m.truth).size());
+  std::ostringstream o;
+  char line[256];
+  std::snprintf(line, sizeof(line), "%-*s %8s  %5s  %6s  %9s  %6s\n", static_cast<int>(width),
+                "part", "points", "pred", "recall", "precision", "IoU");
+  o << line;
+  for (const auto& m : parts) {
+    std::string merged;
+    for (const auto& other : parts)
+      if (other.truth != m.truth && other.predicted == m.predicted)
+        merged += (merged.empty() ? "  merged with " : ", ") + nameOf(other.truth);
+    std::snprintf(line, sizeof(line), "%-*s %8zu  %5d  %s     %s  %s", static_cast<int>(width),
+                  nameOf(m.truth).c_str(), m.points, m.predicted, fixed(m.recall).c_str(),
+                  fixed(m.precision).c_str(), fixed(m.iou).c_str());
+    o << line << merged << "\n";
+  }
+  return o.str();
 }
 
 }  // namespace
@@ -140,6 +192,8 @@ int main(int argc, char** argv) {
         } else {
           table << "rigidity error      n/a (" << why << ")\n";
         }
+        const std::vector<std::string> part_names = partNames(truth, progress);
+        table << partTable(r.parts, part_names);
         std::cout << table.str() << std::flush;
 
         std::ostringstream js;
@@ -148,7 +202,16 @@ int main(int argc, char** argv) {
         js << "  \"level\": " << level << ",\n  \"frames\": [";
         for (std::size_t t = 0; t < names.size(); ++t)
           js << (t ? ", " : "") << "\"" << tools::jsonEscape(names[t]) << "\"";
-        js << "],\n";
+        js << "],\n  \"part_names\": ";
+        if (part_names.empty()) {
+          js << "null";
+        } else {
+          js << "[";
+          for (std::size_t k = 0; k < part_names.size(); ++k)
+            js << (k ? ", " : "") << "\"" << tools::jsonEscape(part_names[k]) << "\"";
+          js << "]";
+        }
+        js << ",\n";
         // Report::toJson() is one object; its fields are spliced into this one.
         const std::string body = r.toJson();
         js << body.substr(body.find('{') + 2);

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <map>
 #include <sstream>
 #include <unordered_map>
 #include <unordered_set>
@@ -176,6 +177,44 @@ double rigidityError(const std::vector<Eigen::Matrix3Xd>& positions,
   return diag > 0.0 ? rms / diag : 0.0;
 }
 
+std::vector<PartMatch> matchParts(const std::vector<std::vector<int>>& pred,
+                                  const std::vector<std::vector<int>>& truth) {
+  if (pred.size() != truth.size())
+    throw Error("matchParts: " + std::to_string(pred.size()) + " predicted frames but " +
+                std::to_string(truth.size()) + " ground-truth frames");
+  // Ordered maps: the parts come out by label, and ties go to the lower predicted label.
+  std::map<int, std::map<int, std::size_t>> shared;  // true label -> predicted label -> points
+  std::map<int, std::size_t> of_pred;
+  for (std::size_t t = 0; t < pred.size(); ++t) {
+    if (pred[t].size() != truth[t].size())
+      throw Error("matchParts: frame " + std::to_string(t) + " has " +
+                  std::to_string(pred[t].size()) + " predicted labels but " +
+                  std::to_string(truth[t].size()) + " true labels");
+    for (std::size_t i = 0; i < pred[t].size(); ++i) {
+      const int a = pred[t][i], b = truth[t][i];
+      if (a < 0 || b < 0) continue;
+      ++shared[b][a];
+      ++of_pred[a];
+    }
+  }
+  std::vector<PartMatch> out;
+  for (const auto& [b, row] : shared) {
+    PartMatch m;
+    m.truth = b;
+    std::size_t best = 0;
+    for (const auto& [a, count] : row) {
+      m.points += count;
+      if (count > best) best = count, m.predicted = a;
+    }
+    const std::size_t pred_points = of_pred[m.predicted];
+    m.recall = static_cast<double>(best) / static_cast<double>(m.points);
+    m.precision = static_cast<double>(best) / static_cast<double>(pred_points);
+    m.iou = static_cast<double>(best) / static_cast<double>(m.points + pred_points - best);
+    out.push_back(m);
+  }
+  return out;
+}
+
 std::string Report::toJson() const {
   std::ostringstream o;
   o << "{\n";
@@ -190,6 +229,14 @@ std::string Report::toJson() const {
   o << "  \"rigidity_error\": " << (rigidity_error < 0 ? "null" : number(rigidity_error)) << ",\n";
   o << "  \"label_consistency\": " << (label_consistency < 0 ? "null" : number(label_consistency))
     << ",\n";
+  o << "  \"parts\": [";
+  for (std::size_t k = 0; k < parts.size(); ++k) {
+    const PartMatch& m = parts[k];
+    o << (k ? ",\n    " : "\n    ") << "{\"truth\": " << m.truth << ", \"points\": " << m.points
+      << ", \"predicted\": " << m.predicted << ", \"recall\": " << number(m.recall)
+      << ", \"precision\": " << number(m.precision) << ", \"iou\": " << number(m.iou) << "}";
+  }
+  o << (parts.empty() ? "],\n" : "\n  ],\n");
   o << "  \"points\": " << points << "\n";
   o << "}\n";
   return o.str();
@@ -227,6 +274,7 @@ Report evaluate(const std::vector<std::vector<int>>& pred,
   r.predicted_parts = static_cast<int>(pred_ids.size());
   r.true_parts = static_cast<int>(true_ids.size());
   r.points = static_cast<std::size_t>(pooled.size());
+  r.parts = matchParts(pred, truth);
 
   if (!positions.empty()) {
     if (positions.size() != pred.size())

@@ -214,3 +214,47 @@ TEST(Evaluate, MismatchesThrow) {
   EXPECT_THROW(ev::evaluate({{0, 1, 1}}, {{0, 1}}), pcl_animseg::Error);
   EXPECT_THROW(ev::evaluate({{0, 1}}, {{0, 1}}, {Eigen::Matrix3Xd(3, 3)}), pcl_animseg::Error);
 }
+
+// Three true parts over two frames: part 0 found exactly, parts 1 and 2 merged into one
+// predicted part, and a point of part 1 split off on its own; negative labels not counted.
+TEST(MatchParts, NamesMergedAndSplitParts) {
+  const std::vector<std::vector<int>> truth = {{0, 0, 1, 1, 2, -1}, {0, 0, 1, 1, 1, 2}};
+  const std::vector<std::vector<int>> pred = {{7, 7, 4, 4, 4, 4}, {7, 7, 4, 9, 4, -1}};
+  const std::vector<ev::PartMatch> m = ev::matchParts(pred, truth);
+  ASSERT_EQ(m.size(), 3u);
+  EXPECT_EQ(m[0].truth, 0);
+  EXPECT_EQ(m[0].points, 4u);
+  EXPECT_EQ(m[0].predicted, 7);
+  EXPECT_DOUBLE_EQ(m[0].iou, 1.0);
+  // Part 1: 5 points, 4 in predicted part 4 (which holds 5: part 1's 4 and part 2's 1).
+  EXPECT_EQ(m[1].truth, 1);
+  EXPECT_EQ(m[1].points, 5u);
+  EXPECT_EQ(m[1].predicted, 4);
+  EXPECT_DOUBLE_EQ(m[1].recall, 0.8);
+  EXPECT_DOUBLE_EQ(m[1].precision, 0.8);
+  EXPECT_DOUBLE_EQ(m[1].iou, 4.0 / 6.0);
+  // Part 2: one counted point (the other's prediction is negative), in part 4 too: merged.
+  EXPECT_EQ(m[2].points, 1u);
+  EXPECT_EQ(m[2].predicted, 4);
+  EXPECT_DOUBLE_EQ(m[2].recall, 1.0);
+  EXPECT_DOUBLE_EQ(m[2].precision, 0.2);
+
+  // A tie goes to the lower predicted label, whatever the order of the points.
+  const std::vector<ev::PartMatch> tie = ev::matchParts({{5, 3, 5, 3}}, {{0, 0, 0, 0}});
+  ASSERT_EQ(tie.size(), 1u);
+  EXPECT_EQ(tie[0].predicted, 3);
+  EXPECT_DOUBLE_EQ(tie[0].recall, 0.5);
+
+  // evaluate() reports them, and the JSON lists them.
+  const ev::Report r = ev::evaluate(pred, truth);
+  ASSERT_EQ(r.parts.size(), 3u);
+  EXPECT_EQ(r.parts[1].predicted, 4);
+  const std::string json = r.toJson();
+  EXPECT_NE(json.find("{\"truth\": 1, \"points\": 5, \"predicted\": 4, \"recall\": 0.8, "
+                      "\"precision\": 0.8, \"iou\": 0.666666667}"),
+            std::string::npos)
+      << json;
+  EXPECT_NE(ev::Report().toJson().find("\"parts\": [],"), std::string::npos);
+  EXPECT_THROW(ev::matchParts({{0, 1}}, {{0}}), pcl_animseg::Error);
+  EXPECT_THROW(ev::matchParts({{0}}, {{0}, {0}}), pcl_animseg::Error);
+}

@@ -95,7 +95,9 @@ TEST(GpuGaussTransform, MatchesDoubleSumsOnTheCpu) {
       EXPECT_LT(err, 1e-5);
       EXPECT_GT(ref.col(d).minCoeff(), 0.5);  // every query has terms: the test sums something
       EXPECT_GT(st.tiles_skipped, 0);
-      if (nq < 128) EXPECT_GT(st.splits, 1);
+      if (nq < 128) {
+        EXPECT_GT(st.splits, 1);
+      }
     }
   }
 }

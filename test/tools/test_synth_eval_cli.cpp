@@ -54,6 +54,27 @@ TEST(SynthEvalCli, PointSequencePerfectAndMergedPredictions) {
   const std::string json = cli_test::slurp(tmp.str() + "/perfect/eval.json");
   EXPECT_NE(json.find("\"pooled_ari\": 1,"), std::string::npos) << json;
   EXPECT_NE(json.find("\"true_parts\": 12"), std::string::npos) << json;
+  EXPECT_NE(json.find("\"part_names\": [\"torso\", \"neck\", \"head\""), std::string::npos) << json;
+
+  // The neck predicted as the head: the table names the two as merged, by synth.json's names.
+  predictFromTruth(seq, tmp.dir() / "merged", [](int l) { return l == 1 ? 2 : l; });
+  r = run(tool("animseg_eval") + " --quiet --pred " + tmp.str() + "/merged --truth " + seq,
+          tmp.dir());
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.out.find("parts (pred/true)   11 / 12"), std::string::npos) << r.out;
+  for (const char* row : {"\nneck ", "\nhead "}) {
+    const std::size_t at = r.out.find(row);
+    ASSERT_NE(at, std::string::npos) << row << "\n" << r.out;
+    const std::string line = r.out.substr(at + 1, r.out.find('\n', at + 1) - at - 1);
+    EXPECT_NE(line.find(std::string("merged with ") + (row[1] == 'n' ? "head" : "neck")),
+              std::string::npos)
+        << line;
+    EXPECT_NE(line.find("1.0000"), std::string::npos) << line;  // recall
+  }
+  const std::size_t torso = r.out.find("\ntorso ");
+  ASSERT_NE(torso, std::string::npos) << r.out;
+  EXPECT_EQ(r.out.substr(torso + 1, r.out.find('\n', torso + 1) - torso - 1).find("merged"),
+            std::string::npos);
 
   // Level 1 is all zeros: one predicted part.
   r = run(tool("animseg_eval") + " --pred " + tmp.str() + "/perfect --truth " + seq +

@@ -34,6 +34,25 @@ int countParts(const std::vector<int>& labels);
 double rigidityError(const std::vector<Eigen::Matrix3Xd>& positions,
                      const std::vector<int>& labels);
 
+/** \brief How one true part is covered by the predicted parts, over all points of all frames:
+ * the predicted part that holds most of its points (ties to the lower label) and how well the
+ * two agree. Two true parts with the same `predicted` were merged; a low recall means the true
+ * part was split or spread over its neighbours. Points where either label is negative are not
+ * counted. */
+struct PartMatch {
+  int truth = -1;
+  std::size_t points = 0;  ///< the true part's counted points
+  int predicted = -1;      ///< -1 only for a true part without counted points
+  double recall = 0.0;     ///< share of the true part's points in `predicted`
+  double precision = 0.0;  ///< share of `predicted`'s points that belong to the true part
+  double iou = 0.0;        ///< shared points / points in either part
+};
+
+/** \brief PartMatch of every true part, by true label ascending (pred[t] and truth[t] of the
+ * same length, else Error). */
+std::vector<PartMatch> matchParts(const std::vector<std::vector<int>>& pred,
+                                  const std::vector<std::vector<int>>& truth);
+
 /** \brief Everything animseg_eval reports. */
 struct Report {
   double pooled_ari = 0.0;        ///< ARI over all points of all frames (rewards coherence)
@@ -46,7 +65,9 @@ struct Report {
    * do not share a vertex order (then "the same vertex" has no meaning). */
   double label_consistency = -1.0;
   std::size_t points = 0;  ///< points scored (both labels >= 0)
-  /** \brief The report as a JSON object (keys as the fields above). */
+  std::vector<PartMatch> parts;  ///< matchParts(pred, truth)
+  /** \brief The report as a JSON object (keys as the fields above; `parts` an array of objects
+   * with the keys of PartMatch). */
   std::string toJson() const;
 };
 
