@@ -75,10 +75,7 @@ std::string summaryJson(const tools::ToolContext& ctx, const std::string& input,
   os << "  \"parts_per_level\": [";
   for (std::size_t l = 0; l < r.parts_per_level.size(); ++l)
     os << (l ? ", " : "") << r.parts_per_level[l];
-  os << "],\n  \"notes\": [";
-  for (std::size_t i = 0; i < r.notes.size(); ++i)
-    os << (i ? ", " : "") << "\"" << jsonEscape(r.notes[i]) << "\"";
-  os << "],\n  \"timings_s\": {";
+  os << "],\n  \"notes\": " << tools::jsonStringArray(r.notes) << ",\n  \"timings_s\": {";
   // Every stage of DESIGN.md is listed; one that did not run (--no-refine, ...) is null, never a
   // made-up number.
   const char* stages[] = {"load", "scale_space", "keypoints", "signature", "mean_shift",

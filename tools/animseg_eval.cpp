@@ -199,19 +199,9 @@ int main(int argc, char** argv) {
         std::ostringstream js;
         js << "{\n  \"pred\": \"" << tools::jsonEscape(pred_dir) << "\",\n";
         js << "  \"truth\": \"" << tools::jsonEscape(truth) << "\",\n";
-        js << "  \"level\": " << level << ",\n  \"frames\": [";
-        for (std::size_t t = 0; t < names.size(); ++t)
-          js << (t ? ", " : "") << "\"" << tools::jsonEscape(names[t]) << "\"";
-        js << "],\n  \"part_names\": ";
-        if (part_names.empty()) {
-          js << "null";
-        } else {
-          js << "[";
-          for (std::size_t k = 0; k < part_names.size(); ++k)
-            js << (k ? ", " : "") << "\"" << tools::jsonEscape(part_names[k]) << "\"";
-          js << "]";
-        }
-        js << ",\n";
+        js << "  \"level\": " << level << ",\n  \"frames\": " << tools::jsonStringArray(names)
+           << ",\n  \"part_names\": "
+           << (part_names.empty() ? "null" : tools::jsonStringArray(part_names)) << ",\n";
         // Report::toJson() is one object; its fields are spliced into this one.
         const std::string body = r.toJson();
         js << body.substr(body.find('{') + 2);

@@ -26,11 +26,7 @@ std::string infoJson(const tools::ToolContext& ctx, const synth::SynthParams& p,
      << (p.mesh ? "mesh" : "points") << "\",\n  \"frames\": " << frames.size()
      << ",\n  \"points_per_frame\": [";
   for (std::size_t t = 0; t < frames.size(); ++t) os << (t ? ", " : "") << frames[t].cloud->size();
-  os << "],\n  \"parts\": [";
-  const auto names = synth::partNames(p.plan);
-  for (std::size_t i = 0; i < names.size(); ++i)
-    os << (i ? ", " : "") << "\"" << tools::jsonEscape(names[i]) << "\"";
-  os << "]\n}\n";
+  os << "],\n  \"parts\": " << tools::jsonStringArray(synth::partNames(p.plan)) << "\n}\n";
   return os.str();
 }
 

@@ -1695,7 +1695,7 @@ PinnedHost::~PinnedHost() {
 unsigned char* PinnedHost::reserve(std::size_t bytes) {
   if (bytes > block_.bytes || !block_.ptr) {
     release(block_);
-    block_ = allocate(std::max<std::size_t>(bytes + bytes / 2, 4096));
+    block_ = allocate(grownSize(bytes));
   }
   return data();
 }
@@ -1722,7 +1722,7 @@ void PinnedHost::growBeside(std::size_t bytes) {
   if (grower_.joinable()) return;
   int device = 0;
   cudaSafeCall(cudaGetDevice(&device));
-  const std::size_t want = std::max<std::size_t>(bytes + bytes / 2, 4096);  // as reserve()
+  const std::size_t want = grownSize(bytes);
   grower_ = std::thread([this, device, want] {
     try {  // on the caller's device: memory pinned for another one would not count as pinned
       cudaSafeCall(cudaSetDevice(device));

@@ -6,6 +6,7 @@
 #include <pcl_animseg/math/gmm_em.h>
 #include <pcl_animseg/packed_vector.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <functional>
@@ -116,6 +117,11 @@ class PinnedHost {
     void* device = nullptr;
     std::size_t bytes = 0;
   };
+  // What a buffer for `bytes` is grown to: half as much again, so that a slowly growing batch
+  // size does not page-lock anew for every batch.
+  static std::size_t grownSize(std::size_t bytes) {
+    return std::max<std::size_t>(bytes + bytes / 2, 4096);
+  }
   static Block allocate(std::size_t bytes);  // throws Error
   static void release(Block& b);
   void adopt(Block& b);  // b in place of block_ when larger (the smaller one freed)

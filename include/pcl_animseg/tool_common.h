@@ -39,6 +39,9 @@ int runTool(int argc, char** argv, const std::string& name, const std::string& u
 /** \brief Escapes a string for a JSON string literal (without the quotes). */
 std::string jsonEscape(const std::string& text);
 
+/** \brief A JSON array of the strings, escaped: `["a", "b"]` (`[]` for none). */
+std::string jsonStringArray(const std::vector<std::string>& items);
+
 /** \brief Parses "a,b,c,d" into exactly `n` numbers; throws Error otherwise. */
 std::vector<double> parseNumberList(const std::string& text, std::size_t n, const std::string& what);
 

@@ -40,6 +40,13 @@ std::string jsonEscape(const std::string& s) {
   return out;
 }
 
+std::string jsonStringArray(const std::vector<std::string>& items) {
+  std::string out = "[";
+  for (std::size_t i = 0; i < items.size(); ++i)
+    out += (i ? ", \"" : "\"") + jsonEscape(items[i]) + "\"";
+  return out + "]";
+}
+
 namespace {
 
 // Turns the JSON config into "--key=value" arguments for the same parser as the command line, so

@@ -6,7 +6,6 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
-#include <map>
 #include <sstream>
 #include <unordered_map>
 #include <unordered_set>
@@ -49,6 +48,35 @@ class Contingency {
     // one cluster): the partitions are then identical.
     if (denom == 0) return 1.0;
     return static_cast<double>((index - expected) / denom);
+  }
+
+  /** matchParts from this table, the first labelling predicted, the second true: per true part
+   * (by label) the predicted part with the most shared points (ties to the lower label). */
+  std::vector<PartMatch> matches() const {
+    std::vector<int> label_a(ids_a_.size()), label_b(ids_b_.size());
+    for (const auto& [label, id] : ids_a_) label_a[id] = label;
+    for (const auto& [label, id] : ids_b_) label_b[id] = label;
+    std::vector<std::uint64_t> best(cols_.size(), 0);
+    std::vector<int> best_a(cols_.size(), -1);
+    for (const auto& [key, count] : cells_) {
+      const std::uint64_t ia = key >> 32, ib = key & 0xffffffffu;
+      if (count > best[ib] || (count == best[ib] && label_a[ia] < label_a[best_a[ib]]))
+        best[ib] = count, best_a[ib] = static_cast<int>(ia);
+    }
+    std::vector<PartMatch> out(cols_.size());
+    for (std::size_t ib = 0; ib < cols_.size(); ++ib) {
+      PartMatch& m = out[ib];
+      const std::uint64_t in_pred = rows_[best_a[ib]], shared = best[ib];
+      m.truth = label_b[ib];
+      m.points = static_cast<std::size_t>(cols_[ib]);
+      m.predicted = label_a[best_a[ib]];
+      m.recall = static_cast<double>(shared) / static_cast<double>(cols_[ib]);
+      m.precision = static_cast<double>(shared) / static_cast<double>(in_pred);
+      m.iou = static_cast<double>(shared) / static_cast<double>(cols_[ib] + in_pred - shared);
+    }
+    std::sort(out.begin(), out.end(),
+              [](const PartMatch& x, const PartMatch& y) { return x.truth < y.truth; });
+    return out;
   }
 
  private:
@@ -182,37 +210,15 @@ std::vector<PartMatch> matchParts(const std::vector<std::vector<int>>& pred,
   if (pred.size() != truth.size())
     throw Error("matchParts: " + std::to_string(pred.size()) + " predicted frames but " +
                 std::to_string(truth.size()) + " ground-truth frames");
-  // Ordered maps: the parts come out by label, and ties go to the lower predicted label.
-  std::map<int, std::map<int, std::size_t>> shared;  // true label -> predicted label -> points
-  std::map<int, std::size_t> of_pred;
+  Contingency table;
   for (std::size_t t = 0; t < pred.size(); ++t) {
     if (pred[t].size() != truth[t].size())
       throw Error("matchParts: frame " + std::to_string(t) + " has " +
                   std::to_string(pred[t].size()) + " predicted labels but " +
                   std::to_string(truth[t].size()) + " true labels");
-    for (std::size_t i = 0; i < pred[t].size(); ++i) {
-      const int a = pred[t][i], b = truth[t][i];
-      if (a < 0 || b < 0) continue;
-      ++shared[b][a];
-      ++of_pred[a];
-    }
+    for (std::size_t i = 0; i < pred[t].size(); ++i) table.add(pred[t][i], truth[t][i]);
   }
-  std::vector<PartMatch> out;
-  for (const auto& [b, row] : shared) {
-    PartMatch m;
-    m.truth = b;
-    std::size_t best = 0;
-    for (const auto& [a, count] : row) {
-      m.points += count;
-      if (count > best) best = count, m.predicted = a;
-    }
-    const std::size_t pred_points = of_pred[m.predicted];
-    m.recall = static_cast<double>(best) / static_cast<double>(m.points);
-    m.precision = static_cast<double>(best) / static_cast<double>(pred_points);
-    m.iou = static_cast<double>(best) / static_cast<double>(m.points + pred_points - best);
-    out.push_back(m);
-  }
-  return out;
+  return table.matches();
 }
 
 std::string Report::toJson() const {
@@ -274,7 +280,7 @@ Report evaluate(const std::vector<std::vector<int>>& pred,
   r.predicted_parts = static_cast<int>(pred_ids.size());
   r.true_parts = static_cast<int>(true_ids.size());
   r.points = static_cast<std::size_t>(pooled.size());
-  r.parts = matchParts(pred, truth);
+  r.parts = pooled.matches();  // the pooled table's counts: no second pass over the labels
 
   if (!positions.empty()) {
     if (positions.size() != pred.size())
